@@ -1,0 +1,47 @@
+# rlexp: `make train` and `make test` set everything up on a fresh machine (Python 3.10+).
+# Re-running does no work: each install step leaves a stamp in .venv/.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+ARGS ?=
+export MUJOCO_GL ?= egl
+
+.PHONY: install train test test-slow lint format bench clean
+
+$(VENV)/.created:
+	$(PYTHON) -m venv $(VENV)
+	touch $@
+
+# torch first, as the local CPU wheel: anything that depends on torch must find it installed.
+$(VENV)/.torch: $(VENV)/.created
+	$(PY) -m pip install --disable-pip-version-check torch==2.13.0
+	touch $@
+
+$(VENV)/.installed: $(VENV)/.torch pyproject.toml
+	$(PY) -m pip install --disable-pip-version-check -e ".[dev]"
+	touch $@
+
+install: $(VENV)/.installed
+
+## Train PPO on the default task (HalfCheetah-v5); pass Hydra overrides with ARGS="env=hopper seed=3".
+train: install
+	$(PY) train.py $(ARGS)
+
+## The default test suite (fast; what CI runs).
+test: install
+	$(PY) -m pytest -q $(ARGS)
+
+## Learning tests (minutes to hours): the agent really improves.
+test-slow: install
+	$(PY) -m pytest -q -m slow $(ARGS)
+
+lint: install
+	$(VENV)/bin/ruff check src tests train.py
+	$(VENV)/bin/ruff format --check src tests train.py
+
+format: install
+	$(VENV)/bin/ruff format src tests train.py
+	$(VENV)/bin/ruff check --fix src tests train.py
+
+clean:
+	rm -rf $(VENV) outputs .pytest_cache

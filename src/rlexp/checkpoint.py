@@ -1,0 +1,91 @@
+"""Checkpoint files: atomic writes, ``weights_only`` loads, and RNG state capture.
+
+A checkpoint is a plain dict of tensors and Python primitives, so ``torch.load(weights_only=True)``
+reads it: ``format``, ``global_step``, ``policy`` (state dict, normaliser statistics included),
+``algorithm`` (optimiser state, iteration), ``windows`` (recent episode returns/lengths), ``rng``
+and ``config`` (the resolved experiment config as a plain dict).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import random
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+FORMAT = "rlexp-checkpoint-v1"
+_STEP_RE = re.compile(r"_step_(\d+)\.pt$")
+
+
+def rng_state() -> dict[str, Any]:
+    """The python, numpy and torch RNG states, as weights_only-loadable values."""
+    np_state = np.random.get_state()
+    return {
+        "python": random.getstate(),
+        "numpy": {
+            "key": torch.from_numpy(np_state[1].astype(np.int64)),
+            "pos": int(np_state[2]),
+            "has_gauss": int(np_state[3]),
+            "cached_gaussian": float(np_state[4]),
+        },
+        "torch": torch.get_rng_state(),
+    }
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    """Restore what ``rng_state`` captured."""
+    random.setstate(state["python"])
+    np_s = state["numpy"]
+    np.random.set_state(
+        ("MT19937", np_s["key"].numpy().astype(np.uint32), np_s["pos"], np_s["has_gauss"], np_s["cached_gaussian"])
+    )
+    torch.set_rng_state(state["torch"])
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> Path:
+    """Write ``state`` to ``path`` atomically (temp file in the same dir, fsync, rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "wb") as f:
+        torch.save({"format": FORMAT, **state}, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    return path
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Load a checkpoint file (``weights_only=True``), or the newest one in a run/checkpoint dir."""
+    p = Path(path)
+    if p.is_dir():
+        p = latest_checkpoint(p)
+    if not p.is_file():
+        raise FileNotFoundError(f"checkpoint {str(p)!r} does not exist")
+    try:
+        ckpt = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise ValueError(f"checkpoint {str(p)!r} is unreadable (truncated or corrupt?): {exc}") from exc
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise ValueError(f"{str(p)!r} is not an rlexp checkpoint (format {FORMAT!r})")
+    ckpt["path"] = str(p)
+    return ckpt
+
+
+def checkpoint_path(ckpt_dir: Path, exp_name: str, global_step: int) -> Path:
+    return ckpt_dir / f"{exp_name}_step_{global_step:09d}.pt"
+
+
+def latest_checkpoint(directory: Path) -> Path:
+    """The checkpoint with the highest step in ``directory`` or its ``checkpoints/`` subdir."""
+    candidates = list(directory.glob("*.pt")) + list((directory / "checkpoints").glob("*.pt"))
+    stepped = [(int(m.group(1)), c) for c in candidates if (m := _STEP_RE.search(c.name))]
+    if not stepped:
+        raise FileNotFoundError(f"no rlexp checkpoint (*_step_N.pt) in {str(directory)!r}")
+    return max(stepped)[1]

@@ -1,0 +1,79 @@
+"""``rlexp`` command: ``rlexp train [overrides]``, ``rlexp eval CHECKPOINT [--episodes N]``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+log = logging.getLogger("rlexp")
+
+
+def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) -> dict[str, float]:
+    """Rebuild the run's env and policy from a checkpoint and evaluate it deterministically."""
+    import numpy as np
+    import torch
+
+    from rlexp.app import seed_everything
+    from rlexp.checkpoint import load_checkpoint
+    from rlexp.config.validate import to_root_config
+    from rlexp.envs.factory import make_env
+    from rlexp.policies.actor_critic import make_policy
+
+    ckpt = load_checkpoint(checkpoint)
+    config = to_root_config(ckpt["config"])
+    e = config.env
+    seed_everything(seed)
+    n = num_envs or max(1, e.num_eval_envs)
+    env = make_env(e, n, seed)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    policy = make_policy(config.policy, obs_dim, env.action_spec.shape[-1], env.action_spec,
+                         e.normalize_observations, e.clip_observations)
+    policy.load_state_dict(ckpt["policy"])
+    act = policy.sampling_policy(deterministic=True)
+    returns: list[float] = []
+    ep_ret = np.zeros(n)
+    with torch.no_grad():
+        td = env.reset()
+        while len(returns) < episodes:
+            out, td = env.step_and_maybe_reset(act(td))
+            ep_ret += out["next", "reward"].reshape(n).numpy()
+            for i in np.flatnonzero(out["next", "done"].reshape(n).numpy()):
+                returns.append(float(ep_ret[i]))
+                ep_ret[i] = 0.0
+    env.close()
+    returns = returns[:episodes]
+    return {"path": ckpt["path"], "global_step": int(ckpt["global_step"]),
+            "mean_return": float(np.mean(returns)), "std_return": float(np.std(returns)), "episodes": len(returns)}
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "train":
+        from rlexp.app import main as train_main
+
+        sys.argv = [sys.argv[0], *argv[1:]]
+        train_main()
+        return
+    parser = argparse.ArgumentParser(prog="rlexp", description="rlexp experiment tools")
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("train", help="train (same as python train.py; Hydra overrides follow)")
+    ev = sub.add_parser("eval", help="evaluate a checkpoint: mean return over N deterministic episodes")
+    ev.add_argument("checkpoint", help="a checkpoint file, or a run dir (its newest checkpoint)")
+    ev.add_argument("--episodes", type=int, default=10)
+    ev.add_argument("--num-envs", type=int, default=None)
+    ev.add_argument("--seed", type=int, default=12345)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.command == "eval":
+        try:
+            res = evaluate(args.checkpoint, args.episodes, args.num_envs, args.seed)
+        except (FileNotFoundError, ValueError) as exc:
+            print(f"rlexp eval: {exc}", file=sys.stderr)
+            sys.exit(2)
+        print(f"checkpoint {res['path']} (step {res['global_step']}): mean return "
+              f"{res['mean_return']:.3f} +- {res['std_return']:.3f} over {res['episodes']} episodes")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,160 @@
+"""Typed schemas of every config group, registered in Hydra's ConfigStore.
+
+Each YAML file in ``conf/<group>/`` names its group schema first in its defaults list (e.g.
+``- ppo_schema``), and the root ``config.yaml`` names ``rlexp_schema``: a misspelled key or a value of
+the wrong type fails when Hydra composes the config, naming the key. Field names follow the TorchRL
+constructor arguments they feed (``clip_epsilon``, ``entropy_coeff``, ``lmbda``, ``frames_per_batch``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from omegaconf import MISSING
+
+from rlexp.config.native_task import EventTermConfig, NativeTaskConfig
+
+
+@dataclass
+class TrainerConfig:
+    """The training loop: budget, collection size, evaluation, checkpoints, device."""
+
+    exp_name: str = "rlexp"  # run name: logger run name and checkpoint prefix
+    total_frames: int = 1_000_000  # env steps to train for, summed over all envs (Collector's total_frames)
+    iterations: int | None = None  # if set, total_frames = iterations * frames_per_batch
+    frames_per_batch: int = 2048  # env steps per rollout, summed over env.num_envs (Collector's frames_per_batch)
+    device: str = "auto"  # auto | cpu | cuda | cuda:N; auto picks CUDA when present
+    eval_every: int = 50_000  # evaluate when global_step crosses a multiple of this (0: never)
+    eval_episodes: int = 10  # episodes per evaluation, spread over env.num_eval_envs
+    save_every: int = 100_000  # checkpoint when global_step crosses a multiple of this (0: only at the end)
+    log_every: int = 1  # log training metrics every this many iterations
+    progress: bool = True  # live progress bar on the console
+    torch_threads: int = 1  # torch intra-op threads; one is fastest for small networks
+
+
+@dataclass
+class MLPConfig:
+    """A plain Linear/activation stack."""
+
+    hidden_sizes: list[int] = field(default_factory=lambda: [64, 64])  # widths of the hidden layers
+    activation: str = "tanh"  # relu | elu | tanh | gelu | silu | swish
+
+
+@dataclass
+class PolicyConfig:
+    """Actor-critic with a Gaussian actor whose log-std is a learned, state-independent vector."""
+
+    name: str = "actor_critic"  # actor_critic (separate actor and critic networks)
+    actor: MLPConfig = field(default_factory=MLPConfig)
+    critic: MLPConfig = field(default_factory=MLPConfig)
+    init_log_std: float = 0.0  # initial log standard deviation of the actions
+    min_log_std: float = -5.0  # log-std is clamped to [min_log_std, max_log_std]
+    max_log_std: float = 2.0
+    ortho_init: bool = True  # orthogonal init (gain sqrt(2), 0.01 for the action mean, 1 for the value)
+
+
+@dataclass
+class AlgorithmConfig:
+    """PPO: TorchRL's ClipPPOLoss + GAE, Adam, epochs x minibatches."""
+
+    name: str = "ppo"
+    # GAE (torchrl.objectives.value.GAE)
+    gamma: float = 0.99  # discount
+    lmbda: float = 0.95  # GAE lambda
+    # ClipPPOLoss (torchrl.objectives.ClipPPOLoss)
+    clip_epsilon: float = 0.2  # ratio clip
+    entropy_coeff: float = 0.0  # entropy bonus weight
+    critic_coeff: float = 0.5  # value loss weight
+    loss_critic_type: str = "l2"  # l1 | l2 | smooth_l1
+    normalize_advantage: bool = True  # normalise advantages per minibatch
+    clip_value: float | None = None  # value clipping range (None: no value clipping)
+    # Optimisation
+    lr: float = 3e-4  # Adam learning rate
+    adam_eps: float = 1e-5  # Adam epsilon
+    anneal_lr: bool = False  # linearly anneal the learning rate to 0 over the run
+    max_grad_norm: float = 0.5  # gradient-norm clipping (<= 0: off)
+    num_epochs: int = 10  # passes over each rollout
+    mini_batch_size: int = 64  # transitions per minibatch
+
+
+@dataclass
+class EnvConfig:
+    """The training (and evaluation) environment."""
+
+    name: str = "HalfCheetah-v5"  # Gymnasium id (backend=gymnasium) or native task (backend=native)
+    backend: str = "gymnasium"  # gymnasium | native
+    num_envs: int = 1  # parallel training envs
+    num_eval_envs: int = 1  # parallel evaluation envs
+    max_episode_steps: int | None = None  # time limit (None: the task's own)
+    normalize_observations: bool = True  # running mean/std normalisation (statistics are checkpointed)
+    clip_observations: float = 10.0  # normalised observations are clipped to +- this
+    vectorization: str = "sync"  # gymnasium vector env mode for num_envs > 1: sync | async
+    kwargs: dict[str, Any] = field(default_factory=dict)  # extra keyword arguments for gymnasium.make
+    native: NativeTaskConfig | None = None  # term configuration of a native task (backend=native)
+
+
+@dataclass
+class EventsConfig:
+    """Events fired by the training and the evaluation event managers, in config order."""
+
+    train: dict[str, EventTermConfig] = field(default_factory=dict)
+    eval: dict[str, EventTermConfig] = field(default_factory=dict)
+
+
+@dataclass
+class TensorBoardConfig:
+    enabled: bool = False  # write TensorBoard event files under <run_dir>/tensorboard
+
+
+@dataclass
+class WandbConfig:
+    enabled: bool = False  # log to Weights & Biases
+    project: str = "rlexp"
+    entity: str | None = None
+    mode: str = "auto"  # auto (offline when no key or network) | online | offline | disabled
+    tags: list[str] = field(default_factory=list)
+
+
+@dataclass
+class LoggerConfig:
+    """Metric sinks; several at once with ``logger=[tensorboard,wandb]``."""
+
+    tensorboard: TensorBoardConfig = field(default_factory=TensorBoardConfig)
+    wandb: WandbConfig = field(default_factory=WandbConfig)
+    jsonl: bool = True  # <run_dir>/metrics.jsonl, one JSON object per logged step
+    console: bool = True  # periodic summary lines through Python logging
+
+
+@dataclass
+class RootConfig:
+    """The whole experiment."""
+
+    seed: int = 0  # seeds python, numpy, torch and the envs
+    trainer: TrainerConfig = MISSING
+    policy: PolicyConfig = MISSING
+    algorithm: AlgorithmConfig = MISSING
+    env: EnvConfig = MISSING
+    events: EventsConfig = MISSING
+    logger: LoggerConfig = MISSING
+
+
+#: group -> (schema name, schema class); each group YAML lists ``<schema name>`` in its defaults.
+GROUP_SCHEMAS: dict[str, tuple[str, type]] = {
+    "trainer": ("trainer_schema", TrainerConfig),
+    "policy": ("policy_schema", PolicyConfig),
+    "algorithm": ("algorithm_schema", AlgorithmConfig),
+    "env": ("env_schema", EnvConfig),
+    "events": ("events_schema", EventsConfig),
+    "logger": ("logger_schema", LoggerConfig),
+}
+
+
+def register_configs() -> None:
+    """Register the root and group schemas in Hydra's ConfigStore (idempotent)."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    cs.store(name="rlexp_schema", node=RootConfig)
+    for group, (name, node) in GROUP_SCHEMAS.items():
+        cs.store(group=group, name=name, node=node)

@@ -1,0 +1,193 @@
+"""Actor-critic: MLP actor with a state-independent Gaussian log-std, MLP critic, shared obs normaliser.
+
+The TorchRL modules (``ProbabilisticActor`` over an ``IndependentNormal``, ``ValueOperator``) are what
+the loss and evaluation use. Collection uses ``SamplingPolicy``: the same parameters, but it samples
+and scores actions with three tensor ops instead of building a distribution object per env step.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from torch import nn
+from torchrl.data import TensorSpec
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
+
+from rlexp.config.schema import MLPConfig, PolicyConfig
+
+ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "relu": nn.ReLU,
+    "elu": nn.ELU,
+    "tanh": nn.Tanh,
+    "gelu": nn.GELU,
+    "silu": nn.SiLU,
+    "swish": nn.SiLU,  # swish is SiLU
+}
+_LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
+
+
+class ObservationNormalizer(nn.Module):
+    """Running mean / variance of observations (parallel Welford), applied as (x - mean) / std.
+
+    The statistics are buffers, so they are part of every ``state_dict`` and checkpoint. They are
+    updated once per rollout, after the PPO update, so that collection, GAE and the update of one
+    iteration all see the same normalisation.
+    """
+
+    def __init__(self, dim: int, clip: float = 10.0, enabled: bool = True, eps: float = 1e-8) -> None:
+        super().__init__()
+        self.enabled = enabled
+        self.clip = clip
+        self.eps = eps
+        self.register_buffer("mean", torch.zeros(dim, dtype=torch.float64))
+        self.register_buffer("var", torch.ones(dim, dtype=torch.float64))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("_scale", torch.ones(dim))
+        self.register_buffer("_shift", torch.zeros(dim))
+
+    @torch.no_grad()
+    def update(self, obs: torch.Tensor) -> None:
+        if not self.enabled:
+            return
+        x = obs.reshape(-1, obs.shape[-1]).to(torch.float64)
+        n = x.shape[0]
+        if n == 0:
+            return
+        b_mean = x.mean(0)
+        b_var = x.var(0, unbiased=False)
+        total = self.count + n
+        delta = b_mean - self.mean
+        new_mean = self.mean + delta * n / total
+        m2 = self.var * self.count + b_var * n + delta.pow(2) * self.count * n / total
+        self.mean.copy_(new_mean)
+        self.var.copy_(m2 / total)
+        self.count.copy_(total)
+        std = torch.sqrt(self.var + self.eps)
+        self._scale.copy_((1.0 / std).to(self._scale.dtype))
+        self._shift.copy_((-self.mean / std).to(self._shift.dtype))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if not self.enabled:
+            return obs
+        return torch.clamp(obs * self._scale + self._shift, -self.clip, self.clip)
+
+
+def make_mlp(in_dim: int, out_dim: int, cfg: MLPConfig, key: str) -> nn.Sequential:
+    """Linear/activation stack ``in_dim -> hidden_sizes -> out_dim`` (no output activation)."""
+    if cfg.activation not in ACTIVATIONS:
+        raise ValueError(f"{key}.activation={cfg.activation!r}; choose from {sorted(ACTIVATIONS)}")
+    layers: list[nn.Module] = []
+    last = in_dim
+    for width in cfg.hidden_sizes:
+        layers += [nn.Linear(last, width), ACTIVATIONS[cfg.activation]()]
+        last = width
+    layers.append(nn.Linear(last, out_dim))
+    return nn.Sequential(*layers)
+
+
+def _ortho_init(mlp: nn.Sequential, last_gain: float) -> None:
+    linears = [m for m in mlp if isinstance(m, nn.Linear)]
+    for i, lin in enumerate(linears):
+        nn.init.orthogonal_(lin.weight, gain=last_gain if i == len(linears) - 1 else math.sqrt(2))
+        nn.init.zeros_(lin.bias)
+
+
+class GaussianActorNet(nn.Module):
+    """obs -> (loc, scale) with a learned state-independent log-std, clamped to its bounds."""
+
+    def __init__(self, normalizer: ObservationNormalizer, mlp: nn.Sequential, act_dim: int, cfg: PolicyConfig):
+        super().__init__()
+        self.normalizer = normalizer
+        self.mlp = mlp
+        self.log_std = nn.Parameter(torch.full((act_dim,), float(cfg.init_log_std)))
+        self.min_log_std = cfg.min_log_std
+        self.max_log_std = cfg.max_log_std
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = self.mlp(self.normalizer(obs))
+        scale = torch.clamp(self.log_std, self.min_log_std, self.max_log_std).exp().expand_as(loc)
+        return loc, scale
+
+
+class CriticNet(nn.Module):
+    """obs -> state value."""
+
+    def __init__(self, normalizer: ObservationNormalizer, mlp: nn.Sequential):
+        super().__init__()
+        self.normalizer = normalizer
+        self.mlp = mlp
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.mlp(self.normalizer(obs))
+
+
+class SamplingPolicy(TensorDictModuleBase):
+    """Collection policy: samples a ~ N(loc, scale) and writes its log-prob, with plain tensor ops.
+
+    Same parameters as the ``ProbabilisticActor``, same keys (``loc``, ``scale``, ``action``,
+    ``action_log_prob``), and the same log-density as ``IndependentNormal`` (tested).
+    """
+
+    def __init__(self, actor_net: GaussianActorNet, deterministic: bool = False) -> None:
+        super().__init__()
+        self.actor_net = actor_net
+        self.deterministic = deterministic
+        self.in_keys = ["observation"]
+        self.out_keys = ["loc", "scale", "action", "action_log_prob"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        loc, scale = self.actor_net(tensordict.get("observation"))
+        if self.deterministic:
+            action = loc
+            log_prob = (-scale.log() - _LOG_SQRT_2PI).sum(-1)
+        else:
+            noise = torch.randn_like(loc)
+            action = loc + scale * noise
+            log_prob = (-0.5 * noise.pow(2) - scale.log() - _LOG_SQRT_2PI).sum(-1)
+        tensordict.set("loc", loc)
+        tensordict.set("scale", scale)
+        tensordict.set("action", action)
+        tensordict.set("action_log_prob", log_prob)
+        return tensordict
+
+
+class ActorCritic(nn.Module):
+    """Holds the normaliser, actor and critic; its ``state_dict`` is the policy part of a checkpoint."""
+
+    def __init__(self, cfg: PolicyConfig, obs_dim: int, act_dim: int, action_spec: TensorSpec,
+                 normalize_observations: bool = True, clip_observations: float = 10.0) -> None:
+        super().__init__()
+        if cfg.name != "actor_critic":
+            raise ValueError(f"policy.name={cfg.name!r}; rlexp's PPO supports 'actor_critic'")
+        self.normalizer = ObservationNormalizer(obs_dim, clip_observations, normalize_observations)
+        actor_mlp = make_mlp(obs_dim, act_dim, cfg.actor, "policy.actor")
+        critic_mlp = make_mlp(obs_dim, 1, cfg.critic, "policy.critic")
+        if cfg.ortho_init:
+            _ortho_init(actor_mlp, 0.01)
+            _ortho_init(critic_mlp, 1.0)
+        self.actor_net = GaussianActorNet(self.normalizer, actor_mlp, act_dim, cfg)
+        self.critic_net = CriticNet(self.normalizer, critic_mlp)
+        self.actor = ProbabilisticActor(
+            TensorDictModule(self.actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
+            in_keys=["loc", "scale"],
+            distribution_class=IndependentNormal,
+            return_log_prob=True,
+            log_prob_key="action_log_prob",
+            spec=action_spec,
+            default_interaction_type=ExplorationType.RANDOM,
+        )
+        self.critic = ValueOperator(self.critic_net, in_keys=["observation"])
+
+    def sampling_policy(self, deterministic: bool = False) -> SamplingPolicy:
+        """The fast collection policy (``deterministic``: the mean action, for evaluation)."""
+        return SamplingPolicy(self.actor_net, deterministic)
+
+
+def make_policy(cfg: PolicyConfig, obs_dim: int, act_dim: int, action_spec: TensorSpec,
+                normalize_observations: bool = True, clip_observations: float = 10.0) -> ActorCritic:
+    """Build the actor-critic for an env with ``obs_dim`` observations and ``act_dim`` actions."""
+    return ActorCritic(cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations)
