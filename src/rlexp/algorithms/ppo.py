@@ -13,6 +13,17 @@ from rlexp.policies.actor_critic import ActorCritic
 LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy")
 
 
+def make_gae(cfg: AlgorithmConfig, value_network) -> GAE:
+    """TorchRL's GAE: bootstraps from V(next obs) unless ``terminated``; ``done`` cuts the trace."""
+    return GAE(
+        gamma=cfg.gamma,
+        lmbda=cfg.lmbda,
+        value_network=value_network,
+        average_gae=False,
+        differentiable=False,
+    )
+
+
 class PPO:
     """One PPO learner: ``update(batch)`` runs GAE then the clipped-surrogate epochs on a rollout."""
 
@@ -26,13 +37,7 @@ class PPO:
         self.cfg = cfg
         self.policy = policy
         self.total_iterations = max(1, total_iterations)
-        self.gae = GAE(
-            gamma=cfg.gamma,
-            lmbda=cfg.lmbda,
-            value_network=policy.critic,
-            average_gae=False,
-            differentiable=False,
-        )
+        self.gae = make_gae(cfg, policy.critic)
         self.loss = ClipPPOLoss(
             actor_network=policy.actor,
             critic_network=policy.critic,

@@ -1,0 +1,1 @@
+"""Environments: native batched MuJoCo tasks (``rlexp.envs.native``) and the Gymnasium adapter."""

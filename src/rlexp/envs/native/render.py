@@ -1,0 +1,116 @@
+"""Offscreen RGB frames of one env with ``mujoco.Renderer`` and a free camera placed by eye/target/up.
+
+The OpenGL backend is chosen when ``rlexp.envs.native`` is imported, before MuJoCo is: ``MUJOCO_GL``
+if set, else EGL when libEGL is found, else OSMesa (software) when libOSMesa is found. Debian
+packages: ``libegl1`` (+ a Mesa driver: ``libegl-mesa0``, ``libgl1-mesa-dri``) for EGL, or
+``libosmesa6`` for OSMesa.
+"""
+
+from __future__ import annotations
+
+import ctypes.util
+import math
+import os
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import mujoco
+
+    from rlexp.envs.native.env import NativeEnv
+
+
+def choose_gl_backend() -> str | None:
+    """Set ``MUJOCO_GL`` (if unset) to egl, else osmesa, whichever library is installed."""
+    if os.environ.get("MUJOCO_GL"):
+        return os.environ["MUJOCO_GL"]
+    for backend, lib in (("egl", "EGL"), ("osmesa", "OSMesa")):
+        if ctypes.util.find_library(lib):
+            os.environ["MUJOCO_GL"] = backend
+            if backend == "osmesa":
+                os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+            return backend
+    return None
+
+
+def _renderer(env: NativeEnv, width: int, height: int) -> mujoco.Renderer:
+    import mujoco
+
+    key = (width, height)
+    if key not in env._renderers:
+        try:
+            env._renderers[key] = mujoco.Renderer(env.model, height=height, width=width)
+        except Exception as exc:  # GL context creation failures come as several types
+            raise RuntimeError(
+                f"offscreen rendering failed with MUJOCO_GL={os.environ.get('MUJOCO_GL')!r}: {exc}. "
+                "Install libegl1 + libegl-mesa0 (MUJOCO_GL=egl) or libosmesa6 (MUJOCO_GL=osmesa) and "
+                "set MUJOCO_GL before anything imports mujoco."
+            ) from exc
+    return env._renderers[key]
+
+
+def render_frame(
+    env: NativeEnv,
+    data: mujoco.MjData,
+    width: int,
+    height: int,
+    eye: tuple[float, float, float],
+    target: tuple[float, float, float],
+    up: tuple[float, float, float],
+    fovy: float | None,
+    intrinsics: tuple[float, float, float, float] | None,
+) -> np.ndarray:
+    """Render ``data`` (already forwarded) from ``eye`` towards ``target``; returns (H, W, 3) uint8."""
+    import mujoco
+
+    if fovy is not None and intrinsics is not None:
+        raise ValueError("render: give fovy or intrinsics, not both")
+    model = env.model
+    if width > model.vis.global_.offwidth or height > model.vis.global_.offheight:
+        raise ValueError(
+            f"render: {width}x{height} exceeds the offscreen buffer "
+            f"{model.vis.global_.offwidth}x{model.vis.global_.offheight} of {env.task_spec.asset}"
+        )
+    renderer = _renderer(env, width, height)
+    eye_a, target_a = np.asarray(eye, float), np.asarray(target, float)
+    forward = target_a - eye_a
+    dist = float(np.linalg.norm(forward))
+    if dist < 1e-9:
+        raise ValueError("render: eye and target coincide")
+    forward /= dist
+    up_a = np.asarray(up, float)
+    up_a = up_a - forward * float(up_a @ forward)  # orthogonalise
+    if np.linalg.norm(up_a) < 1e-9:
+        raise ValueError("render: up is parallel to the viewing direction")
+    up_a /= np.linalg.norm(up_a)
+
+    cam = mujoco.MjvCamera()
+    cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+    cam.lookat[:] = target_a
+    cam.distance = dist
+    cam.azimuth = math.degrees(math.atan2(forward[1], forward[0]))
+    cam.elevation = math.degrees(math.asin(float(np.clip(forward[2], -1, 1))))
+    renderer.update_scene(data, camera=cam)
+    # Place the GL cameras exactly (the free camera has no roll) and set the projection.
+    near = model.vis.map.znear * model.stat.extent
+    for glcam in renderer.scene.camera:
+        glcam.pos[:] = eye_a
+        glcam.forward[:] = forward
+        glcam.up[:] = up_a
+        glcam.frustum_near = near
+        glcam.frustum_far = model.vis.map.zfar * model.stat.extent
+        if intrinsics is not None:
+            fx, fy, cx, cy = (float(v) for v in intrinsics)
+            left, right = -near * cx / fx, near * (width - cx) / fx
+            glcam.frustum_top = near * cy / fy
+            glcam.frustum_bottom = -near * (height - cy) / fy
+            glcam.frustum_center = 0.5 * (left + right)
+            glcam.frustum_width = 0.5 * (right - left)
+        else:
+            half = math.radians(fovy if fovy is not None else model.vis.global_.fovy) / 2
+            glcam.frustum_top = near * math.tan(half)
+            glcam.frustum_bottom = -glcam.frustum_top
+            glcam.frustum_center = 0.0
+            glcam.frustum_width = glcam.frustum_top * width / height
+    return renderer.render()

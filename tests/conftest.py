@@ -1,0 +1,68 @@
+"""Shared test fixtures: Hydra composition of the real conf/, and the repository's paths."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("WANDB_MODE", "offline")
+
+REPO = Path(__file__).resolve().parents[1]
+CONF_DIR = REPO / "conf"
+SHARED = REPO.parent / "shared"
+sys.path.insert(0, str(REPO / "src"))
+
+
+def compose(overrides: list[str] | None = None):
+    """Compose conf/config.yaml with ``overrides`` exactly as ``python train.py`` would."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from rlexp.config.schema import register_configs
+
+    register_configs()
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return hydra_compose(config_name="config", overrides=list(overrides or []))
+
+
+def run_train(args: list[str], cwd: Path, timeout: float = 300, check: bool = True, **kw) -> subprocess.CompletedProcess:
+    """``python train.py ARGS`` in a subprocess, in ``cwd``."""
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "train.py"), *args],
+        cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env, **kw,
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"train.py {args} exited {proc.returncode}\nSTDOUT:\n{proc.stdout}\nSTDERR:\n{proc.stderr}")
+    return proc
+
+
+def only_run_dir(root: Path) -> Path:
+    """The single run dir Hydra created under ``root/outputs``."""
+    dirs = [p.parent for p in root.glob("outputs/*/*/config.yaml")]
+    assert len(dirs) == 1, f"expected one run dir under {root}/outputs, found {dirs}"
+    return dirs[0]
+
+
+#: Overrides that make a full training run take a few seconds.
+TINY = [
+    "env=inverted_pendulum",
+    "trainer.total_frames=512",
+    "trainer.frames_per_batch=256",
+    "trainer.eval_every=256",
+    "trainer.eval_episodes=2",
+    "trainer.save_every=256",
+    "algorithm.num_epochs=2",
+]
+
+
+@pytest.fixture
+def tiny_overrides() -> list[str]:
+    return list(TINY)

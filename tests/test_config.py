@@ -1,0 +1,117 @@
+"""Every file in conf/ composes and builds; mistakes fail at compose time naming the key."""
+
+from __future__ import annotations
+
+import pytest
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigKeyError, ValidationError
+
+from conftest import CONF_DIR, compose, run_train
+from rlexp.config.schema import GROUP_SCHEMAS, RootConfig
+from rlexp.config.validate import ConfigError, to_root_config
+
+GROUP_OPTIONS = [
+    (group, path.stem)
+    for group in GROUP_SCHEMAS
+    for path in sorted((CONF_DIR / group).glob("*.yaml"))
+]
+
+
+def test_every_group_has_options_and_names_its_schema():
+    for group, (schema_name, _) in GROUP_SCHEMAS.items():
+        files = sorted((CONF_DIR / group).glob("*.yaml"))
+        assert files, f"conf/{group}/ is empty"
+        for f in files:
+            assert f"- {schema_name}" in f.read_text(), f"{f} does not name {schema_name} in its defaults"
+
+
+@pytest.mark.parametrize(("group", "option"), GROUP_OPTIONS, ids=[f"{g}={o}" for g, o in GROUP_OPTIONS])
+def test_every_conf_file_composes_to_a_typed_config(group, option):
+    config = to_root_config(compose([f"{group}={option}"]))
+    assert isinstance(config, RootConfig)
+
+
+@pytest.mark.parametrize("option", sorted(p.stem for p in (CONF_DIR / "env").glob("*.yaml")))
+def test_every_env_builds_with_policy_and_ppo(option):
+    from rlexp.algorithms.ppo import make_algorithm
+    from rlexp.envs.factory import make_env
+    from rlexp.policies.actor_critic import make_policy
+
+    config = to_root_config(compose([f"env={option}", "env.num_envs=2", "trainer.frames_per_batch=64"]))
+    env = make_env(config.env, 2, seed=0)
+    try:
+        obs_dim = env.observation_spec["observation"].shape[-1]
+        policy = make_policy(config.policy, obs_dim, env.action_spec.shape[-1], env.action_spec)
+        make_algorithm(config.algorithm, policy, total_iterations=1)
+        td = env.reset()
+        assert td["observation"].dtype.is_floating_point and td["observation"].shape == (2, obs_dim)
+        out = env.rand_step(td)
+        assert out["next", "reward"].shape == (2, 1)
+    finally:
+        env.close()
+
+
+def test_override_syntax_as_hydra_users_expect():
+    config = to_root_config(compose(["env=hopper", "algorithm.clip_epsilon=0.1", "seed=3"]))
+    assert config.env.name == "Hopper-v5"
+    assert config.algorithm.clip_epsilon == 0.1
+    assert config.seed == 3
+
+
+def test_misspelled_key_fails_at_compose_naming_the_key():
+    with pytest.raises((ConfigCompositionException, ConfigKeyError)) as err:
+        compose(["algorithm.clip_epsiln=0.1"])
+    assert "clip_epsiln" in str(err.value)
+
+
+def test_misspelled_key_in_a_yaml_file_fails(tmp_path):
+    # A group file that misspells a field is rejected against its schema.
+    import shutil
+
+    from hydra import compose as hcompose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    conf = tmp_path / "conf"
+    shutil.copytree(CONF_DIR, conf)
+    (conf / "algorithm" / "typo.yaml").write_text("defaults:\n  - algorithm_schema\n  - _self_\nclip_epsiln: 0.3\n")
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        with pytest.raises(Exception) as err:
+            hcompose(config_name="config", overrides=["algorithm=typo"])
+    assert "clip_epsiln" in str(err.value)
+
+
+def test_wrong_type_fails_at_compose_naming_the_key():
+    with pytest.raises((ConfigCompositionException, ValidationError)) as err:
+        compose(["algorithm.num_epochs=ten"])
+    msg = str(err.value)
+    assert "num_epochs" in msg and "ten" in msg
+
+
+def test_cross_field_rule_names_both_keys():
+    with pytest.raises(ConfigError) as err:
+        to_root_config(compose(["env.num_envs=3", "trainer.frames_per_batch=1000"]))
+    assert "trainer.frames_per_batch=1000" in str(err.value) and "env.num_envs=3" in str(err.value)
+
+
+def test_unknown_gym_env_suggests_the_closest(tmp_path):
+    from rlexp.envs.gym import check_gym_id
+
+    with pytest.raises(KeyError) as err:
+        check_gym_id("HalfCheeta-v5")
+    assert "HalfCheetah-v5" in str(err.value)
+
+
+def test_bad_override_on_the_command_line_is_one_clear_error(tmp_path):
+    proc = run_train(["algorithm.clip_epsiln=0.1"], cwd=tmp_path, check=False, timeout=120)
+    assert proc.returncode != 0
+    assert "clip_epsiln" in proc.stderr + proc.stdout
+    assert not (tmp_path / "outputs").exists()
+
+
+def test_cross_field_error_on_the_command_line_exits_2(tmp_path):
+    proc = run_train(["env.num_envs=3", "trainer.frames_per_batch=1000"], cwd=tmp_path, check=False, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert "trainer.frames_per_batch=1000" in proc.stderr + proc.stdout
+    assert "Traceback" not in proc.stderr

@@ -1,0 +1,103 @@
+"""GAE against numbers worked out by hand; the collection policy's log-density against TorchRL's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.modules import ValueOperator
+
+from rlexp.algorithms.ppo import make_gae
+from rlexp.config.schema import AlgorithmConfig, PolicyConfig
+from rlexp.policies.actor_critic import ObservationNormalizer, make_policy
+
+
+class _ObsIsValue(torch.nn.Module):
+    def forward(self, obs):
+        return obs
+
+
+def _gae(terminated, truncated):
+    """gamma 0.9, lambda 0.8; V(s_t) = [0.5, 1.0, 1.5], V(s_t+1) = [1.0, 1.5, 2.0], r = [1, 2, 3]."""
+    cfg = AlgorithmConfig(gamma=0.9, lmbda=0.8)
+    gae = make_gae(cfg, ValueOperator(_ObsIsValue(), in_keys=["observation"]))
+    term = torch.tensor(terminated).reshape(1, 3, 1)
+    trunc = torch.tensor(truncated).reshape(1, 3, 1)
+    td = TensorDict(
+        {
+            "observation": torch.tensor([[0.5], [1.0], [1.5]]).reshape(1, 3, 1),
+            "next": {
+                "observation": torch.tensor([[1.0], [1.5], [2.0]]).reshape(1, 3, 1),
+                "reward": torch.tensor([1.0, 2.0, 3.0]).reshape(1, 3, 1),
+                "terminated": term,
+                "truncated": trunc,
+                "done": term | trunc,
+            },
+        },
+        batch_size=[1, 3],
+    )
+    gae(td)
+    return td["advantage"].reshape(-1).tolist(), td["value_target"].reshape(-1).tolist()
+
+
+def test_gae_without_episode_end():
+    # delta = r + 0.9 V' - V = [1.4, 2.35, 3.3]; A2 = 3.3; A1 = 2.35 + 0.72 * 3.3; A0 = 1.4 + 0.72 * A1
+    adv, target = _gae([False, False, False], [False, False, False])
+    assert adv == pytest.approx([4.80272, 4.726, 3.3], abs=1e-5)
+    assert target == pytest.approx([4.80272 + 0.5, 4.726 + 1.0, 3.3 + 1.5], abs=1e-5)
+
+
+def test_gae_termination_does_not_bootstrap():
+    # terminated at t=1: delta1 = 2 - 1.0 = 1.0, trace cut; A0 = 1.4 + 0.72 * 1.0
+    adv, _ = _gae([False, True, False], [False, False, False])
+    assert adv == pytest.approx([2.12, 1.0, 3.3], abs=1e-5)
+
+
+def test_gae_truncation_bootstraps_from_the_final_observation():
+    # truncated at t=1: delta1 = 2 + 0.9 * 1.5 - 1.0 = 2.35 (bootstrapped), trace cut; A0 = 1.4 + 0.72 * 2.35
+    adv, _ = _gae([False, False, False], [False, True, False])
+    assert adv == pytest.approx([3.092, 2.35, 3.3], abs=1e-5)
+
+
+def _policy():
+    from torchrl.data import Bounded
+
+    spec = Bounded(-1.0, 1.0, shape=(5, 3))
+    torch.manual_seed(0)
+    pol = make_policy(PolicyConfig(init_log_std=-0.3), obs_dim=4, act_dim=3, action_spec=spec)
+    with torch.no_grad():
+        pol.actor_net.log_std.copy_(torch.tensor([-0.5, 0.0, 0.4]))
+    return pol
+
+
+def test_sampling_policy_log_prob_matches_torchrl_distribution():
+    pol = _policy()
+    td = TensorDict({"observation": torch.randn(5, 4)}, batch_size=[5])
+    out = pol.sampling_policy()(td.clone())
+    dist = pol.actor.get_dist(td.clone())
+    ref = dist.log_prob(out["action"])
+    torch.testing.assert_close(out["action_log_prob"], ref, rtol=1e-5, atol=1e-5)
+    assert not torch.equal(out["action"], out["loc"])  # it sampled
+
+
+def test_deterministic_policy_returns_the_mean():
+    pol = _policy()
+    td = TensorDict({"observation": torch.randn(5, 4)}, batch_size=[5])
+    out = pol.sampling_policy(deterministic=True)(td.clone())
+    torch.testing.assert_close(out["action"], out["loc"])
+
+
+def test_observation_normalizer_matches_numpy_over_batches():
+    rng = np.random.default_rng(0)
+    data = [rng.normal(3.0, 2.0, size=(n, 4)).astype(np.float32) for n in (7, 100, 33)]
+    norm = ObservationNormalizer(4)
+    for batch in data:
+        norm.update(torch.from_numpy(batch))
+    allx = np.concatenate(data).astype(np.float64)
+    np.testing.assert_allclose(norm.mean.numpy(), allx.mean(0), rtol=1e-10)
+    np.testing.assert_allclose(norm.var.numpy(), allx.var(0), rtol=1e-10)
+    x = torch.from_numpy(data[0])
+    expected = np.clip((data[0] - allx.mean(0)) / np.sqrt(allx.var(0) + 1e-8), -10, 10)
+    np.testing.assert_allclose(norm(x).numpy(), expected, rtol=1e-5, atol=1e-5)
+    assert "mean" in norm.state_dict() and "count" in norm.state_dict()

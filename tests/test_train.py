@@ -1,0 +1,95 @@
+"""The command lines users type, in a subprocess on tiny budgets."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import torch
+
+from conftest import REPO, TINY, only_run_dir, run_train
+from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+
+
+def test_train_writes_tensorboard_metrics_and_checkpoints_and_eval_reloads(tmp_path):
+    run_train(TINY, cwd=tmp_path)
+    run_dir = only_run_dir(tmp_path)
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir / "tensorboard"))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    for tag in ("train/episode_return", "train/episode_length", "loss/policy", "loss/value",
+                "perf/sps", "eval/episode_return", "eval/episode_length"):
+        assert tag in tags, f"{tag} missing from TensorBoard; have {sorted(tags)}"
+    assert [e.step for e in acc.Scalars("loss/policy")] == [256, 512]
+
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert any("loss/policy" in r for r in rows) and any("eval/episode_return" in r for r in rows)
+    assert max(r["step"] for r in rows) == 512
+
+    ckpts = sorted((run_dir / "checkpoints").glob("*.pt"))
+    assert [c.name for c in ckpts] == ["InvertedPendulum-v5_ppo_step_000000256.pt",
+                                       "InvertedPendulum-v5_ppo_step_000000512.pt"]
+    ckpt = load_checkpoint(ckpts[-1])  # weights_only=True inside
+    assert ckpt["global_step"] == 512
+    assert {"policy", "algorithm", "windows", "rng", "config"} <= set(ckpt)
+    assert "normalizer.mean" in ckpt["policy"] and float(ckpt["policy"]["normalizer.count"]) == 512
+    assert ckpt["algorithm"]["optimizer"]["state"], "optimiser state missing"
+    assert (run_dir / "config.yaml").is_file() and (run_dir / ".hydra" / "config.yaml").is_file()
+
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    proc = subprocess.run([sys.executable, "-m", "rlexp.cli", "eval", str(ckpts[-1]), "--episodes", "3"],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "mean return" in proc.stdout and "over 3 episodes" in proc.stdout
+    # A run dir works too (newest checkpoint).
+    assert latest_checkpoint(run_dir) == ckpts[-1]
+
+
+def _params(run_root):
+    ckpt = load_checkpoint(latest_checkpoint(only_run_dir(run_root)))
+    return ckpt["policy"]
+
+
+def test_same_seed_gives_identical_parameters(tmp_path):
+    for name, seed in (("a", 7), ("b", 7), ("c", 8)):
+        (tmp_path / name).mkdir()
+        run_train([*TINY, f"seed={seed}", "trainer.eval_every=0"], cwd=tmp_path / name)
+    a, b, c = (_params(tmp_path / n) for n in "abc")
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), f"{key} differs between two runs with the same seed"
+    assert any(not torch.equal(a[k], c[k]) for k in a), "a different seed gave identical parameters"
+
+
+def test_ctrl_c_saves_a_checkpoint_and_exits_0(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    console = open(tmp_path / "console.txt", "w")  # a file, not a pipe: a full pipe would block the child
+    proc = subprocess.Popen(
+        [sys.executable, str(REPO / "train.py"), "env=inverted_pendulum", "trainer.total_frames=10000000",
+         "trainer.frames_per_batch=256", "trainer.save_every=0", "trainer.eval_every=0"],
+        cwd=tmp_path, env=env, stdout=console, stderr=subprocess.STDOUT, text=True,
+    )
+    deadline = time.time() + 120
+    log_file = None
+    while time.time() < deadline:
+        logs = list(tmp_path.glob("outputs/*/*/train.log"))
+        if logs and "[train] step=512" in logs[0].read_text():
+            log_file = logs[0]
+            break
+        time.sleep(0.2)
+    assert log_file is not None, "training did not start"
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout=120)
+    console.close()
+    assert proc.returncode == 0, (tmp_path / "console.txt").read_text()
+    run_dir = log_file.parent
+    ckpt = load_checkpoint(latest_checkpoint(run_dir))
+    assert ckpt["global_step"] >= 512
+    assert "interrupted" in log_file.read_text()
