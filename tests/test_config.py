@@ -115,3 +115,10 @@ def test_cross_field_error_on_the_command_line_exits_2(tmp_path):
     assert proc.returncode == 2, proc.stderr
     assert "trainer.frames_per_batch=1000" in proc.stderr + proc.stdout
     assert "Traceback" not in proc.stderr
+
+
+def test_several_loggers_at_once():
+    config = to_root_config(compose(["logger=[tensorboard,wandb]"]))
+    assert config.logger.tensorboard.enabled and config.logger.wandb.enabled
+    config = to_root_config(compose(["logger=none"]))
+    assert not config.logger.tensorboard.enabled and not config.logger.wandb.enabled

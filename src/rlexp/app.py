@@ -52,6 +52,7 @@ def train(config: RootConfig, run_dir: Path) -> dict[str, float]:
     """Build envs, policy, PPO, loggers and Trainer from ``config``; train; return the last eval."""
     import torch
 
+    from rlexp import _speedups
     from rlexp.algorithms.ppo import make_algorithm
     from rlexp.envs.factory import make_env
     from rlexp.events import EventManager
@@ -60,6 +61,7 @@ def train(config: RootConfig, run_dir: Path) -> dict[str, float]:
     from rlexp.trainer import Trainer
 
     t, e = config.trainer, config.env
+    _speedups.apply()
     torch.set_num_threads(t.torch_threads)
     device = resolve_device(t.device)
     seed_everything(config.seed)

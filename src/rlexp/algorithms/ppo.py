@@ -80,9 +80,10 @@ class PPO:
         sums = {k: torch.zeros(()) for k in (*LOSS_KEYS, "grad_norm", "clip_fraction", "kl_approx")}
         count = 0
         for _ in range(self.cfg.num_epochs):
-            perm = torch.randperm(n)
+            # One gather per epoch, then contiguous slices: cheaper than indexing every minibatch.
+            shuffled = flat[torch.randperm(n)]
             for start in range(0, n - mb + 1, mb):
-                minibatch = flat[perm[start : start + mb]]
+                minibatch = shuffled[start : start + mb]
                 out = self.loss(minibatch)
                 total = out["loss_objective"] + out["loss_critic"]
                 if "loss_entropy" in out.keys():

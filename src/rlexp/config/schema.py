@@ -127,6 +127,18 @@ class LoggerConfig:
 
 
 @dataclass
+class LoggerGroupSchema(LoggerConfig):
+    """The schema the ``logger/*.yaml`` files name. Its fields are MISSING so that merging it again
+    for a second selected logger (``logger=[tensorboard,wandb]``) keeps what the first one set; the
+    root schema supplies the real defaults."""
+
+    tensorboard: TensorBoardConfig = MISSING
+    wandb: WandbConfig = MISSING
+    jsonl: bool = MISSING
+    console: bool = MISSING
+
+
+@dataclass
 class RootConfig:
     """The whole experiment."""
 
@@ -146,7 +158,7 @@ GROUP_SCHEMAS: dict[str, tuple[str, type]] = {
     "algorithm": ("algorithm_schema", AlgorithmConfig),
     "env": ("env_schema", EnvConfig),
     "events": ("events_schema", EventsConfig),
-    "logger": ("logger_schema", LoggerConfig),
+    "logger": ("logger_schema", LoggerGroupSchema),
 }
 
 
