@@ -21,7 +21,7 @@ def test_truncation_keeps_final_observation_and_resets_inside_step():
     env = GymnasiumEnv("InvertedPendulum-v5", num_envs=2, max_episode_steps=5)
     env.set_seed(0)
     td = env.reset()
-    for t in range(5):
+    for _ in range(5):
         td["action"] = torch.zeros(2, 1)
         out, td = env.step_and_maybe_reset(td)
     nxt = out["next"]
