@@ -25,14 +25,21 @@ log = logging.getLogger(__name__)
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
-def resolve_device(device: str) -> str:
-    """``auto`` -> ``cuda`` when a GPU is visible, else ``cpu``."""
+def resolve_device(device: str, strict: bool = False) -> str:
+    """``auto`` -> ``cuda`` when a GPU is visible, else ``cpu``; CUDA asked on a CPU-only machine
+    falls back to CPU with one warning unless ``strict``."""
     import torch
 
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
     if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"trainer.device={device!r} but CUDA is not available on this machine; use auto or cpu")
+        if strict:
+            raise ConfigError(
+                f"trainer.device={device!r} but CUDA is not available on this machine "
+                "(trainer.strict_device=true); use trainer.device=auto or cpu"
+            )
+        log.warning("trainer.device=%r but CUDA is not available: running on cpu", device)
+        return "cpu"
     return device
 
 
@@ -63,9 +70,10 @@ def train(config: RootConfig, run_dir: Path) -> dict[str, float]:
     t, e = config.trainer, config.env
     _speedups.apply()
     torch.set_num_threads(t.torch_threads)
-    device = resolve_device(t.device)
+    device = resolve_device(t.device, t.strict_device)
     seed_everything(config.seed)
     run_dir.mkdir(parents=True, exist_ok=True)
+    t.device = device  # the saved config records the device actually used
     config_dict = to_dict(config)
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(config_dict)))
     log.info("run dir: %s (device %s, seed %d)", run_dir, device, config.seed)

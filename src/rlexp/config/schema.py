@@ -25,6 +25,7 @@ class TrainerConfig:
     iterations: int | None = None  # if set, total_frames = iterations * frames_per_batch
     frames_per_batch: int = 2048  # env steps per rollout, summed over env.num_envs (Collector's frames_per_batch)
     device: str = "auto"  # auto | cpu | cuda | cuda:N; auto picks CUDA when present
+    strict_device: bool = False  # a CUDA device on a machine without CUDA: error (true) or CPU + warning
     eval_every: int = 50_000  # evaluate when global_step crosses a multiple of this (0: never)
     eval_episodes: int = 10  # episodes per evaluation, spread over env.num_eval_envs
     save_every: int = 100_000  # checkpoint when global_step crosses a multiple of this (0: only at the end)
