@@ -33,9 +33,12 @@ def test_train_writes_tensorboard_metrics_and_checkpoints_and_eval_reloads(tmp_p
     assert any("loss/policy" in r for r in rows) and any("eval/episode_return" in r for r in rows)
     assert max(r["step"] for r in rows) == 512
 
-    ckpts = sorted((run_dir / "checkpoints").glob("*.pt"))
+    ckpts = sorted((run_dir / "checkpoints").glob("*_step_*.pt"))
     assert [c.name for c in ckpts] == ["InvertedPendulum-v5_ppo_step_000000256.pt",
                                        "InvertedPendulum-v5_ppo_step_000000512.pt"]
+    best = load_checkpoint(run_dir / "checkpoints" / "best.pt")
+    evals = [r["eval/episode_return"] for r in rows if "eval/episode_return" in r]
+    assert best["best_metric"] == max(evals) and best["last_eval"]["eval/episode_return"] == max(evals)
     ckpt = load_checkpoint(ckpts[-1])  # weights_only=True inside
     assert ckpt["global_step"] == 512
     assert {"policy", "algorithm", "windows", "rng", "config"} <= set(ckpt)

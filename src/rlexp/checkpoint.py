@@ -49,12 +49,28 @@ def set_rng_state(state: dict[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
 
 
+def to_storable(obj: Any) -> Any:
+    """numpy arrays and scalars -> tensors / Python numbers, recursively, so that
+    ``torch.load(weights_only=True)`` can read the result."""
+    if isinstance(obj, np.ndarray):
+        return torch.from_numpy(obj.copy())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, dict):
+        return {k: to_storable(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [to_storable(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(to_storable(v) for v in obj)
+    return obj
+
+
 def save_checkpoint(path: Path, state: dict[str, Any]) -> Path:
     """Write ``state`` to ``path`` atomically (temp file in the same dir, fsync, rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     with open(tmp, "wb") as f:
-        torch.save({"format": FORMAT, **state}, f)
+        torch.save(to_storable({"format": FORMAT, **state}), f)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
@@ -82,10 +98,34 @@ def checkpoint_path(ckpt_dir: Path, exp_name: str, global_step: int) -> Path:
     return ckpt_dir / f"{exp_name}_step_{global_step:09d}.pt"
 
 
+def step_checkpoints(directory: Path) -> list[Path]:
+    """``*_step_N.pt`` files in ``directory`` (or its ``checkpoints/``), oldest step first."""
+    candidates = list(directory.glob("*.pt")) + list((directory / "checkpoints").glob("*.pt"))
+    stepped = sorted((int(m.group(1)), str(c)) for c in candidates if (m := _STEP_RE.search(c.name)))
+    return [Path(c) for _, c in stepped]
+
+
 def latest_checkpoint(directory: Path) -> Path:
     """The checkpoint with the highest step in ``directory`` or its ``checkpoints/`` subdir."""
-    candidates = list(directory.glob("*.pt")) + list((directory / "checkpoints").glob("*.pt"))
-    stepped = [(int(m.group(1)), c) for c in candidates if (m := _STEP_RE.search(c.name))]
+    stepped = step_checkpoints(directory)
     if not stepped:
         raise FileNotFoundError(f"no rlexp checkpoint (*_step_N.pt) in {str(directory)!r}")
-    return max(stepped)[1]
+    return stepped[-1]
+
+
+def latest_good_checkpoint(directory: Path) -> dict[str, Any] | None:
+    """The newest checkpoint in ``directory`` that loads; corrupt ones are reported and skipped."""
+    for path in reversed(step_checkpoints(directory)):
+        try:
+            return load_checkpoint(path)
+        except ValueError as exc:
+            log.warning("%s; falling back to the previous checkpoint", exc)
+    return None
+
+
+def prune_checkpoints(directory: Path, keep_last: int) -> None:
+    """Delete all but the newest ``keep_last`` step checkpoints (``keep_last <= 0``: keep all)."""
+    if keep_last <= 0:
+        return
+    for path in step_checkpoints(directory)[:-keep_last]:
+        path.unlink(missing_ok=True)

@@ -78,7 +78,8 @@ def _wandb_mode(requested: str) -> str:
 class WandbBackend:
     """Weights & Biases run; files under ``<run_dir>/wandb``."""
 
-    def __init__(self, run_dir: Path, cfg: LoggerConfig, run_name: str, config: dict, run_id: str | None) -> None:
+    def __init__(self, run_dir: Path, cfg: LoggerConfig, run_name: str, config: dict, run_id: str,
+                 group: str | None = None) -> None:
         import wandb
 
         self.run = wandb.init(
@@ -90,6 +91,7 @@ class WandbBackend:
             mode=_wandb_mode(cfg.wandb.mode),
             tags=list(cfg.wandb.tags),
             id=run_id,
+            group=group,
             resume="allow",
             reinit="finish_previous",
         )
@@ -106,12 +108,16 @@ class MetricLogger:
 
     def __init__(self, backends: list[Backend]) -> None:
         self.backends = backends
+        self.closed = False
 
     def log(self, metrics: dict[str, float], step: int) -> None:
         for backend in self.backends:
             backend.log(metrics, step)
 
     def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
         for backend in self.backends:
             try:
                 backend.close()
@@ -119,13 +125,25 @@ class MetricLogger:
                 log.warning("closing %s failed: %s", type(backend).__name__, exc)
 
 
-def make_logger(cfg: LoggerConfig, run_dir: Path, run_name: str, config: dict) -> MetricLogger:
-    """Build the configured metric sinks for one run."""
+def wandb_run_id(run_dir: Path) -> str:
+    """The run dir's W&B run id: made once, reused on every resume (a requeued job continues its run)."""
+    path = run_dir / "wandb_run_id.txt"
+    if path.is_file():
+        return path.read_text().strip()
+    import secrets
+
+    run_id = secrets.token_hex(4)
+    path.write_text(run_id + "\n")
+    return run_id
+
+
+def make_logger(cfg: LoggerConfig, run_dir: Path, run_name: str, config: dict, group: str | None = None) -> MetricLogger:
+    """Build the configured metric sinks for one run (``group``: the sweep, for W&B)."""
     backends: list[Backend] = []
     if cfg.jsonl:
         backends.append(JsonlBackend(run_dir))
     if cfg.tensorboard.enabled:
         backends.append(TensorBoardBackend(run_dir))
     if cfg.wandb.enabled:
-        backends.append(WandbBackend(run_dir, cfg, run_name, config, run_id=None))
+        backends.append(WandbBackend(run_dir, cfg, run_name, config, wandb_run_id(run_dir), group))
     return MetricLogger(backends)

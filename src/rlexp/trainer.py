@@ -12,17 +12,24 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, TransformedEnv
 
-from rlexp.algorithms.ppo import PPO
-from rlexp.checkpoint import checkpoint_path, rng_state, save_checkpoint, set_rng_state
+from rlexp.algorithms.ppo import PPO, NonFiniteError
+from rlexp.checkpoint import checkpoint_path, prune_checkpoints, rng_state, save_checkpoint, set_rng_state
 from rlexp.config.schema import TrainerConfig
 from rlexp.events import EventContext, EventManager
+from rlexp.events.transform import EventTransform
 from rlexp.logging import MetricLogger
 from rlexp.policies.actor_critic import ActorCritic
 from rlexp.progress import Progress
 
 log = logging.getLogger(__name__)
+
+
+def _base_env(env: EnvBase | None) -> EnvBase | None:
+    while env is not None and hasattr(env, "base_env"):
+        env = env.base_env
+    return env
 
 
 def crossed(before: int, after: int, every: int) -> bool:
@@ -46,6 +53,7 @@ class Trainer:
         eval_event_manager: EventManager,
         run_dir: Path,
         config_dict: dict[str, Any],
+        versions: dict[str, str] | None = None,
     ) -> None:
         self.cfg = cfg
         self.policy = policy
@@ -58,42 +66,44 @@ class Trainer:
         self.run_dir = run_dir
         self.ckpt_dir = run_dir / "checkpoints"
         self.config_dict = config_dict
+        self.versions = dict(versions or {})
         self.global_step = 0
         self.ret_window: deque[float] = deque(maxlen=100)
         self.len_window: deque[int] = deque(maxlen=100)
         self.last_eval: dict[str, float] = {}
+        self.best_metric = -float("inf")
         self.last_checkpoint: Path | None = None
+        self.resumed_from: str | None = None
         self._num_envs = int(env.batch_size.numel()) if len(env.batch_size) else 1
         self._ep_ret = np.zeros(self._num_envs)
         self._ep_len = np.zeros(self._num_envs, dtype=np.int64)
         self._term_means: dict[str, float] = {}
-        self.collector = Collector(
-            env,
-            policy.sampling_policy(),
-            frames_per_batch=cfg.frames_per_batch,
-            total_frames=-1,
-            trust_policy=True,
-            track_traj_ids=False,
-        )
-        self._rollouts = iter(self.collector)
+        self._timing = {"collect": 0.0, "update": 0.0, "eval": 0.0}
+        self.collector: Collector | None = None  # built when training starts, after a resume
+        self._event_transform: EventTransform | None = None
+        self._resume_rng: dict[str, Any] | None = None
+        if event_manager.has("step", "reset"):  # only then: runs without such events pay nothing per step
+            self._event_transform = EventTransform(event_manager, run_dir)
+            self.env = TransformedEnv(env, self._event_transform)
         self.progress: Progress | None = None
-        self._timing = {"collect": 0.0, "update": 0.0}
 
     # -- the loop ----------------------------------------------------------------------------------
     def train(self, total_timesteps: int) -> None:
         """Train until ``global_step`` reaches ``total_timesteps`` env steps."""
-        self.event_manager.fire("startup", self._ctx())
+        if self.global_step == 0:
+            self.event_manager.fire("startup", self._ctx())
+        self._start_collector()
+        if self._resume_rng is not None:  # after the collector's construction, which draws from torch's RNG
+            set_rng_state(self._resume_rng)
+            self._resume_rng = None
         self.progress = Progress(total_timesteps, enabled=self.cfg.progress, start=self.global_step)
         with self.progress:
             while self.global_step < total_timesteps:
                 before = self.global_step
                 batch = self.collect_rollout()
-                t0 = time.perf_counter()
-                losses = self.algorithm.update(batch)
-                self.policy.normalizer.update(batch["observation"])
-                self._timing["update"] = time.perf_counter() - t0
+                losses = self.update(batch)
                 self.log_train(losses)
-                self.event_manager.fire("interval", self._ctx())
+                self.event_manager.fire("interval", self._ctx(batch=batch))
                 if crossed(before, self.global_step, self.cfg.eval_every):
                     self.eval_once()
                 if crossed(before, self.global_step, self.cfg.save_every):
@@ -106,18 +116,37 @@ class Trainer:
         batch = next(self._rollouts)
         self._timing["collect"] = time.perf_counter() - t0
         self.global_step += batch.numel()
+        if self._event_transform is not None:
+            self._event_transform.global_step = self.global_step
+        if self.cfg.nan_guard:
+            for key in (("next", "observation"), ("next", "reward")):
+                if not torch.isfinite(batch[key]).all():
+                    raise NonFiniteError(f"non-finite {'/'.join(key)} from the env at step {self.global_step}")
         self._track_episodes(batch)
         return batch
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """PPO on the rollout, then fold its observations into the normaliser."""
+        t0 = time.perf_counter()
+        try:
+            losses = self.algorithm.update(batch)
+        except NonFiniteError as exc:
+            raise NonFiniteError(f"{exc} at step {self.global_step}") from None
+        self.policy.normalizer.update(batch["observation"])
+        self._timing["update"] = time.perf_counter() - t0
+        return losses
 
     def log_train(self, losses: dict[str, float]) -> None:
         """Log losses, episode statistics, per-term rewards and throughput."""
         iteration = self.algorithm.iteration
-        elapsed = self._timing["collect"] + self._timing["update"]
+        elapsed = self._timing["collect"] + self._timing["update"] + self._timing["eval"]
         sps = self.cfg.frames_per_batch / max(elapsed, 1e-9)
         metrics = dict(losses)
         metrics["perf/sps"] = sps
         metrics["perf/collect_time"] = self._timing["collect"]
         metrics["perf/update_time"] = self._timing["update"]
+        metrics["perf/eval_time"] = self._timing["eval"]
+        self._timing["eval"] = 0.0
         if self.ret_window:
             metrics["train/episode_return"] = float(np.mean(self.ret_window))
             metrics["train/episode_length"] = float(np.mean(self.len_window))
@@ -131,9 +160,10 @@ class Trainer:
 
     @torch.no_grad()
     def eval_once(self) -> dict[str, float]:
-        """Deterministic evaluation over ``eval_episodes`` episodes on the eval env."""
+        """Deterministic evaluation over ``eval_episodes`` episodes spread over the eval envs."""
         if self.eval_env is None or self.cfg.eval_episodes <= 0:
             return {}
+        t_start = time.perf_counter()
         env = self.eval_env
         n = int(env.batch_size.numel())
         quota = np.full(n, self.cfg.eval_episodes // n)
@@ -147,10 +177,12 @@ class Trainer:
         ep_success = np.zeros(n)
         done_count = np.zeros(n, dtype=np.int64)
         td = env.reset()
-        self.eval_event_manager.fire("reset", self._ctx(env))
+        events = self.eval_event_manager
+        events.fire("reset", self._ctx(env, env_ids=np.arange(n)))
         while (done_count < quota).any():
             td = policy(td)
-            self.eval_event_manager.fire("step", self._ctx(env))
+            events.fire("step", self._ctx(env, tensordict=td, phase="action"))
+            events.fire("interval", self._ctx(env, tensordict=td))
             out, td = env.step_and_maybe_reset(td)
             nxt = out["next"]
             ep_ret += nxt["reward"].reshape(n).cpu().numpy()
@@ -172,13 +204,20 @@ class Trainer:
             "eval/success_rate": float(np.mean(successes)),
         }
         self.last_eval = metrics
+        events.finalize(self._ctx(env))
+        self._timing["eval"] += time.perf_counter() - t_start
         self.logger.log(metrics, self.global_step)
         log.info(
             "[eval] step=%d return=%.2f +- %.2f length=%.1f success=%.2f (%d episodes)",
             self.global_step, metrics["eval/episode_return"], metrics["eval/episode_return_std"],
             metrics["eval/episode_length"], metrics["eval/success_rate"], len(returns),
         )
-        self.eval_event_manager.fire("trigger", self._ctx(env), signal="eval_end")
+        events.fire("trigger", self._ctx(env, metrics=metrics), signal="eval_end")
+        self.event_manager.fire("trigger", self._ctx(metrics=metrics), signal="eval_end")
+        value = metrics.get(self.cfg.best_metric)
+        if value is not None and value > self.best_metric:
+            self.best_metric = value
+            self._save_best()
         return metrics
 
     def save_checkpoint(self) -> Path:
@@ -188,44 +227,91 @@ class Trainer:
             return path
         save_checkpoint(path, self.state_dict())
         self.last_checkpoint = path
+        prune_checkpoints(self.ckpt_dir, self.cfg.keep_last)
         log.info("[ckpt] saved %s", path)
         self.event_manager.fire("trigger", self._ctx(), signal="checkpoint")
         return path
 
     # -- state ---------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
+        """Everything a bit-exact continuation needs (see docs/checkpoints.md)."""
+        envs = {}
+        for name, env in (("train", self.env), ("eval", self.eval_env)):
+            base = _base_env(env)
+            if base is not None and hasattr(base, "env_state"):
+                envs[name] = base.env_state()
         return {
             "global_step": self.global_step,
             "policy": self.policy.state_dict(),
             "algorithm": self.algorithm.state_dict(),
-            "windows": {"returns": list(self.ret_window), "lengths": list(self.len_window)},
+            "windows": {
+                "returns": list(self.ret_window),
+                "lengths": list(self.len_window),
+                "running_return": self._ep_ret.copy(),
+                "running_length": self._ep_len.copy(),
+            },
             "events": {"train": self.event_manager.state_dict(), "eval": self.eval_event_manager.state_dict()},
+            "envs": envs,
             "rng": rng_state(),
             "last_eval": dict(self.last_eval),
+            "best_metric": self.best_metric,
             "config": self.config_dict,
+            "versions": self.versions,
         }
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
+        """Continue from a checkpoint: call before ``train``."""
         self.global_step = int(sd["global_step"])
         self.policy.load_state_dict(sd["policy"])
         self.algorithm.load_state_dict(sd["algorithm"])
-        self.ret_window.extend(sd["windows"]["returns"])
-        self.len_window.extend(sd["windows"]["lengths"])
-        self.event_manager.load_state_dict(sd["events"]["train"])
-        self.eval_event_manager.load_state_dict(sd["events"]["eval"])
-        set_rng_state(sd["rng"])
+        w = sd["windows"]
+        self.ret_window.extend(w["returns"])
+        self.len_window.extend(w["lengths"])
+        if len(w.get("running_return", ())) == self._num_envs:
+            self._ep_ret[:] = np.asarray(w["running_return"])
+            self._ep_len[:] = np.asarray(w["running_length"])
+        for name, env in (("train", self.env), ("eval", self.eval_env)):
+            base = _base_env(env)
+            if base is not None and name in sd.get("envs", {}) and hasattr(base, "load_env_state"):
+                base.load_env_state(sd["envs"][name])
+        self.event_manager.load_state_dict(sd["events"]["train"], self.env)
+        self.eval_event_manager.load_state_dict(sd["events"]["eval"], self.eval_env)
+        self.last_eval = dict(sd.get("last_eval", {}))
+        self.best_metric = float(sd.get("best_metric", -float("inf")))
+        self._resume_rng = sd["rng"]
+        self.resumed_from = sd.get("path")
+        log.info("[resume] continuing from %s at step %d", self.resumed_from, self.global_step)
 
     def close(self) -> None:
         """Shut the collector, envs and loggers down."""
-        self.collector.shutdown()
+        if self.collector is not None:
+            self.collector.shutdown()
         for env in (self.env, self.eval_env):
             if env is not None and not env.is_closed:
                 env.close()
         self.logger.close()
 
     # -- helpers -------------------------------------------------------------------------------------
-    def _ctx(self, env: EnvBase | None = None) -> EventContext:
-        return EventContext(env=env if env is not None else self.env, global_step=self.global_step)
+    def _start_collector(self) -> None:
+        if self.collector is None:
+            self.collector = Collector(
+                self.env,
+                self.policy.sampling_policy(),
+                frames_per_batch=self.cfg.frames_per_batch,
+                total_frames=-1,
+                trust_policy=True,
+                track_traj_ids=False,
+            )
+            self._rollouts = iter(self.collector)
+
+    def _save_best(self) -> None:
+        path = save_checkpoint(self.ckpt_dir / "best.pt", self.state_dict())
+        log.info("[ckpt] new best %s=%.3f -> %s", self.cfg.best_metric, self.best_metric, path)
+        self.event_manager.fire("trigger", self._ctx(), signal="new_best")
+
+    def _ctx(self, env: EnvBase | None = None, **kw: Any) -> EventContext:
+        return EventContext(env=env if env is not None else self.env, global_step=self.global_step,
+                            run_dir=self.run_dir, **kw)
 
     def _track_episodes(self, batch: TensorDictBase) -> None:
         """Update the return/length windows and per-term means from a [num_envs, T] rollout."""

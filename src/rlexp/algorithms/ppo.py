@@ -13,6 +13,10 @@ from rlexp.policies.actor_critic import ActorCritic
 LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy")
 
 
+class NonFiniteError(FloatingPointError):
+    """A NaN or Inf in a loss, a gradient or an observation: the run stops, checkpoints stay as they were."""
+
+
 def make_gae(cfg: AlgorithmConfig, value_network) -> GAE:
     """TorchRL's GAE: bootstraps from V(next obs) unless ``terminated``; ``done`` cuts the trace."""
     return GAE(
@@ -27,7 +31,7 @@ def make_gae(cfg: AlgorithmConfig, value_network) -> GAE:
 class PPO:
     """One PPO learner: ``update(batch)`` runs GAE then the clipped-surrogate epochs on a rollout."""
 
-    def __init__(self, cfg: AlgorithmConfig, policy: ActorCritic, total_iterations: int) -> None:
+    def __init__(self, cfg: AlgorithmConfig, policy: ActorCritic, total_iterations: int, nan_guard: bool = True) -> None:
         if cfg.name != "ppo":
             raise ValueError(f"algorithm.name={cfg.name!r}; available: ['ppo']")
         if cfg.loss_critic_type not in ("l1", "l2", "smooth_l1"):
@@ -37,6 +41,7 @@ class PPO:
         self.cfg = cfg
         self.policy = policy
         self.total_iterations = max(1, total_iterations)
+        self.nan_guard = nan_guard
         self.gae = make_gae(cfg, policy.critic)
         self.loss = ClipPPOLoss(
             actor_network=policy.actor,
@@ -79,7 +84,7 @@ class PPO:
         mb = min(self.cfg.mini_batch_size, n)
         sums = {k: torch.zeros(()) for k in (*LOSS_KEYS, "grad_norm", "clip_fraction", "kl_approx")}
         count = 0
-        for _ in range(self.cfg.num_epochs):
+        for epoch in range(self.cfg.num_epochs):
             # One gather per epoch, then contiguous slices: cheaper than indexing every minibatch.
             shuffled = flat[torch.randperm(n)]
             for start in range(0, n - mb + 1, mb):
@@ -94,6 +99,10 @@ class PPO:
                     grad_norm = torch.nn.utils.clip_grad_norm_(self.params, self.cfg.max_grad_norm)
                 else:
                     grad_norm = torch.nn.utils.get_total_norm([p.grad for p in self.params if p.grad is not None])
+                if self.nan_guard and not (torch.isfinite(total) and torch.isfinite(grad_norm)):
+                    bad = [k for k in LOSS_KEYS if k in out.keys() and not torch.isfinite(out[k])]
+                    what = f"loss ({', '.join(bad)})" if bad else "gradient norm"
+                    raise NonFiniteError(f"non-finite {what} in PPO update (epoch {epoch}, minibatch {start // mb})")
                 self.optimizer.step()
                 for k in LOSS_KEYS:
                     if k in out.keys():
@@ -126,6 +135,6 @@ class PPO:
         self.iteration = int(sd["iteration"])
 
 
-def make_algorithm(cfg: AlgorithmConfig, policy: ActorCritic, total_iterations: int) -> PPO:
+def make_algorithm(cfg: AlgorithmConfig, policy: ActorCritic, total_iterations: int, nan_guard: bool = True) -> PPO:
     """Build the configured algorithm around ``policy``."""
-    return PPO(cfg, policy, total_iterations)
+    return PPO(cfg, policy, total_iterations, nan_guard)

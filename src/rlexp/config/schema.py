@@ -29,6 +29,10 @@ class TrainerConfig:
     eval_every: int = 50_000  # evaluate when global_step crosses a multiple of this (0: never)
     eval_episodes: int = 10  # episodes per evaluation, spread over env.num_eval_envs
     save_every: int = 100_000  # checkpoint when global_step crosses a multiple of this (0: only at the end)
+    keep_last: int = 5  # step checkpoints kept on disk (older ones are deleted; <= 0 keeps all)
+    resume: str = "auto"  # auto: continue from the newest good checkpoint in the run dir | never | a checkpoint path
+    best_metric: str = "eval/episode_return"  # eval metric that best.pt follows (higher is better)
+    nan_guard: bool = True  # stop with a clear error on NaN/Inf in observations, losses or gradients
     log_every: int = 1  # log training metrics every this many iterations
     progress: bool = True  # live progress bar on the console
     torch_threads: int = 1  # torch intra-op threads; one is fastest for small networks

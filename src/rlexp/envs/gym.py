@@ -106,6 +106,8 @@ class GymnasiumEnv(EnvBase):
         self._seed: int | None = None
         self._reset_obs = np.zeros((n, self.obs_dim), dtype=np.float32)
         self._pending_reset = np.zeros(n, dtype=bool)
+        self._restored = np.zeros(n, dtype=bool)  # copies whose state came from load_env_state
+        self.last_reset_was_restore = False
 
     # -- TorchRL API -------------------------------------------------------------------------------
     def _set_seed(self, seed: int | None) -> None:
@@ -125,6 +127,14 @@ class GymnasiumEnv(EnvBase):
         mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(-1).cpu().numpy()
+        self.last_reset_was_restore = mask is None and bool(self._restored.all())
+        if mask is None and self._restored.any():
+            # Restored from a checkpoint: the first full reset hands back the restored state
+            # (copies that had never been reset are reset as usual).
+            restored, self._restored = self._restored, np.zeros(self.num_envs, dtype=bool)
+            obs = np.stack([self._current_obs(i) if restored[i] else self._reset_one(i)
+                            for i in range(self.num_envs)]).astype(np.float32)
+            return TensorDict({"observation": torch.from_numpy(obs)}, batch_size=self.batch_size, device=self.device)
         obs = np.empty((self.num_envs, self.obs_dim), dtype=np.float32)
         for i in range(self.num_envs):
             if mask is not None and not mask[i]:
@@ -169,6 +179,55 @@ class GymnasiumEnv(EnvBase):
             device=self.device,
         )
 
+    # -- exact resume --------------------------------------------------------------------------------
+    def _current_obs(self, i: int) -> np.ndarray:
+        if self._pending_reset[i]:
+            return self._reset_obs[i]
+        return np.asarray(self._envs[i].unwrapped._get_obs(), dtype=np.float32).reshape(-1)
+
+    def env_state(self) -> dict:
+        """MuJoCo integration state, RNG and time-limit counter of every copy (for bit-exact resume)."""
+        import mujoco
+
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        copies = []
+        for env in self._envs:
+            u = env.unwrapped
+            state = np.empty(mujoco.mj_stateSize(u.model, spec))
+            mujoco.mj_getState(u.model, u.data, state, spec)
+            copies.append({
+                "physics": state,
+                "rng": u.np_random.bit_generator.state,
+                "elapsed_steps": -1 if _time_limit(env) is None or _time_limit(env)._elapsed_steps is None
+                else _time_limit(env)._elapsed_steps,
+            })
+        return {"env_id": self.env_id, "copies": copies, "reset_obs": self._reset_obs.copy(),
+                "pending_reset": self._pending_reset.copy()}
+
+    def load_env_state(self, sd: dict) -> None:
+        """Restore ``env_state()``; the next full ``reset()`` continues from it instead of resetting."""
+        import mujoco
+
+        if sd["env_id"] != self.env_id or len(sd["copies"]) != self.num_envs:
+            raise ValueError(f"env state is for {sd['env_id']} x{len(sd['copies'])}; this env is "
+                             f"{self.env_id} x{self.num_envs}")
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        for i, (env, c) in enumerate(zip(self._envs, sd["copies"], strict=True)):
+            if int(c["elapsed_steps"]) < 0:
+                continue  # never reset when saved: it will be reset as usual
+            u = env.unwrapped
+            if not _has_reset(env):
+                env.reset()  # gymnasium's OrderEnforcing wants a reset before step
+            mujoco.mj_setState(u.model, u.data, np.asarray(c["physics"], dtype=np.float64), spec)
+            mujoco.mj_forward(u.model, u.data)
+            u.np_random.bit_generator.state = c["rng"]
+            if _time_limit(env) is not None:
+                _time_limit(env)._elapsed_steps = int(c["elapsed_steps"])
+            self._restored[i] = True
+        self._reset_obs[:] = np.asarray(sd["reset_obs"])
+        self._pending_reset[:] = np.asarray(sd["pending_reset"])
+        self._seed = None
+
     # -- extras ------------------------------------------------------------------------------------
     def render(self, env_id: int = 0) -> np.ndarray:
         """An RGB frame of copy ``env_id`` (needs ``render_mode='rgb_array'`` in ``env.kwargs``)."""
@@ -178,6 +237,22 @@ class GymnasiumEnv(EnvBase):
         for env in self._envs:
             env.close()
         super().close(raise_if_closed=raise_if_closed)
+
+
+def _time_limit(env: gym.Env) -> gym.wrappers.TimeLimit | None:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, gym.wrappers.TimeLimit):
+            return env
+        env = env.env
+    return None
+
+
+def _has_reset(env: gym.Env) -> bool:
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, gym.wrappers.OrderEnforcing):
+            return env.has_reset
+        env = env.env
+    return True
 
 
 def make_torchrl_gym_env(env_id: str, num_envs: int, max_episode_steps: int | None, make_kwargs: dict):

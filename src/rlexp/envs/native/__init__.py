@@ -49,6 +49,8 @@ def make_native_env(
     ``max_episode_steps`` overrides the task's time limit; ``num_threads`` the physics thread pool
     (default: one thread per core for 4+ envs).
     """
-    env = NativeEnv(task, num_envs, max_episode_steps=max_episode_steps, device=device, num_threads=num_threads)
+    env = NativeEnv(
+        task, num_envs, max_episode_steps=max_episode_steps, device=device, num_threads=num_threads
+    )
     env.set_seed(seed)
     return env

@@ -66,7 +66,9 @@ def _check_params(func: Any, params: dict[str, Any], where: str, skip: int) -> N
     names = list(sig.parameters)[skip:]
     unknown = sorted(set(params) - set(names))
     if unknown:
-        raise TypeError(f"{where}.params: unknown parameter(s) {unknown} for {func.__name__}; it accepts {names}")
+        raise TypeError(
+            f"{where}.params: unknown parameter(s) {unknown} for {func.__name__}; it accepts {names}"
+        )
     missing = [
         n for n in names if sig.parameters[n].default is inspect.Parameter.empty and n not in params
     ]
@@ -82,7 +84,9 @@ def _choose(value: str, choices: tuple[str, ...], where: str) -> str:
 
 def default_num_threads(num_envs: int) -> int:
     """Physics threads: none (the calling thread) for a few envs, else one per core, at most 16."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    cores = (
+        len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    )
     return 0 if num_envs < 4 or cores < 2 else min(cores, 16, num_envs)
 
 
@@ -108,9 +112,24 @@ def load_model(task: TaskSpec, scene: dict[str, Any]) -> tuple[mujoco.MjModel, d
                 fr = np.atleast_1d(np.asarray(value, float))
                 geom.friction = np.concatenate([fr, geom.friction[len(fr) :]])
         else:
-            choices = ["init_qpos"] + [f"{u}_{a}" for u in task.objects for a in ("init_pos", "size", "mass", "friction")]
+            choices = ["init_qpos"] + [
+                f"{u}_{a}" for u in task.objects for a in ("init_pos", "size", "mass", "friction")
+            ]
             raise KeyError(unknown_name_message("scene override", key, choices, "env.native.scene"))
     return spec.compile(), rest
+
+
+class _StepVars:
+    """Per-step scalars and caches, kept off the env: EnvBase/nn.Module attribute writes are slow."""
+
+    def __init__(self) -> None:
+        self.version = 0  # bumped whenever the physics state changes; invalidates cached kinematics
+        self.fk_version = -1
+        self.fk_cache: tuple[np.ndarray, np.ndarray] | None = None
+        self.current_obs: np.ndarray | None = (
+            None  # every env's observation now (post-reset for reset envs)
+        )
+        self.interval_count = 0
 
 
 class NativeEnv(EnvBase):
@@ -127,12 +146,19 @@ class NativeEnv(EnvBase):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         super().__init__(batch_size=torch.Size([num_envs]), device=device)
-        cfg = task_cfg if isinstance(task_cfg, NativeTaskConfig) else NativeTaskConfig(**_as_dict(task_cfg))
+        cfg = (
+            task_cfg
+            if isinstance(task_cfg, NativeTaskConfig)
+            else NativeTaskConfig(**_as_dict(task_cfg))
+        )
         self.task_spec: TaskSpec = get_task(cfg.task)
         self.task_cfg = cfg
         self.num_envs = num_envs
         self.max_episode_steps = int(max_episode_steps or self.task_spec.max_episode_steps)
-        self.extensions: dict[str, Any] = {**self.task_spec.extensions, **_plain(cfg.extensions or {})}
+        self.extensions: dict[str, Any] = {
+            **self.task_spec.extensions,
+            **_plain(cfg.extensions or {}),
+        }
 
         self.model, scene = load_model(self.task_spec, _plain(cfg.scene or {}))
         self._setup_indices(scene)
@@ -145,10 +171,25 @@ class NativeEnv(EnvBase):
         self._fire(self._startup_events, np.arange(num_envs))
         self._reset_envs(np.arange(num_envs))
         obs = self._observation_dict()
+        for (
+            key,
+            func,
+            _,
+            _,
+            params,
+        ) in self._reward_terms:  # surface bad params now, naming the term
+            try:
+                func(self, **params)
+            except (KeyError, ValueError) as exc:
+                raise type(exc)(f"rewards.{key}: {exc.args[0] if exc.args else exc}") from exc
         self.observation_layout = self._layout(obs)
         self.obs_dim = self.observation_layout[-1][2] if self.observation_layout else 0
-        self._current_obs = self._flatten(obs)
+        self._v.current_obs = self._flatten(obs)
         self._make_specs()
+        log.info(
+            "native env %s: %d envs, obs %d, action %d, %d physics steps/action, %d physics threads",
+            self.task_spec.name, num_envs, self.obs_dim, self.action_dim, self.substeps, self.num_threads,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ setup
 
@@ -159,7 +200,9 @@ class NativeEnv(EnvBase):
         self.robot_dof_adr = m.jnt_dofadr[self.robot_joint_ids]
         self.num_robot_joints = len(self.robot_joint_ids)
         limited = m.jnt_limited[self.robot_joint_ids].astype(bool)
-        self.robot_joint_limits = np.where(limited[:, None], m.jnt_range[self.robot_joint_ids], [-np.inf, np.inf])
+        self.robot_joint_limits = np.where(
+            limited[:, None], m.jnt_range[self.robot_joint_ids], [-np.inf, np.inf]
+        )
         init_qpos = np.asarray(scene.get("init_qpos", task.init_qpos), float)
         if init_qpos.shape != (self.num_robot_joints,):
             raise ValueError(
@@ -170,9 +213,10 @@ class NativeEnv(EnvBase):
         # actuators: joint transmission only, fixed gain, affine or no bias (position servos, motors)
         if not (m.actuator_trntype == mujoco.mjtTrn.mjTRN_JOINT).all():
             raise ValueError(f"{task.asset}: every actuator must drive a joint")
-        if not (m.actuator_dyntype == mujoco.mjtDyn.mjDYN_NONE).all() or not (
-            m.actuator_gaintype == mujoco.mjtGain.mjGAIN_FIXED
-        ).all():
+        if (
+            not (m.actuator_dyntype == mujoco.mjtDyn.mjDYN_NONE).all()
+            or not (m.actuator_gaintype == mujoco.mjtGain.mjGAIN_FIXED).all()
+        ):
             raise ValueError(f"{task.asset}: actuators must have no dynamics and a fixed gain")
         act_joint = m.actuator_trnid[:, 0]
         self.actuator_qpos_adr = m.jnt_qposadr[act_joint]
@@ -180,11 +224,16 @@ class NativeEnv(EnvBase):
         self._act_gear = m.actuator_gear[:, 0].copy()
         self._act_gain = m.actuator_gainprm[:, 0].copy()
         self._act_bias = m.actuator_biasprm[:, :3].copy()
-        self._act_force_limited = m.actuator_forcelimited.astype(bool)
-        self._act_force_range = m.actuator_forcerange.copy()
+        limited = m.actuator_forcelimited.astype(bool)
+        self._act_force_low = np.where(limited, m.actuator_forcerange[:, 0], -np.inf)
+        self._act_force_high = np.where(limited, m.actuator_forcerange[:, 1], np.inf)
         # robot dof -> column in the robot's qf observation, for each actuator (-1: not a robot joint)
         dof_to_robot = {int(d): i for i, d in enumerate(self.robot_dof_adr)}
-        self._act_robot_col = np.array([dof_to_robot.get(int(d), -1) for d in self._act_dof_adr])
+        cols = np.array([dof_to_robot.get(int(d), -1) for d in self._act_dof_adr])
+        if len(set(cols[cols >= 0])) != int((cols >= 0).sum()):
+            raise ValueError(f"{task.asset}: at most one actuator per robot joint")
+        self._act_robot_valid = cols >= 0
+        self._act_robot_col_valid = cols[cols >= 0]
         # rigid objects: free joints
         self._object_qpos_adr: dict[str, int] = {}
         self._object_dof_adr: dict[str, int] = {}
@@ -209,8 +258,10 @@ class NativeEnv(EnvBase):
         data.time, data.qpos[:], data.qvel[:] = 0.25, np.arange(m.nq) + 0.5, np.arange(m.nv) + 0.75
         probe = np.empty(self._nstate)
         mujoco.mj_getState(m, data, probe, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        if probe[0] != 0.25 or not np.array_equal(probe[self._sl_qpos], data.qpos) or not np.array_equal(
-            probe[self._sl_qvel], data.qvel
+        if (
+            probe[0] != 0.25
+            or not np.array_equal(probe[self._sl_qpos], data.qpos)
+            or not np.array_equal(probe[self._sl_qvel], data.qvel)
         ):
             raise RuntimeError("unexpected mjSTATE_FULLPHYSICS layout in this MuJoCo version")
         mujoco.mj_resetData(m, data)
@@ -222,7 +273,9 @@ class NativeEnv(EnvBase):
 
         self._state = np.tile(self._init_state, (n, 1))  # [N, nstate]: the envs' physics state
         self._ctrl = np.tile(self._init_ctrl, (n, 1))  # [N, nu]
-        self._control = np.zeros((n, self.substeps, m.nu))  # rollout input: ctrl held over the substeps
+        self._control = np.zeros(
+            (n, self.substeps, m.nu)
+        )  # rollout input: ctrl held over the substeps
         self._traj = np.zeros((n, self.substeps, self._nstate))  # rollout output
         self._sensordata = np.zeros((n, self.substeps, m.nsensordata))
         self.qpos = self._state[:, self._sl_qpos]  # views into the state
@@ -232,17 +285,18 @@ class NativeEnv(EnvBase):
         self._datas = [mujoco.MjData(m) for _ in range(max(1, self.num_threads))]
         self._models = [m] * n
         self._chunk = max(1, n // (max(1, self.num_threads) * 4))
-        self._version = 0  # bumped whenever the state changes; invalidates cached kinematics
-        self._fk_version = -1
-        self._fk_cache: tuple[np.ndarray, np.ndarray] | None = None
+        self._v = _StepVars()
 
         self.episode_step = np.zeros(n, dtype=np.int64)  # steps taken in the current episode
         self.success = np.zeros(n, dtype=bool)
         self.terminated = np.zeros(n, dtype=bool)
         self.truncated = np.zeros(n, dtype=bool)
-        self._pending_reset = np.zeros(n, dtype=bool)  # reset inside _step, not yet handed out by _reset
-        self._interval_count = 0
+        self._pending_reset = np.zeros(
+            n, dtype=bool
+        )  # reset inside _step, not yet handed out by _reset
         self._targets: dict[str, np.ndarray] = {}
+        self._restored = False  # set by load_env_state: the next full reset hands back the restored state
+        self.last_reset_was_restore = False
         self._render_data: mujoco.MjData | None = None
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
 
@@ -250,7 +304,9 @@ class NativeEnv(EnvBase):
         n = self.num_envs
         # actions
         if not cfg.actions:
-            raise ValueError("env.native.actions is empty; add an action term such as DeltaQposTerm")
+            raise ValueError(
+                "env.native.actions is empty; add an action term such as DeltaQposTerm"
+            )
         self._action_terms = []
         dim = 0
         for key, term in cfg.actions.items():
@@ -273,9 +329,11 @@ class NativeEnv(EnvBase):
             params = _plain(t.get("params") or {})
             _check_params(func, params, f"events.{key}", skip=2)
             entry = (func, params, int(t.get("interval_step", 1) or 1))
-            {"startup": self._startup_events, "reset": self._reset_events, "interval": self._interval_events}[
-                mode
-            ].append(entry)
+            {
+                "startup": self._startup_events,
+                "reset": self._reset_events,
+                "interval": self._interval_events,
+            }[mode].append(entry)
         # observations
         self._observation_terms = []
         for key, term in (cfg.observations or {}).items():
@@ -340,29 +398,30 @@ class NativeEnv(EnvBase):
         velocity = self._act_gear * self.qvel[:, self._act_dof_adr]
         force = self._act_gain * self._ctrl + self._act_bias[:, 0] + self._act_bias[:, 1] * length
         force += self._act_bias[:, 2] * velocity
-        if self._act_force_limited.any():
-            lim = self._act_force_limited
-            force[:, lim] = np.clip(force[:, lim], self._act_force_range[lim, 0], self._act_force_range[lim, 1])
+        np.minimum(force, self._act_force_high, out=force)
+        np.maximum(force, self._act_force_low, out=force)
         out = np.zeros((self.num_envs, self.num_robot_joints))
-        cols = self._act_robot_col
-        np.add.at(out.T, cols[cols >= 0], (self._act_gear * force)[:, cols >= 0].T)
+        out[:, self._act_robot_col_valid] = (self._act_gear * force)[:, self._act_robot_valid]
         return out
 
     def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """End-effector site position [N, 3] and rotation [N, 3, 3] (cached until the state changes)."""
         if self._fk is None:
             raise ValueError(f"task {self.task_spec.name!r} has no end-effector site")
-        if self._fk_version != self._version:
-            self._fk_cache = self._fk(self.qpos)
-            self._fk_version = self._version
-        return self._fk_cache  # type: ignore[return-value]
+        v = self._v
+        if v.fk_version != v.version:
+            v.fk_cache = self._fk(self.qpos)
+            v.fk_version = v.version
+        return v.fk_cache  # type: ignore[return-value]
 
     def object_pose(self, uid: str) -> tuple[np.ndarray, np.ndarray]:
         """Position [N, 3] and quaternion [N, 4] (w, x, y, z) of rigid object ``uid`` (views)."""
         try:
             adr = self._object_qpos_adr[uid]
         except KeyError:
-            raise KeyError(unknown_name_message("rigid object uid", uid, self._object_qpos_adr)) from None
+            raise KeyError(
+                unknown_name_message("rigid object uid", uid, self._object_qpos_adr)
+            ) from None
         return self.qpos[:, adr : adr + 3], self.qpos[:, adr + 3 : adr + 7]
 
     def object_initial_pose(self, uid: str) -> tuple[np.ndarray, np.ndarray]:
@@ -387,22 +446,26 @@ class NativeEnv(EnvBase):
             self._targets[key] = np.zeros((self.num_envs, 3))
         self._targets[key][env_ids] = pos
 
-    def set_object_pose(self, uid: str, env_ids: np.ndarray, pos: np.ndarray, quat: np.ndarray) -> None:
+    def set_object_pose(
+        self, uid: str, env_ids: np.ndarray, pos: np.ndarray, quat: np.ndarray
+    ) -> None:
         """Place object ``uid`` in envs ``env_ids`` at rest."""
         self.object_pose(uid)
         qa, da = self._object_qpos_adr[uid], self._object_dof_adr[uid]
         self.qpos[env_ids, qa : qa + 3] = pos
         self.qpos[env_ids, qa + 3 : qa + 7] = quat
         self.qvel[env_ids, da : da + 6] = 0.0
-        self._version += 1
+        self._v.version += 1
 
-    def set_robot_state(self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray | None = None) -> None:
+    def set_robot_state(
+        self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray | None = None
+    ) -> None:
         """Set robot joint positions (and velocities) in envs ``env_ids``; servo targets follow."""
         rows = np.asarray(env_ids)[:, None]
         self.qpos[rows, self.robot_qpos_adr] = qpos
         self.qvel[rows, self.robot_dof_adr] = 0.0 if qvel is None else qvel
         self._ctrl[rows, np.arange(self.model.nu)] = self.qpos[rows, self.actuator_qpos_adr]
-        self._version += 1
+        self._v.version += 1
 
     def part_joint_ids(self, part_name: str) -> list[int]:
         """Indices (into the robot's joints) of the joints of control part ``part_name``."""
@@ -419,7 +482,9 @@ class NativeEnv(EnvBase):
             return np.arange(self.model.nu)
         self.check_part(part_name)
         joints = {self.model.joint(j).id for j in self.task_spec.parts[part_name]}
-        return np.array([a for a in range(self.model.nu) if int(self.model.actuator_trnid[a, 0]) in joints])
+        return np.array(
+            [a for a in range(self.model.nu) if int(self.model.actuator_trnid[a, 0]) in joints]
+        )
 
     # ------------------------------------------------------------------ the MDP
 
@@ -434,11 +499,15 @@ class NativeEnv(EnvBase):
         self.action[env_ids] = 0.0
         self.prev_action[env_ids] = 0.0
         self.episode_step[env_ids] = 0
-        self._version += 1
+        self._v.version += 1
         self._fire(self._reset_events, env_ids)
 
     def _observation_dict(self) -> dict[str, np.ndarray]:
-        obs = {"robot/qpos": self.robot_qpos(), "robot/qvel": self.robot_qvel(), "robot/qf": self.robot_qf()}
+        obs = {
+            "robot/qpos": self.robot_qpos(),
+            "robot/qvel": self.robot_qvel(),
+            "robot/qf": self.robot_qf(),
+        }
         for key, func, mode, name, params in self._observation_terms:
             if mode == "modify":
                 if name not in obs:
@@ -448,7 +517,9 @@ class NativeEnv(EnvBase):
                 obs[name] = func(self, obs[name], **params)
             else:
                 if name in obs:
-                    raise KeyError(f"observations.{key}: mode 'add' but {name!r} already exists; use mode 'modify'")
+                    raise KeyError(
+                        f"observations.{key}: mode 'add' but {name!r} already exists; use mode 'modify'"
+                    )
                 obs[name] = func(self, **params)
         return obs
 
@@ -474,12 +545,12 @@ class NativeEnv(EnvBase):
         action = tensordict.get("action")
         if action.device.type != "cpu":
             action = action.cpu()
-        self.prev_action, self.action = self.action, self.prev_action  # reuse the buffers
+        self.prev_action[:] = self.action
         np.clip(action.detach().numpy(), -1.0, 1.0, out=self.action)
         if self._interval_events:
-            self._interval_count += 1
+            self._v.interval_count += 1
             for func, params, every in self._interval_events:
-                if self._interval_count % every == 0:
+                if self._v.interval_count % every == 0:
                     func(self, np.arange(n), **params)
         for sl, term in self._action_terms:
             term(self, self.action[:, sl], self._ctrl)
@@ -499,16 +570,19 @@ class NativeEnv(EnvBase):
             chunk_size=self._chunk,
         )
         self._state[:] = self._traj[:, -1]
-        self._version += 1
+        self._v.version += 1
         self.episode_step += 1
 
         task = self.task_spec
-        self.success = task.success(self) if task.success else np.zeros(n, dtype=bool)
-        self.terminated = task.terminated(self) if task.terminated else np.zeros(n, dtype=bool)
+        self.success[:] = task.success(self) if task.success else False
+        if task.terminated is task.success:  # e.g. PushCube: success ends the episode
+            self.terminated[:] = self.success
+        else:
+            self.terminated[:] = task.terminated(self) if task.terminated else False
         truncated = self.episode_step >= self.max_episode_steps
         if task.truncated:
             truncated |= task.truncated(self)
-        self.truncated = truncated & ~self.terminated
+        np.logical_and(truncated, ~self.terminated, out=self.truncated)
 
         reward = np.zeros(n)
         terms = {}
@@ -522,67 +596,86 @@ class NativeEnv(EnvBase):
 
         obs = self._flatten(self._observation_dict())  # the true final observation of finished envs
         done = self.terminated | self.truncated
-        self._current_obs = obs
+        self._v.current_obs = obs
         if done.any():
             ids = np.flatnonzero(done)
             self._reset_envs(ids)
             self._pending_reset[ids] = True
             fresh = self._flatten(self._observation_dict())
-            self._current_obs = obs.copy()
-            self._current_obs[ids] = fresh[ids]
+            fresh[~done] = obs[~done]
+            self._v.current_obs = fresh
 
-        out = TensorDict(
+        return self._tensordict(
             {
                 "observation": torch.from_numpy(obs),
                 "reward": torch.from_numpy(reward.astype(np.float32)[:, None]),
                 "done": torch.from_numpy(done[:, None].copy()),
                 "terminated": torch.from_numpy(self.terminated[:, None].copy()),
                 "truncated": torch.from_numpy(self.truncated[:, None].copy()),
-                "rewards": TensorDict(terms, batch_size=self.batch_size),
-                "metrics": TensorDict(
-                    {"success": torch.from_numpy(self.success.astype(np.float32)[:, None])},
-                    batch_size=self.batch_size,
-                ),
             },
-            batch_size=self.batch_size,
+            terms,
+            {"success": torch.from_numpy(self.success.astype(np.float32)[:, None])},
         )
-        return out if self.device.type == "cpu" else out.to(self.device)
+
+    def _tensordict(
+        self,
+        root: dict[str, torch.Tensor],
+        rewards: dict[str, torch.Tensor],
+        metrics: dict[str, torch.Tensor],
+    ) -> TensorDictBase:
+        """The output TensorDict; on CPU built without per-entry validation (the shapes are ours)."""
+        bs, dev = self.batch_size, self.device
+        if dev.type == "cpu":
+            new = TensorDict._new_unsafe
+            root["rewards"] = new(rewards, batch_size=bs, device=dev)
+            root["metrics"] = new(metrics, batch_size=bs, device=dev)
+            return new(root, batch_size=bs, device=dev)
+        root["rewards"] = TensorDict(rewards, batch_size=bs, device=dev)
+        root["metrics"] = TensorDict(metrics, batch_size=bs, device=dev)
+        return TensorDict(root, batch_size=bs, device=dev)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
         mask = None
         if tensordict is not None:
             mask = tensordict.get("_reset", None)
+        self.last_reset_was_restore = mask is None and self._restored
+        if self.last_reset_was_restore:
+            # Restored from a checkpoint (load_env_state): the first full reset continues the episodes.
+            self._restored = False
+            return self.current_tensordict()
         if mask is None:
             ids = np.arange(self.num_envs)
             self._pending_reset[:] = False
         else:
             m = mask.reshape(self.num_envs).cpu().numpy()
-            ids = np.flatnonzero(m & ~self._pending_reset)  # asked for but not already reset in _step
+            ids = np.flatnonzero(
+                m & ~self._pending_reset
+            )  # asked for but not already reset in _step
             self._pending_reset[m] = False
         if ids.size:
             self._reset_envs(ids)
             fresh = self._flatten(self._observation_dict())
-            self._current_obs = self._current_obs.copy()
-            self._current_obs[ids] = fresh[ids]
+            keep = np.ones(self.num_envs, dtype=bool)
+            keep[ids] = False
+            fresh[keep] = self._v.current_obs[keep]
+            self._v.current_obs = fresh
         return self.current_tensordict()
 
     def current_tensordict(self) -> TensorDictBase:
         """The envs' current observation as a reset would return it (e.g. after ``load_state_dict``)."""
-        n, bs = self.num_envs, self.batch_size
+        n = self.num_envs
         zeros = torch.zeros((n, 1), dtype=torch.float32)
         false = torch.zeros((n, 1), dtype=torch.bool)
-        out = TensorDict(
+        return self._tensordict(
             {
-                "observation": torch.from_numpy(self._current_obs.copy()),
+                "observation": torch.from_numpy(self._v.current_obs.copy()),
                 "done": false,
                 "terminated": false.clone(),
                 "truncated": false.clone(),
-                "rewards": TensorDict({k: zeros.clone() for k in self.reward_names}, batch_size=bs),
-                "metrics": TensorDict({"success": zeros.clone()}, batch_size=bs),
             },
-            batch_size=bs,
+            {k: zeros.clone() for k in self.reward_names},
+            {"success": zeros.clone()},
         )
-        return out if self.device.type == "cpu" else out.to(self.device)
 
     def _set_seed(self, seed: int | None) -> None:
         self.rng = np.random.default_rng(seed)
@@ -605,9 +698,9 @@ class NativeEnv(EnvBase):
             "prev_action": self.prev_action.copy(),
             "episode_step": self.episode_step.copy(),
             "targets": {k: v.copy() for k, v in self._targets.items()},
-            "current_obs": self._current_obs.copy(),
+            "current_obs": self._v.current_obs.copy(),
             "pending_reset": self._pending_reset.copy(),
-            "interval_count": self._interval_count,
+            "interval_count": self._v.interval_count,
             "rng": self.rng.bit_generator.state,
         }
 
@@ -625,13 +718,22 @@ class NativeEnv(EnvBase):
         self.prev_action[:] = np.asarray(sd["prev_action"])
         self.episode_step[:] = np.asarray(sd["episode_step"])
         self._targets = {k: np.array(v, dtype=float) for k, v in sd["targets"].items()}
-        self._current_obs = np.array(sd["current_obs"], dtype=np.float32)
+        self._v.current_obs = np.array(sd["current_obs"], dtype=np.float32)
         self._pending_reset[:] = np.asarray(sd["pending_reset"])
-        self._interval_count = int(sd["interval_count"])
+        self._v.interval_count = int(sd["interval_count"])
         rng = np.random.default_rng()
         rng.bit_generator.state = sd["rng"]
         self.rng = rng
-        self._version += 1
+        self._v.version += 1
+
+    def env_state(self) -> dict[str, Any]:
+        """The trainer's name for ``state_dict()``: what a checkpoint stores for this env."""
+        return self.state_dict()
+
+    def load_env_state(self, state: dict[str, Any]) -> None:
+        """Restore a checkpoint's env state; the next full ``reset()`` continues from it (no new episodes)."""
+        self.load_state_dict(state)
+        self._restored = True
 
     # ------------------------------------------------------------------ rendering
 

@@ -88,7 +88,9 @@ def randomize_joint_positions(
     qvel = None
     if velocity_range is not None:
         qvel = env.robot_qvel()[env_ids]
-        qvel[:, ids] += env.rng.uniform(velocity_range[0], velocity_range[1], size=(len(env_ids), len(ids)))
+        qvel[:, ids] += env.rng.uniform(
+            velocity_range[0], velocity_range[1], size=(len(env_ids), len(ids))
+        )
     env.set_robot_state(env_ids, qpos, qvel)
 
 

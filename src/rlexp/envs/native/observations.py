@@ -45,7 +45,9 @@ def normalize_robot_joint_data(
 ) -> np.ndarray:
     """Map the robot joints ``joint_ids`` of ``data`` linearly from their limits onto ``range``."""
     if limit != "qpos_limits":
-        raise ValueError(f"normalize_robot_joint_data: limit={limit!r} is not supported (use 'qpos_limits')")
+        raise ValueError(
+            f"normalize_robot_joint_data: limit={limit!r} is not supported (use 'qpos_limits')"
+        )
     ids = slice(None) if joint_ids is None else list(joint_ids)
     low, high = env.robot_joint_limits[ids, 0], env.robot_joint_limits[ids, 1]
     out = np.array(data, dtype=np.float64, copy=True)
@@ -55,7 +57,10 @@ def normalize_robot_joint_data(
 
 @OBSERVATIONS.register()
 def get_robot_eef_pose(
-    env: NativeEnv, part_name: str | None = None, position_only: bool = False, to_matrix: bool = True
+    env: NativeEnv,
+    part_name: str | None = None,
+    position_only: bool = False,
+    to_matrix: bool = True,
 ) -> np.ndarray:
     """End-effector (tool tip) pose: [N, 4, 4] by default, [N, 3] with ``position_only``."""
     env.check_part(part_name)
@@ -64,7 +69,9 @@ def get_robot_eef_pose(
 
 
 @OBSERVATIONS.register()
-def get_rigid_object_pose(env: NativeEnv, entity_cfg: dict[str, Any], to_matrix: bool = True) -> np.ndarray:
+def get_rigid_object_pose(
+    env: NativeEnv, entity_cfg: dict[str, Any], to_matrix: bool = True
+) -> np.ndarray:
     """World pose of a rigid object: [N, 4, 4] by default, [N, 7] (pos, quat wxyz) otherwise."""
     pos, quat = env.object_pose(entity_cfg["uid"])
     if not to_matrix:

@@ -49,7 +49,7 @@ class Registry(Generic[T]):
 
 
 def unknown_name_message(kind: str, name: object, choices: object, where: str = "") -> str:
-    """"unknown reward func 'x' in rewards.y; choose from [...]; did you mean 'z'?"."""
+    """ "unknown reward func 'x' in rewards.y; choose from [...]; did you mean 'z'?"."""
     names = sorted(str(c) for c in choices)  # type: ignore[union-attr]
     msg = f"unknown {kind} {name!r}"
     if where:

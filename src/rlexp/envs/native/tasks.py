@@ -35,7 +35,9 @@ class TaskSpec:
     robot_joints: tuple[str, ...]  # the robot's joints, in observation order
     parts: dict[str, tuple[str, ...]]  # control parts ("arm", "hand") -> joint names
     init_qpos: tuple[float, ...]  # initial robot joint positions (scene.init_qpos overrides)
-    objects: dict[str, str] = field(default_factory=dict)  # rigid object uid -> its body (with a free joint)
+    objects: dict[str, str] = field(
+        default_factory=dict
+    )  # rigid object uid -> its body (with a free joint)
     ee_site: str | None = None  # end-effector site (tool tip), for get_robot_eef_pose
     substeps: int = 1  # physics steps per env step
     max_episode_steps: int = 100  # time limit (truncation) unless the config overrides it
@@ -44,8 +46,12 @@ class TaskSpec:
     terminated: Callable[[NativeEnv], np.ndarray] | None = None
     truncated: Callable[[NativeEnv], np.ndarray] | None = None
     extensions: dict[str, Any] = field(default_factory=dict)  # defaults for env.extensions
-    camera: dict[str, tuple[float, float, float]] = field(default_factory=dict)  # default render eye/target
-    markers: dict[str, str] = field(default_factory=dict)  # mocap body -> stored target it shows (render only)
+    camera: dict[str, tuple[float, float, float]] = field(
+        default_factory=dict
+    )  # default render eye/target
+    markers: dict[str, str] = field(
+        default_factory=dict
+    )  # mocap body -> stored target it shows (render only)
 
 
 TASKS: Registry = Registry("native task")
@@ -99,7 +105,7 @@ PUSH_CUBE = TaskSpec(
     terminated=_push_cube_success,
     truncated=_push_cube_fell,
     extensions={"success_threshold": 0.1, "cube_min_z": -0.1},
-    camera={"eye": (-1.4, 1.4, 2.0), "target": (-0.2, -0.1, 0.0)},
+    camera={"eye": (0.6, -1.9, 1.4), "target": (-0.3, -0.2, 0.1)},
     markers={"goal": "goal_pose"},
 )
 TASKS.register("push_cube")(PUSH_CUBE)
@@ -179,7 +185,10 @@ def default_task_config(name: str) -> NativeTaskConfig:
                     params={"joint_ids": [0, 1, 2, 3, 4, 5]},
                 ),
                 "robot_ee_pos": ObservationTermConfig(
-                    func="get_robot_eef_pose", mode="add", name="robot/ee_pos", params={"part_name": "arm"}
+                    func="get_robot_eef_pose",
+                    mode="add",
+                    name="robot/ee_pos",
+                    params={"part_name": "arm"},
                 ),
                 "cube_pos": ObservationTermConfig(
                     func="get_rigid_object_pose",
@@ -235,13 +244,20 @@ def default_task_config(name: str) -> NativeTaskConfig:
         },
         observations={
             "robot_qpos": ObservationTermConfig(
-                func="normalize_robot_joint_data", mode="modify", name="robot/qpos", params={"joint_ids": [0, 1]}
+                func="normalize_robot_joint_data",
+                mode="modify",
+                name="robot/qpos",
+                params={"joint_ids": [0, 1]},
             )
         },
         rewards={
-            "upright": RewardTermConfig(func="upright_reward", weight=1.0, params={"joint_ids": [1]}),
+            "upright": RewardTermConfig(
+                func="upright_reward", weight=1.0, params={"joint_ids": [1]}
+            ),
             "velocity_penalty": RewardTermConfig(
-                func="joint_velocity_penalty", weight=0.005, params={"robot_uid": "Cart", "part_name": "hand"}
+                func="joint_velocity_penalty",
+                weight=0.005,
+                params={"robot_uid": "Cart", "part_name": "hand"},
             ),
         },
         actions={"delta_qpos": ActionTermConfig(func="DeltaQposTerm", params={"scale": 0.1})},
