@@ -32,9 +32,15 @@ def compose(overrides: list[str] | None = None):
         return hydra_compose(config_name="config", overrides=list(overrides or []))
 
 
-def run_train(args: list[str], cwd: Path, timeout: float = 300, check: bool = True, **kw) -> subprocess.CompletedProcess:
-    """``python train.py ARGS`` in a subprocess, in ``cwd``."""
+def run_train(args: list[str], cwd: Path, timeout: float = 300, check: bool = True,
+              env_extra: dict[str, str | None] | None = None, **kw) -> subprocess.CompletedProcess:
+    """``python train.py ARGS`` in a subprocess, in ``cwd`` (``env_extra``: None removes a variable)."""
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    for key, value in (env_extra or {}).items():
+        if value is None:
+            env.pop(key, None)
+        else:
+            env[key] = value
     proc = subprocess.run(
         [sys.executable, str(REPO / "train.py"), *args],
         cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env, **kw,

@@ -229,8 +229,15 @@ class GymnasiumEnv(EnvBase):
         self._seed = None
 
     # -- extras ------------------------------------------------------------------------------------
-    def render(self, env_id: int = 0) -> np.ndarray:
-        """An RGB frame of copy ``env_id`` (needs ``render_mode='rgb_array'`` in ``env.kwargs``)."""
+    def render(self, env_id: int = 0, **camera) -> np.ndarray:
+        """An RGB frame of copy ``env_id`` from Gymnasium's own camera (needs
+        ``env.kwargs.render_mode=rgb_array``; size from ``env.kwargs.width/height``). Camera placement
+        arguments (eye, target, intrinsics) apply to the native tasks only and are ignored here."""
+        if self._envs[env_id].render_mode != "rgb_array":
+            raise ValueError(
+                f"env.name={self.env_id!r}: rendering needs env.kwargs.render_mode=rgb_array "
+                "(e.g. +env.kwargs.render_mode=rgb_array on the command line)"
+            )
         return self._envs[env_id].render()
 
     def close(self, *, raise_if_closed: bool = True) -> None:
