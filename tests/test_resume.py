@@ -68,7 +68,8 @@ def test_corrupt_checkpoint_falls_back_to_the_previous_one(tmp_path, caplog):
                f"hydra.run.dir={run_dir}"], cwd=tmp_path)
     ckpts = step_checkpoints(run_dir / "checkpoints")
     assert len(ckpts) == 3
-    ckpts[-1].write_bytes(ckpts[-1].read_bytes()[:1000])  # truncated write
+    ckpts[-1].write_bytes(ckpts[-1].read_bytes()[:1000])  # truncated write: the job died mid-save
+    (run_dir / "status.json").write_text('{"state": "running", "global_step": 768}')
     with caplog.at_level("WARNING"):
         good = latest_good_checkpoint(run_dir / "checkpoints")
     assert good is not None and good["global_step"] == 512

@@ -15,7 +15,13 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, TransformedEnv
 
 from rlexp.algorithms.ppo import PPO, NonFiniteError
-from rlexp.checkpoint import checkpoint_path, prune_checkpoints, rng_state, save_checkpoint, set_rng_state
+from rlexp.checkpoint import (
+    checkpoint_path,
+    prune_checkpoints,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from rlexp.config.schema import TrainerConfig
 from rlexp.events import EventContext, EventManager
 from rlexp.events.transform import EventTransform
@@ -24,6 +30,10 @@ from rlexp.policies.actor_critic import ActorCritic
 from rlexp.progress import Progress
 
 log = logging.getLogger(__name__)
+
+
+class StopRequested(Exception):
+    """Raised by ``train`` after it checkpointed at a safe point because ``request_stop`` was called."""
 
 
 def _base_env(env: EnvBase | None) -> EnvBase | None:
@@ -82,6 +92,7 @@ class Trainer:
         self.collector: Collector | None = None  # built when training starts, after a resume
         self._event_transform: EventTransform | None = None
         self._resume_rng: dict[str, Any] | None = None
+        self.stop_reason: str | None = None  # set by request_stop (e.g. from a SLURM signal handler)
         if event_manager.has("step", "reset"):  # only then: runs without such events pay nothing per step
             self._event_transform = EventTransform(event_manager, run_dir)
             self.env = TransformedEnv(env, self._event_transform)
@@ -108,6 +119,9 @@ class Trainer:
                     self.eval_once()
                 if crossed(before, self.global_step, self.cfg.save_every):
                     self.save_checkpoint()
+                if self.stop_reason is not None:  # a safe point: checkpoint, then let the caller decide
+                    self.save_checkpoint()
+                    raise StopRequested(self.stop_reason)
         self.save_checkpoint()
 
     def collect_rollout(self) -> TensorDictBase:
@@ -231,6 +245,10 @@ class Trainer:
         log.info("[ckpt] saved %s", path)
         self.event_manager.fire("trigger", self._ctx(), signal="checkpoint")
         return path
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the loop to checkpoint and stop at the end of the current iteration (signal-safe)."""
+        self.stop_reason = reason
 
     # -- state ---------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
