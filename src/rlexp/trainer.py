@@ -25,6 +25,7 @@ from rlexp.checkpoint import (
 from rlexp.config.schema import TrainerConfig
 from rlexp.events import EventContext, EventManager
 from rlexp.events.transform import EventTransform
+from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
 from rlexp.logging import MetricLogger
 from rlexp.policies.actor_critic import ActorCritic
 from rlexp.progress import Progress
@@ -40,6 +41,16 @@ def _base_env(env: EnvBase | None) -> EnvBase | None:
     while env is not None and hasattr(env, "base_env"):
         env = env.base_env
     return env
+
+
+def parameter_digest(module: torch.nn.Module) -> str:
+    """sha256 of every parameter's bytes, in ``state_dict`` order."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for _, p in sorted(module.named_parameters()):
+        h.update(p.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
 
 
 def crossed(before: int, after: int, every: int) -> bool:
@@ -64,6 +75,7 @@ class Trainer:
         run_dir: Path,
         config_dict: dict[str, Any],
         versions: dict[str, str] | None = None,
+        dist: DistInfo | None = None,
     ) -> None:
         self.cfg = cfg
         self.policy = policy
@@ -77,6 +89,7 @@ class Trainer:
         self.ckpt_dir = run_dir / "checkpoints"
         self.config_dict = config_dict
         self.versions = dict(versions or {})
+        self.dist = dist or DistInfo()  # rank / world size; rank 0 alone logs, evaluates and saves
         self.global_step = 0
         self.ret_window: deque[float] = deque(maxlen=100)
         self.len_window: deque[int] = deque(maxlen=100)
@@ -122,14 +135,24 @@ class Trainer:
                 if self.stop_reason is not None:  # a safe point: checkpoint, then let the caller decide
                     self.save_checkpoint()
                     raise StopRequested(self.stop_reason)
+        if self.dist.enabled:
+            self.check_ranks_in_sync()
         self.save_checkpoint()
+
+    def check_ranks_in_sync(self) -> None:
+        """Distributed: every rank must hold the same parameters (gradients were averaged)."""
+        digest = parameter_digest(self.policy)
+        digests = all_gather_object(digest)
+        if len(set(digests)) != 1:
+            raise RuntimeError(f"ranks diverged: parameter digests {digests}")
+        log.info("[dist] parameters identical on all %d ranks (sha256 %s)", self.dist.world_size, digest)
 
     def collect_rollout(self) -> TensorDictBase:
         """One batch of ``frames_per_batch`` env steps through the TorchRL collector."""
         t0 = time.perf_counter()
         batch = next(self._rollouts)
         self._timing["collect"] = time.perf_counter() - t0
-        self.global_step += batch.numel()
+        self.global_step += batch.numel() * self.dist.world_size  # every rank collected as much
         if self._event_transform is not None:
             self._event_transform.global_step = self.global_step
         if self.cfg.nan_guard:
@@ -146,7 +169,7 @@ class Trainer:
             losses = self.algorithm.update(batch)
         except NonFiniteError as exc:
             raise NonFiniteError(f"{exc} at step {self.global_step}") from None
-        self.policy.normalizer.update(batch["observation"])
+        self.policy.normalizer.update(batch["observation"], all_reduce_sum if self.dist.enabled else None)
         self._timing["update"] = time.perf_counter() - t0
         return losses
 
@@ -154,7 +177,7 @@ class Trainer:
         """Log losses, episode statistics, per-term rewards and throughput."""
         iteration = self.algorithm.iteration
         elapsed = self._timing["collect"] + self._timing["update"] + self._timing["eval"]
-        sps = self.cfg.frames_per_batch / max(elapsed, 1e-9)
+        sps = self.cfg.frames_per_batch * self.dist.world_size / max(elapsed, 1e-9)
         metrics = dict(losses)
         metrics["perf/sps"] = sps
         metrics["perf/collect_time"] = self._timing["collect"]
@@ -175,7 +198,7 @@ class Trainer:
     @torch.no_grad()
     def eval_once(self) -> dict[str, float]:
         """Deterministic evaluation over ``eval_episodes`` episodes spread over the eval envs."""
-        if self.eval_env is None or self.cfg.eval_episodes <= 0:
+        if self.eval_env is None or self.cfg.eval_episodes <= 0 or not self.dist.is_main:
             return {}
         t_start = time.perf_counter()
         env = self.eval_env
@@ -237,7 +260,7 @@ class Trainer:
     def save_checkpoint(self) -> Path:
         """Write everything needed to evaluate or continue this run to ``checkpoints/``."""
         path = checkpoint_path(self.ckpt_dir, self.cfg.exp_name, self.global_step)
-        if self.last_checkpoint == path:
+        if self.last_checkpoint == path or not self.dist.is_main:
             return path
         save_checkpoint(path, self.state_dict())
         self.last_checkpoint = path
@@ -290,6 +313,8 @@ class Trainer:
             self._ep_len[:] = np.asarray(w["running_length"])
         for name, env in (("train", self.env), ("eval", self.eval_env)):
             base = _base_env(env)
+            if not self.dist.is_main:
+                break  # the checkpoint holds rank 0's envs; other ranks continue with fresh episodes
             if base is not None and name in sd.get("envs", {}) and hasattr(base, "load_env_state"):
                 base.load_env_state(sd["envs"][name])
         self.event_manager.load_state_dict(sd["events"]["train"], self.env)
@@ -297,6 +322,9 @@ class Trainer:
         self.last_eval = dict(sd.get("last_eval", {}))
         self.best_metric = float(sd.get("best_metric", -float("inf")))
         self._resume_rng = sd["rng"]
+        if not self.dist.is_main:  # rank 0's RNG would give every rank the same noise
+            self._resume_rng = None
+            torch.manual_seed(torch.initial_seed() + self.global_step)
         self.resumed_from = sd.get("path")
         log.info("[resume] continuing from %s at step %d", self.resumed_from, self.global_step)
 
@@ -336,15 +364,23 @@ class Trainer:
         nxt = batch["next"]
         rewards = nxt["reward"].reshape(self._num_envs, -1).cpu().numpy()
         dones = nxt["done"].reshape(self._num_envs, -1).cpu().numpy()
+        returns: list[float] = []
+        lengths: list[int] = []
         for t in range(rewards.shape[1]):
             self._ep_ret += rewards[:, t]
             self._ep_len += 1
             finished = dones[:, t]
             if finished.any():
-                self.ret_window.extend(self._ep_ret[finished].tolist())
-                self.len_window.extend(self._ep_len[finished].tolist())
+                returns += self._ep_ret[finished].tolist()
+                lengths += self._ep_len[finished].tolist()
                 self._ep_ret[finished] = 0.0
                 self._ep_len[finished] = 0
+        if self.dist.enabled:  # every rank's finished episodes, in rank order
+            gathered = all_gather_object((returns, lengths))
+            returns = [r for rets, _ in gathered for r in rets]
+            lengths = [n for _, lens in gathered for n in lens]
+        self.ret_window.extend(returns)
+        self.len_window.extend(lengths)
         self._term_means = {}
         for group in ("rewards", "metrics"):
             if group in nxt.keys():

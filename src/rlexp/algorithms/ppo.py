@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDictBase
 from torchrl.objectives import ClipPPOLoss
@@ -31,7 +33,14 @@ def make_gae(cfg: AlgorithmConfig, value_network) -> GAE:
 class PPO:
     """One PPO learner: ``update(batch)`` runs GAE then the clipped-surrogate epochs on a rollout."""
 
-    def __init__(self, cfg: AlgorithmConfig, policy: ActorCritic, total_iterations: int, nan_guard: bool = True) -> None:
+    def __init__(
+        self,
+        cfg: AlgorithmConfig,
+        policy: ActorCritic,
+        total_iterations: int,
+        nan_guard: bool = True,
+        grad_sync: Callable[[list[torch.Tensor]], None] | None = None,
+    ) -> None:
         if cfg.name != "ppo":
             raise ValueError(f"algorithm.name={cfg.name!r}; available: ['ppo']")
         if cfg.loss_critic_type not in ("l1", "l2", "smooth_l1"):
@@ -42,6 +51,7 @@ class PPO:
         self.policy = policy
         self.total_iterations = max(1, total_iterations)
         self.nan_guard = nan_guard
+        self.grad_sync = grad_sync  # distributed: averages the gradients over ranks after every backward
         self.gae = make_gae(cfg, policy.critic)
         self.loss = ClipPPOLoss(
             actor_network=policy.actor,
@@ -95,6 +105,11 @@ class PPO:
                     total = total + out["loss_entropy"]
                 self.optimizer.zero_grad(set_to_none=True)
                 total.backward()
+                if self.grad_sync is not None:
+                    for p in self.params:
+                        if p.grad is None:
+                            p.grad = torch.zeros_like(p)
+                    self.grad_sync([p.grad for p in self.params])
                 if self.cfg.max_grad_norm > 0:
                     grad_norm = torch.nn.utils.clip_grad_norm_(self.params, self.cfg.max_grad_norm)
                 else:
@@ -135,6 +150,12 @@ class PPO:
         self.iteration = int(sd["iteration"])
 
 
-def make_algorithm(cfg: AlgorithmConfig, policy: ActorCritic, total_iterations: int, nan_guard: bool = True) -> PPO:
-    """Build the configured algorithm around ``policy``."""
-    return PPO(cfg, policy, total_iterations, nan_guard)
+def make_algorithm(
+    cfg: AlgorithmConfig,
+    policy: ActorCritic,
+    total_iterations: int,
+    nan_guard: bool = True,
+    grad_sync: Callable[[list[torch.Tensor]], None] | None = None,
+) -> PPO:
+    """Build the configured algorithm around ``policy`` (``grad_sync``: the distributed all-reduce)."""
+    return PPO(cfg, policy, total_iterations, nan_guard, grad_sync)

@@ -32,9 +32,11 @@ def to_dict(config: RootConfig) -> dict[str, Any]:
     return OmegaConf.to_container(OmegaConf.structured(config), resolve=True)
 
 
-def total_frames(config: RootConfig) -> int:
+def total_frames(config: RootConfig, world_size: int = 1) -> int:
+    """Env steps to train for, summed over envs and processes (``iterations`` counts batches of
+    ``frames_per_batch`` per process)."""
     t = config.trainer
-    return t.iterations * t.frames_per_batch if t.iterations is not None else t.total_frames
+    return t.iterations * t.frames_per_batch * world_size if t.iterations is not None else t.total_frames
 
 
 def validate(config: RootConfig) -> None:

@@ -8,6 +8,7 @@ and scores actions with three tensor ops instead of building a distribution obje
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
@@ -50,19 +51,24 @@ class ObservationNormalizer(nn.Module):
         self.register_buffer("_shift", torch.zeros(dim))
 
     @torch.no_grad()
-    def update(self, obs: torch.Tensor) -> None:
+    def update(self, obs: torch.Tensor, reduce_sum: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
+        """Fold a batch into the statistics (``reduce_sum``: sums over ranks, so all ranks agree)."""
         if not self.enabled:
             return
         x = obs.reshape(-1, obs.shape[-1]).to(torch.float64)
-        n = x.shape[0]
+        # count, sum and sum of squared deviations from the current mean (stable, and reducible)
+        centred = x - self.mean
+        stats = torch.cat([torch.tensor([float(x.shape[0])], dtype=torch.float64), centred.sum(0), centred.pow(2).sum(0)])
+        if reduce_sum is not None:
+            stats = reduce_sum(stats)
+        n, dim = stats[0], x.shape[-1]
         if n == 0:
             return
-        b_mean = x.mean(0)
-        b_var = x.var(0, unbiased=False)
+        b_mean_c = stats[1 : 1 + dim] / n  # batch mean, relative to the current mean
+        b_var = stats[1 + dim :] / n - b_mean_c.pow(2)
         total = self.count + n
-        delta = b_mean - self.mean
-        new_mean = self.mean + delta * n / total
-        m2 = self.var * self.count + b_var * n + delta.pow(2) * self.count * n / total
+        new_mean = self.mean + b_mean_c * n / total
+        m2 = self.var * self.count + b_var * n + b_mean_c.pow(2) * self.count * n / total
         self.mean.copy_(new_mean)
         self.var.copy_(m2 / total)
         self.count.copy_(total)
