@@ -1,6 +1,10 @@
-"""Train PPO with rlexp: ``python train.py [hydra overrides]`` (see README.md)."""
+"""Train PPO with rlexp: ``python train.py [--config-json FILE] [hydra overrides]`` (see README.md).
 
-from rlexp.app import main
+``--config-json FILE`` (or ``--config FILE``) runs one of our users' JSON experiment files; Hydra
+overrides still apply on top of it (docs/json_format.md).
+"""
+
+from rlexp.launch.json_entry import main
 
 if __name__ == "__main__":
     main()

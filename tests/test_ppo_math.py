@@ -101,3 +101,37 @@ def test_observation_normalizer_matches_numpy_over_batches():
     expected = np.clip((data[0] - allx.mean(0)) / np.sqrt(allx.var(0) + 1e-8), -10, 10)
     np.testing.assert_allclose(norm(x).numpy(), expected, rtol=1e-5, atol=1e-5)
     assert "mean" in norm.state_dict() and "count" in norm.state_dict()
+
+
+@pytest.mark.parametrize("env_name", ["hopper", "push_cube"])
+def test_fast_collector_gives_the_same_batches_as_torchrl_loop(env_name):
+    """The lean rollout loop is an optimisation only: same values as TorchRL's generic Collector."""
+    from torchrl.collectors import Collector
+
+    from conftest import compose
+    from rlexp.collector import RolloutCollector
+    from rlexp.config.validate import to_root_config
+    from rlexp.envs.factory import make_env
+
+    def batches(cls):
+        torch.manual_seed(0)
+        env_cfg = to_root_config(compose([f"env={env_name}"])).env
+        env = make_env(env_cfg, 4, seed=0)
+        pol = make_policy(PolicyConfig(), env.observation_spec["observation"].shape[-1],
+                          env.action_spec.shape[-1], env.action_spec)
+        col = cls(env, pol.sampling_policy(), frames_per_batch=4 * 150, total_frames=-1,
+                  trust_policy=True, track_traj_ids=False)
+        it = iter(col)
+        out = [next(it) for _ in range(3)]  # 450 steps per env: episodes end and reset on the way
+        col.shutdown()
+        return out
+
+    slow, fast = batches(Collector), batches(RolloutCollector)
+    assert any(b["next", "done"].any() for b in slow)
+    for s, f in zip(slow, fast, strict=True):
+        assert f.batch_size == s.batch_size
+        for key in f.keys(True, True):
+            assert torch.equal(f[key], s[key]), f"{key} differs"
+        for key in ("action_log_prob", ("next", "observation"), ("next", "reward"), ("next", "terminated"),
+                    ("next", "truncated")):
+            assert key in f.keys(True, True)

@@ -6,9 +6,11 @@ are imported only once the config has composed and validated, so a bad override 
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -55,40 +57,76 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def train(config: RootConfig, run_dir: Path) -> dict[str, float]:
+def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> dict[str, float]:
     """Build envs, policy, PPO, loggers and Trainer from ``config``; train; return the last eval."""
     import torch
 
     from rlexp import _speedups
-    from rlexp.algorithms.ppo import make_algorithm
+    from rlexp.algorithms.ppo import NonFiniteError, make_algorithm
+    from rlexp.checkpoint import latest_good_checkpoint, load_checkpoint
     from rlexp.envs.factory import make_env
+    from rlexp.launch.slurm import install_preemption_handler
     from rlexp.events import EventManager
     from rlexp.logging import make_logger
     from rlexp.policies.actor_critic import make_policy
-    from rlexp.trainer import Trainer
+    from rlexp.launch import distributed
+    from rlexp.logging import MetricLogger
+    from rlexp.provenance import versions, write_provenance
+    from rlexp.trainer import StopRequested, Trainer
 
     t, e = config.trainer, config.env
+    dist = distributed.info()
     _speedups.apply()
     torch.set_num_threads(t.torch_threads)
     device = resolve_device(t.device, t.strict_device)
-    seed_everything(config.seed)
+    if dist.enabled and device.startswith("cuda"):
+        device = f"cuda:{dist.local_rank}"  # each rank on its own GPU
+    seed_everything(config.seed + dist.rank)
     run_dir.mkdir(parents=True, exist_ok=True)
+    status = read_status(run_dir)
+    if status.get("state") == "finished" and t.resume == "auto" and status.get("global_step", 0) >= total_frames(config, dist.world_size):
+        # A re-run of the same sweep: this job already finished its budget; report it, train nothing.
+        log.info("run dir %s already finished at step %s: skipping", run_dir, status.get("global_step"))
+        return dict(status.get("final_eval") or {})
+
     t.device = device  # the saved config records the device actually used
     config_dict = to_dict(config)
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(config_dict)))
+    if dist.is_main:
+        (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(config_dict)))
+    from rlexp.config.json_format import write_json_experiment
+
+    if dist.is_main:
+        write_json_experiment(config, run_dir)  # the same config as train_config.json + gym_config.json
+    if dist.is_main:
+        write_provenance(run_dir, device)
     log.info("run dir: %s (device %s, seed %d)", run_dir, device, config.seed)
 
-    env = make_env(e, e.num_envs, config.seed)
-    eval_env = make_env(e, e.num_eval_envs, config.seed + 1_000_000) if e.num_eval_envs > 0 else None
+    # Resume before anything is built from scratch: a requeued job continues where it stopped.
+    ckpt = None
+    if t.resume == "auto":
+        ckpt = latest_good_checkpoint(run_dir / "checkpoints")
+    elif t.resume not in ("never", ""):
+        ckpt = load_checkpoint(t.resume)
+
+    env = make_env(e, e.num_envs, config.seed + dist.rank)  # each rank its own envs: seed + rank
+    eval_env = None  # rank 0 alone evaluates
+    if e.num_eval_envs > 0 and dist.is_main:
+        eval_env = make_env(e, e.num_eval_envs, config.seed + 1_000_000)
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec.shape[-1]
     log.info("env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, act_dim)
     policy = make_policy(config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
                          e.clip_observations).to(device)
-    total = total_frames(config)
-    iterations = -(-total // t.frames_per_batch)
-    algorithm = make_algorithm(config.algorithm, policy, iterations)
-    logger = make_logger(config.logger, run_dir, t.exp_name, config_dict)
+    if dist.enabled:  # same initial parameters everywhere
+        distributed.broadcast_([*policy.parameters(), *policy.buffers()])
+    total = total_frames(config, dist.world_size)
+    iterations = -(-total // (t.frames_per_batch * dist.world_size))
+    grad_sync = distributed.all_reduce_mean_ if dist.enabled else None
+    algorithm = make_algorithm(config.algorithm, policy, iterations, t.nan_guard, grad_sync)
+    if dist.is_main:
+        logger = make_logger(config.logger, run_dir, t.exp_name, config_dict, group=sweep_group)
+    else:
+        logger = MetricLogger([])
     trainer = Trainer(
         cfg=t,
         policy=policy,
@@ -96,22 +134,65 @@ def train(config: RootConfig, run_dir: Path) -> dict[str, float]:
         env=env,
         eval_env=eval_env,
         logger=logger,
-        event_manager=EventManager(config.events.train, "events.train"),
-        eval_event_manager=EventManager(config.events.eval, "events.eval"),
+        event_manager=EventManager(config.events.train, "events.train", seed=config.seed + 2),
+        eval_event_manager=EventManager(config.events.eval, "events.eval", seed=config.seed + 3),
         run_dir=run_dir,
         config_dict=config_dict,
+        versions=versions(),
+        dist=dist,
     )
+    install_preemption_handler(trainer)  # under SLURM: the preemption signal checkpoints, then requeues
+    if ckpt is not None:
+        trainer.load_state_dict(ckpt)
+    write_status(run_dir, "running", trainer.global_step)
     try:
         trainer.train(total)
         if eval_env is not None and not trainer.last_eval:
             trainer.eval_once()
+        write_status(run_dir, "finished", trainer.global_step, trainer.last_eval)
     except KeyboardInterrupt:
         log.warning("interrupted at step %d: saving a checkpoint before exiting", trainer.global_step)
         trainer.save_checkpoint()
-    finally:
+        write_status(run_dir, "interrupted", trainer.global_step, trainer.last_eval)
+    except StopRequested as exc:
+        log.warning("stopped at step %d (%s): checkpoint %s", trainer.global_step, exc, trainer.last_checkpoint)
+        write_status(run_dir, "stopped", trainer.global_step, trainer.last_eval, reason=str(exc))
         trainer.close()
+        raise
+    except NonFiniteError as exc:
+        write_status(run_dir, "failed", trainer.global_step, trainer.last_eval, reason=str(exc))
+        log.error("stopped: %s; the last good checkpoint is %s", exc, trainer.last_checkpoint or ckpt and ckpt["path"])
+        trainer.close()
+        sys.exit(3)
+    finally:
+        if not trainer.logger.closed:
+            trainer.close()
+        distributed.shutdown()
     log.info("done: %d env steps; checkpoint %s", trainer.global_step, trainer.last_checkpoint)
     return trainer.last_eval
+
+
+def read_status(run_dir: Path) -> dict[str, Any]:
+    """``status.json`` of a run dir ({} when there is none)."""
+    path = run_dir / "status.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def write_status(run_dir: Path, state: str, global_step: int, final_eval: dict | None = None, **extra: Any) -> None:
+    """``status.json``: running | finished | interrupted | stopped | failed, the step and the last eval
+    (what sweeps and ``rlexp report`` read to tell finished jobs from unfinished ones). Rank 0 only."""
+    from rlexp.launch.distributed import info
+
+    if not info().is_main:
+        return
+    info = {"state": state, "global_step": global_step, "final_eval": final_eval or {},
+            "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **extra}
+    tmp = run_dir / ".status.json.tmp"
+    tmp.write_text(json.dumps(info, indent=2) + "\n")
+    os.replace(tmp, run_dir / "status.json")
 
 
 def _task(cfg: DictConfig) -> float | None:
@@ -121,9 +202,20 @@ def _task(cfg: DictConfig) -> float | None:
     except ConfigError as exc:
         log.error("config error: %s", exc)
         sys.exit(2)
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if os.environ.get("RLEXP_DISTRIBUTED") == "1":
+        from rlexp.launch import distributed
+
+        if not distributed.info().enabled:
+            try:
+                distributed.init_in_job()
+            except RuntimeError as exc:
+                log.error("%s", exc)
+                sys.exit(2)
+    hc = HydraConfig.get()
+    run_dir = Path(hc.runtime.output_dir)
+    sweep_group = Path(hc.sweep.dir).name if hc.mode is not None and hc.mode.name == "MULTIRUN" else None
     try:
-        metrics: dict[str, Any] = train(config, run_dir)
+        metrics: dict[str, Any] = train(config, run_dir, sweep_group)
     except ConfigError as exc:
         log.error("config error: %s", exc)
         sys.exit(2)
@@ -131,7 +223,20 @@ def _task(cfg: DictConfig) -> float | None:
 
 
 def main() -> None:
-    """``python train.py [overrides]``: compose ``conf/`` with Hydra and train."""
+    """``python train.py [--distributed] [overrides]``: compose ``conf/`` with Hydra and train."""
+    from rlexp.launch import distributed
+
     register_configs()
     os.environ.setdefault("MUJOCO_GL", "egl")
+    wanted, rest = distributed.split_flag(sys.argv[1:])
+    if wanted and any(a in ("-m", "--multirun") for a in rest):
+        # A sweep: the launcher's jobs start the ranks (SLURM tasks_per_node); each job joins its group.
+        os.environ["RLEXP_DISTRIBUTED"] = "1"
+    elif wanted:
+        try:
+            rest = distributed.init(rest)
+        except RuntimeError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            sys.exit(2)
+        sys.argv = [sys.argv[0], *rest]
     hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")(_task)()

@@ -1,10 +1,12 @@
-"""``rlexp`` command: ``rlexp train [overrides]``, ``rlexp eval CHECKPOINT [--episodes N]``."""
+"""``rlexp`` command: ``rlexp train [overrides]``, ``rlexp eval CHECKPOINT [--episodes N]``,
+``rlexp report SWEEP_DIR``."""
 
 from __future__ import annotations
 
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 log = logging.getLogger("rlexp")
 
@@ -49,11 +51,10 @@ def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) ->
 
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] == "train":
-        from rlexp.app import main as train_main
+    if argv and argv[0] == "train":  # exactly `python train.py ...` (--config-json, --distributed)
+        from rlexp.launch.json_entry import main as train_main
 
-        sys.argv = [sys.argv[0], *argv[1:]]
-        train_main()
+        train_main(argv[1:])
         return
     parser = argparse.ArgumentParser(prog="rlexp", description="rlexp experiment tools")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -63,8 +64,21 @@ def main(argv: list[str] | None = None) -> None:
     ev.add_argument("--episodes", type=int, default=10)
     ev.add_argument("--num-envs", type=int, default=None)
     ev.add_argument("--seed", type=int, default=12345)
+    rep = sub.add_parser("report", help="a sweep's per-configuration statistics: report.md, report.csv, curves.png")
+    rep.add_argument("sweep_dir", help="a multirun dir, e.g. multirun/2026-11-22/10-00-00")
+    rep.add_argument("--metric", default="eval/episode_return", help="score and curve metric")
+    rep.add_argument("--no-plot", action="store_true", help="skip curves.png")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.command == "report":
+        from rlexp.report import report
+
+        try:
+            print(report(Path(args.sweep_dir), args.metric, plot=not args.no_plot), end="")
+        except FileNotFoundError as exc:
+            print(f"rlexp report: {exc}", file=sys.stderr)
+            sys.exit(2)
+        return
     if args.command == "eval":
         try:
             res = evaluate(args.checkpoint, args.episodes, args.num_envs, args.seed)

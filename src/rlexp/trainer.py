@@ -11,7 +11,6 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, TransformedEnv
 
 from rlexp.algorithms.ppo import PPO, NonFiniteError
@@ -22,6 +21,7 @@ from rlexp.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from rlexp.collector import RolloutCollector
 from rlexp.config.schema import TrainerConfig
 from rlexp.events import EventContext, EventManager
 from rlexp.events.transform import EventTransform
@@ -102,7 +102,7 @@ class Trainer:
         self._ep_len = np.zeros(self._num_envs, dtype=np.int64)
         self._term_means: dict[str, float] = {}
         self._timing = {"collect": 0.0, "update": 0.0, "eval": 0.0}
-        self.collector: Collector | None = None  # built when training starts, after a resume
+        self.collector: RolloutCollector | None = None  # built when training starts, after a resume
         self._event_transform: EventTransform | None = None
         self._resume_rng: dict[str, Any] | None = None
         self.stop_reason: str | None = None  # set by request_stop (e.g. from a SLURM signal handler)
@@ -340,7 +340,7 @@ class Trainer:
     # -- helpers -------------------------------------------------------------------------------------
     def _start_collector(self) -> None:
         if self.collector is None:
-            self.collector = Collector(
+            self.collector = RolloutCollector(
                 self.env,
                 self.policy.sampling_policy(),
                 frames_per_batch=self.cfg.frames_per_batch,

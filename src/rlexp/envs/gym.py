@@ -151,7 +151,23 @@ class GymnasiumEnv(EnvBase):
         )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        actions = tensordict.get("action").detach().cpu().numpy().astype(np.float64)
+        return self.step_action(tensordict.get("action"))
+
+    def autoreset_observation(self, next_td: TensorDictBase) -> torch.Tensor:
+        """The observation to act on after a ``step_action``: the step's own for running copies, the
+        fresh reset one for copies that finished (reset inside the step); hands those resets out.
+        What rlexp's collector uses instead of a masked ``reset()``."""
+        obs = next_td.get("observation")
+        if self._pending_reset.any():
+            obs = obs.clone()
+            idx = np.flatnonzero(self._pending_reset)
+            obs[idx] = torch.from_numpy(self._reset_obs[idx])
+            self._pending_reset[:] = False
+        return obs
+
+    def step_action(self, action: torch.Tensor) -> TensorDictBase:
+        """One step of every copy from an action tensor (the body of ``_step``)."""
+        actions = action.detach().cpu().numpy().astype(np.float64)
         np.clip(actions, self._low, self._high, out=actions)
         n = self.num_envs
         obs = np.empty((n, self.obs_dim), dtype=np.float32)

@@ -145,8 +145,9 @@ class SamplingPolicy(TensorDictModuleBase):
         self.in_keys = ["observation"]
         self.out_keys = ["loc", "scale", "action", "action_log_prob"]
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        loc, scale = self.actor_net(tensordict.get("observation"))
+    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(loc, scale, action, log-probability of the action) for a batch of observations."""
+        loc, scale = self.actor_net(obs)
         if self.deterministic:
             action = loc
             log_prob = (-scale.log() - _LOG_SQRT_2PI).sum(-1)
@@ -154,6 +155,10 @@ class SamplingPolicy(TensorDictModuleBase):
             noise = torch.randn_like(loc)
             action = loc + scale * noise
             log_prob = (-0.5 * noise.pow(2) - scale.log() - _LOG_SQRT_2PI).sum(-1)
+        return loc, scale, action, log_prob
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        loc, scale, action, log_prob = self.sample(tensordict.get("observation"))
         tensordict.set("loc", loc)
         tensordict.set("scale", scale)
         tensordict.set("action", action)

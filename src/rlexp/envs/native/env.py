@@ -540,9 +540,19 @@ class NativeEnv(EnvBase):
         return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self.step_action(tensordict.get("action"))
+
+    def autoreset_observation(self, next_td: TensorDictBase) -> torch.Tensor:
+        """The observation to act on after a ``step_action``: the step's own for running envs, the
+        fresh reset one for envs that finished (reset inside the step); hands those resets out.
+        What rlexp's collector uses instead of a masked ``reset()``."""
+        self._pending_reset[:] = False
+        return torch.from_numpy(self._v.current_obs.copy())
+
+    def step_action(self, action: torch.Tensor) -> TensorDictBase:
+        """One batched step from an action tensor (the body of ``_step``)."""
         n = self.num_envs
         self._pending_reset[:] = False
-        action = tensordict.get("action")
         if action.device.type != "cpu":
             action = action.cpu()
         self.prev_action[:] = self.action

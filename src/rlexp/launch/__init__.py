@@ -1,0 +1,1 @@
+"""Launch helpers: entry points (``json_entry``: ``train.py --config-json``) and launchers."""

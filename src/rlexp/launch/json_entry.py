@@ -1,0 +1,200 @@
+"""``python train.py --config-json FILE [overrides]``: our users' JSON experiment files through Hydra.
+
+The file is loaded and checked before Hydra starts, so a bad file prints one line on stderr and exits
+2 without creating a run dir. Its nodes then go into Hydra's ConfigStore (``env=json_task`` and
+``+experiment=json_experiment`` in package ``_global_``): Hydra composes ``conf/`` with them exactly as
+with a YAML preset, command-line overrides apply on top, and ``-m`` sweeps run from the JSON base.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+
+from rlexp.config.json_format import JsonExperiment, load_json_experiment
+from rlexp.config.schema import RootConfig
+from rlexp.config.validate import ConfigError
+
+log = logging.getLogger(__name__)
+
+CONFIG_FLAGS = ("--config-json", "--config")  # --config: the name the users' own train.py used
+ENV_NODE = "json_task"  # ConfigStore: env=json_task
+EXPERIMENT = "json_experiment"  # ConfigStore: +experiment=json_experiment
+
+
+class JsonNotes(Callback):
+    """Hydra callback: logs what the loader found (task file used, keys not applicable) in each job."""
+
+    def __init__(self, notes: Sequence[str] = ()) -> None:
+        self.notes = [str(n) for n in notes]
+
+    def on_job_start(self, config: Any = None, **kwargs: Any) -> None:
+        for note in self.notes:
+            if note.startswith("warning: "):
+                log.warning(note[len("warning: ") :])
+            else:
+                log.info(note)
+
+
+def split_config_arg(argv: Sequence[str]) -> tuple[str | None, list[str]]:
+    """(the JSON file of ``--config-json F`` / ``--config F`` / ``--config=F``, the other arguments)."""
+    path: str | None = None
+    rest: list[str] = []
+    args = list(argv)
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        flag, eq, value = arg.partition("=")
+        if flag in CONFIG_FLAGS:
+            if not eq:
+                if i + 1 >= len(args) or args[i + 1].startswith("-"):
+                    raise ConfigError(f"{flag} needs a file: {flag} path/to/train_config.json")
+                value = args[i + 1]
+                i += 1
+            if path is not None:
+                raise ConfigError(f"give one JSON experiment file, got {path!r} and {value!r}")
+            path = value
+        else:
+            rest.append(arg)
+        i += 1
+    return path, rest
+
+
+#: Hydra's command-line options that take a value (the next argument unless written ``--opt=value``).
+_HYDRA_VALUE_OPTIONS = {
+    "--cfg",
+    "-c",
+    "--package",
+    "-p",
+    "--config-path",
+    "-cp",
+    "--config-name",
+    "-cn",
+    "--config-dir",
+    "-cd",
+    "--experimental-rerun",
+    "--shell-completion",
+    "-sc",
+}
+_HYDRA_INFO_CHOICES = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
+
+
+def insert_override(args: Sequence[str], override: str) -> list[str]:
+    """``args`` with ``override`` placed just before the first override: Hydra's parser wants the
+    overrides next to each other (``--cfg job seed=1`` and ``seed=1 --cfg job`` both stay valid)."""
+    args = list(args)
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        if not arg.startswith("-"):
+            return [*args[:i], override, *args[i:]]
+        if arg in _HYDRA_VALUE_OPTIONS:
+            i += 1
+        elif arg in ("--info", "-i") and i + 1 < len(args) and args[i + 1] in _HYDRA_INFO_CHOICES:
+            i += 1
+        i += 1
+    return [*args, override]
+
+
+def register_json_experiment(exp: JsonExperiment) -> None:
+    """Put ``exp`` into Hydra's ConfigStore as ``env/json_task`` and ``experiment/json_experiment``."""
+    from hydra.core.config_store import ConfigStore
+
+    from rlexp.config.schema import register_configs
+
+    register_configs()
+    cs = ConfigStore.instance()
+    cs.store(group="env", name=ENV_NODE, node=exp.env)
+    node = {
+        "defaults": [{"override /env": ENV_NODE}, "_self_"],
+        **exp.root,
+        "hydra": {
+            "callbacks": {
+                "rlexp_json_notes": {"_target_": f"{__name__}.JsonNotes", "notes": exp.notes}
+            }
+        },
+    }
+    cs.store(group="experiment", name=EXPERIMENT, package="_global_", node=node)
+
+
+def compose_json_experiment(exp: JsonExperiment, overrides: Sequence[str] = ()) -> RootConfig:
+    """The typed config Hydra composes from ``exp`` (plus ``overrides``), in this process."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from rlexp.app import CONF_DIR
+    from rlexp.config.validate import to_root_config
+
+    register_json_experiment(exp)
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=[f"+experiment={EXPERIMENT}", *overrides])
+        return to_root_config(cfg)
+    except ConfigError as exc:
+        raise ConfigError(f"{exp.train_path}: {exc}") from None
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(f"{exp.train_path}: {str(exc).splitlines()[0]}") from None
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def check_task_builds(exp: JsonExperiment, config: RootConfig) -> None:
+    """Build the native task once with one env, so that a bad term parameter or scene value fails now,
+    naming the task file, and not after the run dir exists; check ``policy.action_dim``."""
+    e = config.env
+    if e.backend != "native" or e.native is None:
+        return
+    try:
+        from rlexp.envs.native import make_native_env
+    except ImportError as exc:
+        log.debug("native envs unavailable (%s): the task is checked when the run builds it", exc)
+        return
+    try:
+        env = make_native_env(e.native, 1, config.seed, e.max_episode_steps)
+    except (KeyError, ValueError, TypeError) as exc:
+        msg = str(exc.args[0] if exc.args else exc)
+        if msg.startswith(("actions.", "events.", "observations.", "rewards.")):
+            msg = "env." + msg  # the env names its terms' keys; in the task file they sit under env
+        raise ConfigError(f"{exp.gym_path}: {msg}") from None
+    try:
+        act_dim = int(env.action_spec.shape[-1])
+    finally:
+        env.close()
+    if exp.action_dim is not None and exp.action_dim != act_dim:
+        raise ConfigError(
+            f"{exp.train_path}: policy.action_dim={exp.action_dim} but the {e.native.task} task's actions "
+            f"have {act_dim} dimensions; remove policy.action_dim or set it to {act_dim}"
+        )
+
+
+def prepare(path: str | Path, cwd: str | Path | None = None) -> JsonExperiment:
+    """Load, check, compose and register the JSON experiment ``path`` (ConfigError if it cannot run)."""
+    exp = load_json_experiment(path, cwd)
+    config = compose_json_experiment(exp)
+    check_task_builds(exp, config)
+    return exp
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``train.py`` entry: strip ``--config-json F``, load F, then hand over to Hydra (rlexp.app.main)."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    try:
+        path, rest = split_config_arg(args)
+        if path is not None:
+            prepare(path)
+            rest = insert_override(rest, f"+experiment={EXPERIMENT}")
+    except ConfigError as exc:
+        print(f"config error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    from rlexp.app import main as app_main
+
+    sys.argv = [sys.argv[0], *rest]
+    app_main()
