@@ -1,6 +1,6 @@
 """Where the time of one PPO iteration goes: env stepping, policy, framework, GAE, update.
 
-Runs the real rlexp components (GymnasiumEnv, SamplingPolicy, TorchRL Collector, GAE, ClipPPOLoss)
+Runs the real rlexp components (GymnasiumEnv, SamplingPolicy, RolloutCollector, GAE, ClipPPOLoss)
 for a few iterations and times each part; physics and policy are also timed alone so the
 "framework" share (TensorDict / collector bookkeeping) is what is left of collection.
 
@@ -28,9 +28,8 @@ def main() -> None:
 
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    from torchrl.collectors import Collector
-
     from rlexp import _speedups
+    from rlexp.collector import RolloutCollector
     from rlexp.algorithms.ppo import make_algorithm
     from rlexp.config.schema import AlgorithmConfig, EnvConfig, PolicyConfig
     from rlexp.envs.factory import make_env
@@ -41,7 +40,7 @@ def main() -> None:
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
     policy = make_policy(PolicyConfig(), obs_dim, act_dim, env.action_spec)
     algo = make_algorithm(AlgorithmConfig(num_epochs=args.epochs, mini_batch_size=args.mini_batch), policy, 100)
-    collector = Collector(env, policy.sampling_policy(), frames_per_batch=args.frames_per_batch,
+    collector = RolloutCollector(env, policy.sampling_policy(), frames_per_batch=args.frames_per_batch,
                           total_frames=-1, trust_policy=True, track_traj_ids=False)
     rollouts = iter(collector)
     next(rollouts)  # warm-up

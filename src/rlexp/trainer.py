@@ -347,6 +347,7 @@ class Trainer:
                 total_frames=-1,
                 trust_policy=True,
                 track_traj_ids=False,
+                auto_register_policy_transforms=False,  # the policy needs no env transforms
             )
             self._rollouts = iter(self.collector)
 
