@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 ARGS ?=
 export MUJOCO_GL ?= egl
 
-.PHONY: install train test test-slow lint format bench clean
+.PHONY: install train test test-slow test-slurm lint format bench clean
 
 $(VENV)/.created:
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,12 @@ test: install
 ## Learning tests (minutes to hours): the agent really improves.
 test-slow: install
 	$(PY) -m pytest -q -m slow $(ARGS)
+
+## Sweeps on a real SLURM cluster (tests marked `slurm`): starts a local single-node cluster first
+## (scripts/local-slurm.sh; root, installs slurm-wlm + munge with apt-get when missing).
+test-slurm: install
+	scripts/local-slurm.sh start
+	$(PY) -m pytest -q -m slurm $(ARGS)
 
 lint: install
 	$(VENV)/bin/ruff check src tests train.py

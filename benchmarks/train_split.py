@@ -24,6 +24,8 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=5)
     parser.add_argument("--epochs", type=int, default=10)
     parser.add_argument("--mini-batch", type=int, default=64)
+    parser.add_argument("--collector", choices=["rlexp", "torchrl"], default="rlexp",
+                        help="rlexp's RolloutCollector or TorchRL's generic Collector loop")
     args = parser.parse_args()
 
     torch.set_num_threads(1)
@@ -40,7 +42,10 @@ def main() -> None:
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
     policy = make_policy(PolicyConfig(), obs_dim, act_dim, env.action_spec)
     algo = make_algorithm(AlgorithmConfig(num_epochs=args.epochs, mini_batch_size=args.mini_batch), policy, 100)
-    collector = RolloutCollector(env, policy.sampling_policy(), frames_per_batch=args.frames_per_batch,
+    from torchrl.collectors import Collector
+
+    cls = RolloutCollector if args.collector == "rlexp" else Collector
+    collector = cls(env, policy.sampling_policy(), frames_per_batch=args.frames_per_batch,
                           total_frames=-1, trust_policy=True, track_traj_ids=False)
     rollouts = iter(collector)
     next(rollouts)  # warm-up
@@ -86,7 +91,8 @@ def main() -> None:
     c, g, u = (float(np.median(x)) for x in (t_collect, t_gae, t_update))
     framework = max(c - t_env - t_pol, 0.0)
     total = c + g + u
-    print(f"{args.env} x{args.num_envs}, {args.frames_per_batch} steps/iteration, median of {args.iterations}")
+    print(f"{args.env} x{args.num_envs}, {args.frames_per_batch} steps/iteration, {args.collector} collector, "
+          f"median of {args.iterations}")
     print("| part | s / iteration | share |\n|---|---|---|")
     for name, v in (("env stepping (physics alone)", t_env), ("policy forward", t_pol),
                     ("collector/TensorDict framework", framework), ("GAE", g), ("PPO update", u)):

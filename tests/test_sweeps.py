@@ -1,0 +1,264 @@
+"""Local sweeps: a grid multirun, its report, a re-run that skips finished jobs and resumes the others,
+Optuna, the parallel (joblib) launcher, and every sweep/launcher config in conf/."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from conftest import CONF_DIR, REPO, run_train
+
+#: conftest.TINY with one PPO epoch: a job trains 512 env steps in about a second.
+SWEEP_TINY = [
+    "env=inverted_pendulum",
+    "trainer.total_frames=512",
+    "trainer.frames_per_batch=256",
+    "algorithm.num_epochs=1",
+    "trainer.eval_every=256",
+    "trainer.eval_episodes=2",
+    "trainer.save_every=256",
+]
+GRID = ["seed=0,1", "algorithm.clip_epsilon=0.1,0.2"]
+
+
+def grid_command(sweep_dir: Path) -> list[str]:
+    return ["-m", *GRID, *SWEEP_TINY, f"hydra.sweep.dir={sweep_dir}"]
+
+
+def rows(job: Path) -> list[dict]:
+    return [json.loads(line) for line in (job / "metrics.jsonl").read_text().splitlines()]
+
+
+def final_eval(job: Path) -> float:
+    """The last eval/episode_return in a job's metrics.jsonl, read independently of rlexp.report."""
+    return [r["eval/episode_return"] for r in rows(job) if "eval/episode_return" in r][-1]
+
+
+def fingerprint(directory: Path) -> dict[str, tuple[int, int, str]]:
+    return {
+        p.name: (p.stat().st_size, p.stat().st_mtime_ns, hashlib.sha256(p.read_bytes()).hexdigest())
+        for p in sorted(directory.iterdir())
+        if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def grid_sweep(tmp_path_factory) -> Path:
+    """``python train.py -m seed=0,1 algorithm.clip_epsilon=0.1,0.2`` on tiny budgets (4 jobs)."""
+    root = tmp_path_factory.mktemp("grid")
+    sweep = root / "sweep"
+    run_train(grid_command(sweep), cwd=root)
+    return sweep
+
+
+def test_grid_multirun_writes_one_finished_job_dir_per_combination(grid_sweep):
+    jobs = sorted(p for p in grid_sweep.iterdir() if p.is_dir())
+    assert [p.name for p in jobs] == ["0", "1", "2", "3"]
+    combos = set()
+    for job in jobs:
+        status = json.loads((job / "status.json").read_text())
+        assert status["state"] == "finished" and status["global_step"] == 512
+        overrides = OmegaConf.to_container(OmegaConf.load(job / ".hydra/overrides.yaml"))
+        combos.add(
+            tuple(o for o in overrides if o.startswith(("seed=", "algorithm.clip_epsilon=")))
+        )
+        config = OmegaConf.load(job / "config.yaml")
+        assert f"seed={config.seed}" in overrides
+        assert f"algorithm.clip_epsilon={config.algorithm.clip_epsilon}" in overrides
+    assert len(combos) == 4
+
+
+def test_report_numbers_match_the_jsonl_files(grid_sweep):
+    proc = subprocess.run(
+        [sys.executable, "-m", "rlexp.cli", "report", str(grid_sweep)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(REPO / "src")},
+    )
+    assert proc.returncode == 0, proc.stderr
+    for name in ("report.md", "report.csv", "curves.png"):
+        assert (grid_sweep / name).stat().st_size > 0, name
+    assert (grid_sweep / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (
+        "algorithm.clip_epsilon=0.1" in proc.stdout
+        and "Unfinished or failed jobs (0)" in proc.stdout
+    )
+
+    # The expected numbers, from the JSONL files and overrides alone.
+    expected: dict[str, list[float]] = {}
+    for job in sorted(p for p in grid_sweep.iterdir() if p.is_dir()):
+        overrides = OmegaConf.to_container(OmegaConf.load(job / ".hydra/overrides.yaml"))
+        clip = next(o for o in overrides if o.startswith("algorithm.clip_epsilon="))
+        expected.setdefault(clip, []).append(final_eval(job))
+    with open(grid_sweep / "report.csv") as f:
+        table = {r["configuration"]: r for r in csv.DictReader(f)}
+    assert set(table) == set(expected)
+    for clip, finals in expected.items():
+        r, x = table[clip], np.array(finals)
+        assert int(r["n_seeds"]) == 2 and r["seeds"] == "0 1"
+        assert float(r["final_mean"]) == pytest.approx(x.mean())
+        assert float(r["final_std"]) == pytest.approx(x.std(ddof=1))
+        assert float(r["iqm"]) == pytest.approx(x.mean())  # with two seeds the IQM is the mean
+        assert x.min() - 1e-9 <= float(r["iqm_ci_low"]) <= float(r["iqm_ci_high"]) <= x.max() + 1e-9
+        assert float(r["steps"]) == 512 and float(r["time_s"]) > 0
+        assert int(r["n_unfinished"]) == 0
+
+
+def test_rerun_skips_finished_jobs_and_resumes_unfinished_ones(grid_sweep, tmp_path):
+    sweep = tmp_path / "sweep"
+    shutil.copytree(grid_sweep, sweep)
+    # Job 1 "was preempted" after its step-256 checkpoint: later checkpoint and rows gone, status stopped.
+    job1 = sweep / "1"
+    for ckpt in (job1 / "checkpoints").glob("*_step_*.pt"):
+        if not ckpt.name.endswith("_step_000000256.pt"):
+            ckpt.unlink()
+    (job1 / "metrics.jsonl").write_text(
+        "".join(json.dumps(r) + "\n" for r in rows(job1) if r["step"] <= 256)
+    )
+    status = json.loads((job1 / "status.json").read_text())
+    (job1 / "status.json").write_text(
+        json.dumps({**status, "state": "stopped", "global_step": 256})
+    )
+    before = {n: fingerprint(sweep / n / "checkpoints") for n in ("0", "2", "3")}
+    metrics_before = {n: (sweep / n / "metrics.jsonl").read_bytes() for n in ("0", "2", "3")}
+
+    proc = run_train(grid_command(sweep), cwd=tmp_path)
+    out = proc.stdout + proc.stderr
+
+    for n in ("0", "2", "3"):
+        assert f"run dir {sweep / n} already finished at step 512: skipping" in out
+        assert fingerprint(sweep / n / "checkpoints") == before[n]  # nothing trained or saved
+        assert (sweep / n / "metrics.jsonl").read_bytes() == metrics_before[n]
+    assert f"run dir {job1} already finished" not in out
+    # "[resume] continuing from ..._step_000000256.pt at step 256"
+    assert "at step 256" in (job1 / "train.log").read_text()
+    status = json.loads((job1 / "status.json").read_text())
+    assert status["state"] == "finished" and status["global_step"] == 512
+    train_steps = [r["step"] for r in rows(job1) if "perf/sps" in r]
+    assert train_steps == [256, 512]  # continued from 256, not from 0
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2", "3"]
+
+
+def test_report_lists_unfinished_failed_and_missing_jobs(tmp_path):
+    """Synthetic sweep: 4 finished seeds (IQM by hand), a failed job, a job without status.json."""
+    from rlexp.report import report
+
+    def job(
+        num: int, overrides: list[str], state: str | None, evals: list[tuple[int, float]]
+    ) -> None:
+        d = tmp_path / str(num)
+        (d / ".hydra").mkdir(parents=True)
+        (d / ".hydra/overrides.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(overrides)))
+        if state is not None:
+            step = evals[-1][0] if evals else 0
+            (d / "status.json").write_text(
+                json.dumps(
+                    {
+                        "state": state,
+                        "global_step": step,
+                        "reason": "boom" if state == "failed" else "",
+                    }
+                )
+            )
+        lines = [
+            {
+                "step": s,
+                "time": 0.0,
+                "perf/sps": 1.0,
+                "perf/collect_time": 0.5,
+                "perf/update_time": 0.25,
+            }
+            for s, _ in evals
+        ]
+        lines += [{"step": s, "time": 0.0, "eval/episode_return": v} for s, v in evals]
+        (d / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+
+    for seed, final in enumerate([1.0, 2.0, 3.0, 100.0]):
+        # step 100 logged twice (a resumed attempt re-logs it): the later value wins.
+        job(seed, [f"seed={seed}", "lr=1"], "finished", [(100, -5.0), (100, 0.0), (200, final)])
+    job(4, ["seed=0", "lr=2"], "failed", [(100, 7.0)])
+    job(5, ["seed=1", "lr=2"], None, [])
+    md = report(tmp_path)
+    with open(tmp_path / "report.csv") as f:
+        table = {r["configuration"]: r for r in csv.DictReader(f)}
+    # IQM: the mean of the middle two of 1, 2, 3, 100.
+    assert float(table["lr=1"]["iqm"]) == pytest.approx(2.5)
+    assert float(table["lr=1"]["final_mean"]) == pytest.approx(26.5)
+    assert float(table["lr=1"]["time_s"]) == pytest.approx(1.5)  # 2 steps x 0.75 s, step 100 once
+    assert int(table["lr=2"]["n_seeds"]) == 0 and int(table["lr=2"]["n_unfinished"]) == 2
+    assert math.isnan(float(table["lr=2"]["final_mean"]))
+    assert "Unfinished or failed jobs (2)" in md
+    assert "| `4` | `seed=0 lr=2` | failed | 100 | boom |" in md
+    assert "| `5` | `seed=1 lr=2` | missing | 0 |" in md
+    assert (tmp_path / "curves.png").exists()
+
+
+def test_optuna_sweeper_runs_three_trials_on_the_final_eval_return(tmp_path):
+    sweep = tmp_path / "sweep"
+    run_train(
+        [
+            "-m",
+            "+sweep=ppo_optuna",
+            "hydra.sweeper.n_trials=3",
+            *SWEEP_TINY,
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=tmp_path,
+    )
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
+    assert [p.name for p in jobs] == ["0", "1", "2"]
+    results = OmegaConf.load(sweep / "optimization_results.yaml")
+    assert results.best_value == pytest.approx(max(final_eval(j) for j in jobs))
+    assert set(results.best_params) == {
+        "algorithm.lr",
+        "algorithm.clip_epsilon",
+        "algorithm.entropy_coeff",
+    }
+
+
+def test_local_parallel_launcher_runs_jobs_with_one_torch_thread(tmp_path):
+    sweep = tmp_path / "sweep"
+    run_train(
+        ["-m", "hydra/launcher=local", "seed=0,1", *SWEEP_TINY, f"hydra.sweep.dir={sweep}"],
+        cwd=tmp_path,
+    )
+    for n in ("0", "1"):
+        assert json.loads((sweep / n / "status.json").read_text())["state"] == "finished"
+        assert OmegaConf.load(sweep / n / "config.yaml").trainer.torch_threads == 1
+    launcher = OmegaConf.load(sweep / "multirun.yaml").hydra.launcher
+    assert launcher._target_.endswith("JoblibLauncher") and launcher.n_jobs == 2
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        *(f"+sweep={p.stem}" for p in sorted((CONF_DIR / "sweep").glob("*.yaml"))),
+        *(f"hydra/launcher={p.stem}" for p in sorted((CONF_DIR / "hydra/launcher").glob("*.yaml"))),
+    ],
+)
+def test_sweep_and_launcher_configs_compose(override):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from rlexp.config.schema import register_configs
+
+    register_configs()
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[override], return_hydra_config=True)
+    if override.startswith("+sweep="):
+        assert cfg.hydra.sweeper.params
+    else:
+        assert cfg.hydra.launcher._target_.startswith("hydra_plugins.")
