@@ -24,15 +24,19 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=5)
     parser.add_argument("--epochs", type=int, default=10)
     parser.add_argument("--mini-batch", type=int, default=64)
-    parser.add_argument("--collector", choices=["rlexp", "torchrl"], default="rlexp",
-                        help="rlexp's RolloutCollector or TorchRL's generic Collector loop")
+    parser.add_argument(
+        "--collector",
+        choices=["rlexp", "torchrl"],
+        default="rlexp",
+        help="rlexp's RolloutCollector or TorchRL's generic Collector loop",
+    )
     args = parser.parse_args()
 
     torch.set_num_threads(1)
     torch.manual_seed(0)
     from rlexp import _speedups
-    from rlexp.collector import RolloutCollector
     from rlexp.algorithms.ppo import make_algorithm
+    from rlexp.collector import RolloutCollector
     from rlexp.config.schema import AlgorithmConfig, EnvConfig, PolicyConfig
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import make_policy
@@ -41,12 +45,20 @@ def main() -> None:
     env = make_env(EnvConfig(name=args.env), args.num_envs, seed=0)
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
     policy = make_policy(PolicyConfig(), obs_dim, act_dim, env.action_spec)
-    algo = make_algorithm(AlgorithmConfig(num_epochs=args.epochs, mini_batch_size=args.mini_batch), policy, 100)
+    algo = make_algorithm(
+        AlgorithmConfig(num_epochs=args.epochs, mini_batch_size=args.mini_batch), policy, 100
+    )
     from torchrl.collectors import Collector
 
     cls = RolloutCollector if args.collector == "rlexp" else Collector
-    collector = cls(env, policy.sampling_policy(), frames_per_batch=args.frames_per_batch,
-                          total_frames=-1, trust_policy=True, track_traj_ids=False)
+    collector = cls(
+        env,
+        policy.sampling_policy(),
+        frames_per_batch=args.frames_per_batch,
+        total_frames=-1,
+        trust_policy=True,
+        track_traj_ids=False,
+    )
     rollouts = iter(collector)
     next(rollouts)  # warm-up
 
@@ -81,7 +93,9 @@ def main() -> None:
     from tensordict import TensorDict
 
     sp = policy.sampling_policy()
-    td = TensorDict({"observation": torch.zeros(args.num_envs, obs_dim)}, batch_size=[args.num_envs])
+    td = TensorDict(
+        {"observation": torch.zeros(args.num_envs, obs_dim)}, batch_size=[args.num_envs]
+    )
     with torch.no_grad():
         t0 = time.perf_counter()
         for _ in range(n // args.num_envs):
@@ -91,11 +105,18 @@ def main() -> None:
     c, g, u = (float(np.median(x)) for x in (t_collect, t_gae, t_update))
     framework = max(c - t_env - t_pol, 0.0)
     total = c + g + u
-    print(f"{args.env} x{args.num_envs}, {args.frames_per_batch} steps/iteration, {args.collector} collector, "
-          f"median of {args.iterations}")
+    print(
+        f"{args.env} x{args.num_envs}, {args.frames_per_batch} steps/iteration, {args.collector} collector, "
+        f"median of {args.iterations}"
+    )
     print("| part | s / iteration | share |\n|---|---|---|")
-    for name, v in (("env stepping (physics alone)", t_env), ("policy forward", t_pol),
-                    ("collector/TensorDict framework", framework), ("GAE", g), ("PPO update", u)):
+    for name, v in (
+        ("env stepping (physics alone)", t_env),
+        ("policy forward", t_pol),
+        ("collector/TensorDict framework", framework),
+        ("GAE", g),
+        ("PPO update", u),
+    ):
         print(f"| {name} | {v:.3f} | {100 * v / total:.0f}% |")
     print(f"| **total** | {total:.3f} | env-steps/s {args.frames_per_batch / total:.0f} |")
     collector.shutdown()

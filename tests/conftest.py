@@ -32,8 +32,14 @@ def compose(overrides: list[str] | None = None):
         return hydra_compose(config_name="config", overrides=list(overrides or []))
 
 
-def run_train(args: list[str], cwd: Path, timeout: float = 300, check: bool = True,
-              env_extra: dict[str, str | None] | None = None, **kw) -> subprocess.CompletedProcess:
+def run_train(
+    args: list[str],
+    cwd: Path,
+    timeout: float = 300,
+    check: bool = True,
+    env_extra: dict[str, str | None] | None = None,
+    **kw,
+) -> subprocess.CompletedProcess:
     """``python train.py ARGS`` in a subprocess, in ``cwd`` (``env_extra``: None removes a variable)."""
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
     for key, value in (env_extra or {}).items():
@@ -43,10 +49,17 @@ def run_train(args: list[str], cwd: Path, timeout: float = 300, check: bool = Tr
             env[key] = value
     proc = subprocess.run(
         [sys.executable, str(REPO / "train.py"), *args],
-        cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env, **kw,
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
+        **kw,
     )
     if check and proc.returncode != 0:
-        raise AssertionError(f"train.py {args} exited {proc.returncode}\nSTDOUT:\n{proc.stdout}\nSTDERR:\n{proc.stderr}")
+        raise AssertionError(
+            f"train.py {args} exited {proc.returncode}\nSTDOUT:\n{proc.stdout}\nSTDERR:\n{proc.stderr}"
+        )
     return proc
 
 

@@ -22,10 +22,14 @@ def test_every_group_has_options_and_names_its_schema():
         files = sorted((CONF_DIR / group).glob("*.yaml"))
         assert files, f"conf/{group}/ is empty"
         for f in files:
-            assert f"- {schema_name}" in f.read_text(), f"{f} does not name {schema_name} in its defaults"
+            assert f"- {schema_name}" in f.read_text(), (
+                f"{f} does not name {schema_name} in its defaults"
+            )
 
 
-@pytest.mark.parametrize(("group", "option"), GROUP_OPTIONS, ids=[f"{g}={o}" for g, o in GROUP_OPTIONS])
+@pytest.mark.parametrize(
+    ("group", "option"), GROUP_OPTIONS, ids=[f"{g}={o}" for g, o in GROUP_OPTIONS]
+)
 def test_every_conf_file_composes_to_a_typed_config(group, option):
     config = to_root_config(compose([f"{group}={option}"]))
     assert isinstance(config, RootConfig)
@@ -37,7 +41,9 @@ def test_every_env_builds_with_policy_and_ppo(option):
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import make_policy
 
-    config = to_root_config(compose([f"env={option}", "env.num_envs=2", "trainer.frames_per_batch=64"]))
+    config = to_root_config(
+        compose([f"env={option}", "env.num_envs=2", "trainer.frames_per_batch=64"])
+    )
     env = make_env(config.env, 2, seed=0)
     try:
         obs_dim = env.observation_spec["observation"].shape[-1]
@@ -74,7 +80,9 @@ def test_misspelled_key_in_a_yaml_file_fails(tmp_path):
 
     conf = tmp_path / "conf"
     shutil.copytree(CONF_DIR, conf)
-    (conf / "algorithm" / "typo.yaml").write_text("defaults:\n  - algorithm_schema\n  - _self_\nclip_epsiln: 0.3\n")
+    (conf / "algorithm" / "typo.yaml").write_text(
+        "defaults:\n  - algorithm_schema\n  - _self_\nclip_epsiln: 0.3\n"
+    )
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         with pytest.raises(Exception) as err:
@@ -111,7 +119,9 @@ def test_bad_override_on_the_command_line_is_one_clear_error(tmp_path):
 
 
 def test_cross_field_error_on_the_command_line_exits_2(tmp_path):
-    proc = run_train(["env.num_envs=3", "trainer.frames_per_batch=1000"], cwd=tmp_path, check=False, timeout=120)
+    proc = run_train(
+        ["env.num_envs=3", "trainer.frames_per_batch=1000"], cwd=tmp_path, check=False, timeout=120
+    )
     assert proc.returncode == 2, proc.stderr
     assert "trainer.frames_per_batch=1000" in proc.stderr + proc.stdout
     assert "Traceback" not in proc.stderr

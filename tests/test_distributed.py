@@ -12,16 +12,34 @@ import torch
 from conftest import REPO, only_run_dir, run_train
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint
 
-ARGS = ["env=inverted_pendulum", "trainer.frames_per_batch=256", "algorithm.num_epochs=2",
-        "trainer.eval_every=0", "trainer.save_every=0", "seed=11"]
+ARGS = [
+    "env=inverted_pendulum",
+    "trainer.frames_per_batch=256",
+    "algorithm.num_epochs=2",
+    "trainer.eval_every=0",
+    "trainer.save_every=0",
+    "seed=11",
+]
 
 
 def _torchrun(args: list[str], cwd) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(REPO / "src"), "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(
-        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
-         str(REPO / "train.py"), "--distributed", *args],
-        cwd=cwd, env=env, capture_output=True, text=True, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc_per_node=2",
+            str(REPO / "train.py"),
+            "--distributed",
+            *args,
+        ],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
     return proc
@@ -43,12 +61,15 @@ def test_two_ranks_average_gradients_share_one_run_dir_and_load_single_process(t
 
     digests = []
     for name in ("train.log", "train_rank1.log"):
-        m = re.search(r"parameters identical on all 2 ranks \(sha256 (\w+)\)", (run_dir / name).read_text())
+        m = re.search(
+            r"parameters identical on all 2 ranks \(sha256 (\w+)\)", (run_dir / name).read_text()
+        )
         assert m, f"no sync line in {name}"
         digests.append(m.group(1))
+    from torchrl.data import Bounded
+
     from rlexp.config.validate import to_root_config
     from rlexp.policies.actor_critic import make_policy
-    from torchrl.data import Bounded
 
     config = to_root_config(ckpt["config"])
     policy = make_policy(config.policy, 4, 1, Bounded(-3.0, 3.0, shape=(1, 1)))
@@ -61,20 +82,36 @@ def test_two_ranks_average_gradients_share_one_run_dir_and_load_single_process(t
     run_train([*ARGS, "trainer.total_frames=256"], cwd=tmp_path / "single")
     alone = load_checkpoint(latest_checkpoint(only_run_dir(tmp_path / "single")))
     dist_p, alone_p = _params(ckpt), _params(alone)
-    assert any(not torch.equal(dist_p[k], alone_p[k]) for k in dist_p), "gradients were not averaged"
+    assert any(not torch.equal(dist_p[k], alone_p[k]) for k in dist_p), (
+        "gradients were not averaged"
+    )
 
     # The distributed checkpoint loads in a single-process run and training continues from it.
     (tmp_path / "resume").mkdir()
-    proc = run_train([*ARGS, "trainer.total_frames=1024", f"trainer.resume={latest_checkpoint(run_dir)}"],
-                     cwd=tmp_path / "resume")
+    proc = run_train(
+        [*ARGS, "trainer.total_frames=1024", f"trainer.resume={latest_checkpoint(run_dir)}"],
+        cwd=tmp_path / "resume",
+    )
     assert "continuing from" in proc.stdout + proc.stderr
-    assert load_checkpoint(latest_checkpoint(only_run_dir(tmp_path / "resume")))["global_step"] == 1024
+    assert (
+        load_checkpoint(latest_checkpoint(only_run_dir(tmp_path / "resume")))["global_step"] == 1024
+    )
 
 
 def test_distributed_without_a_launcher_is_one_clear_error(tmp_path):
-    env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT")
+    }
     env["PYTHONPATH"] = str(REPO / "src")
-    proc = subprocess.run([sys.executable, str(REPO / "train.py"), "--distributed"], cwd=tmp_path, env=env,
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "train.py"), "--distributed"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2 and "torchrun --nproc_per_node" in proc.stderr
     assert "Traceback" not in proc.stderr

@@ -32,7 +32,10 @@ def test_unknown_func_and_mode_name_the_event_and_the_choices():
     with pytest.raises(ValueError) as err:
         EventManager({"dr": _ev(func="randomize_phisics", mode="reset")}, "events.train")
     msg = str(err.value)
-    assert "events.train.dr.func='randomize_phisics'" in msg and "did you mean 'randomize_physics'" in msg
+    assert (
+        "events.train.dr.func='randomize_phisics'" in msg
+        and "did you mean 'randomize_physics'" in msg
+    )
     with pytest.raises(ValueError) as err:
         EventManager({"dr": _ev(func="randomize_physics", mode="on_reset")}, "events.train")
     assert "events.train.dr.mode='on_reset'" in str(err.value) and "'reset'" in str(err.value)
@@ -41,7 +44,9 @@ def test_unknown_func_and_mode_name_the_event_and_the_choices():
 def test_dotted_paths_only_inside_the_allowlist():
     with pytest.raises(ValueError, match="dotted paths must be inside"):
         EventManager({"x": _ev(func="os.system", mode="startup")}, "events.train")
-    m = EventManager({"x": _ev(func="rlexp.events.builtin.observation_noise", mode="step")}, "events.train")
+    m = EventManager(
+        {"x": _ev(func="rlexp.events.builtin.observation_noise", mode="step")}, "events.train"
+    )
     assert m.has("step")
 
 
@@ -51,7 +56,9 @@ def test_order_modes_interval_and_triggers():
         {
             "b": _ev(func="_test_record", mode="interval", interval_step=2, params={"tag": "b"}),
             "a": _ev(func="_test_record", mode="interval", interval_step=1, params={"tag": "a"}),
-            "t": _ev(func="_test_record", mode="trigger", params={"tag": "t", "signal": "new_best"}),
+            "t": _ev(
+                func="_test_record", mode="trigger", params={"tag": "t", "signal": "new_best"}
+            ),
             "s": _ev(func="_test_record", mode="startup", params={"tag": "s"}),
         },
         "events.train",
@@ -61,11 +68,23 @@ def test_order_modes_interval_and_triggers():
         m.fire("interval", EventContext(global_step=step))
     m.fire("trigger", EventContext(), signal="eval_end")
     m.fire("trigger", EventContext(), signal="new_best")
-    assert CALLS == [("s", 0), ("a", 1), ("b", 2), ("a", 2), ("a", 3), ("b", 4), ("a", 4), ("t", "new_best")]
+    assert CALLS == [
+        ("s", 0),
+        ("a", 1),
+        ("b", 2),
+        ("a", 2),
+        ("a", 3),
+        ("b", 4),
+        ("a", 4),
+        ("t", "new_best"),
+    ]
 
 
 def test_event_state_round_trip_counters_and_rng():
-    cfg = {"n": _ev(func="observation_noise", mode="step"), "i": _ev(func="_test_record", mode="interval")}
+    cfg = {
+        "n": _ev(func="observation_noise", mode="step"),
+        "i": _ev(func="_test_record", mode="interval"),
+    }
     m = EventManager(cfg, "events.train", seed=3)
     m.fire("interval", EventContext())
     m.rng.normal(size=5)
@@ -87,18 +106,33 @@ def _push_cube(n=4):
 
 def test_randomize_physics_per_env_id_native():
     env = _push_cube(4)
-    m = EventManager({"dr": _ev(func="randomize_physics", mode="reset",
-                                params={"mass_range": [0.5, 1.5], "friction_range": [0.8, 1.2],
-                                        "damping_range": [0.9, 1.1], "actuator_gain_range": [0.7, 1.3]})},
-                     "events.train")
+    m = EventManager(
+        {
+            "dr": _ev(
+                func="randomize_physics",
+                mode="reset",
+                params={
+                    "mass_range": [0.5, 1.5],
+                    "friction_range": [0.8, 1.2],
+                    "damping_range": [0.9, 1.1],
+                    "actuator_gain_range": [0.7, 1.3],
+                },
+            )
+        },
+        "events.train",
+    )
     nominal_mass = env.model.body_mass.copy()
     m.fire("reset", EventContext(env=env, env_ids=np.array([1, 3])))
-    assert env._models[0] is env.model and env._models[2] is env.model  # untouched envs share the model
+    assert (
+        env._models[0] is env.model and env._models[2] is env.model
+    )  # untouched envs share the model
     for i in (1, 3):
         ratio = env._models[i].body_mass[nominal_mass > 0] / nominal_mass[nominal_mass > 0]
         assert ((ratio >= 0.5) & (ratio <= 1.5)).all() and not np.allclose(ratio, 1.0)
         kp = env._models[i].actuator_gainprm[:, 0] / env.model.actuator_gainprm[:, 0]
-        np.testing.assert_allclose(env._models[i].actuator_biasprm[:, 1] / env.model.actuator_biasprm[:, 1], kp)
+        np.testing.assert_allclose(
+            env._models[i].actuator_biasprm[:, 1] / env.model.actuator_biasprm[:, 1], kp
+        )
     np.testing.assert_array_equal(env.model.body_mass, nominal_mass)
     # The physics really uses the per-env model: same state and action, different outcomes.
     td = env.reset()
@@ -115,16 +149,20 @@ def test_randomize_physics_per_env_id_native():
     # Its state re-applies on load (a resumed run keeps the randomised physics).
     sd = m.state_dict()
     env2 = _push_cube(4)
-    m2 = EventManager({"dr": _ev(func="randomize_physics", mode="reset", params={"mass_range": [0.5, 1.5]})},
-                      "events.train")
+    m2 = EventManager(
+        {"dr": _ev(func="randomize_physics", mode="reset", params={"mass_range": [0.5, 1.5]})},
+        "events.train",
+    )
     m2.load_state_dict(sd, env2)
     np.testing.assert_array_equal(env2._models[1].body_mass, env._models[1].body_mass)
 
 
 def test_randomize_physics_gymnasium():
     env = make_env(EnvConfig(name="Hopper-v5"), 2, seed=0)
-    m = EventManager({"dr": _ev(func="randomize_physics", mode="reset", params={"mass_range": [2.0, 3.0]})},
-                     "events.train")
+    m = EventManager(
+        {"dr": _ev(func="randomize_physics", mode="reset", params={"mass_range": [2.0, 3.0]})},
+        "events.train",
+    )
     m.fire("reset", EventContext(env=env, env_ids=np.array([0])))
     m0, m1 = (env._envs[i].unwrapped.model.body_mass for i in (0, 1))
     assert (m0[1:] / m1[1:] >= 2.0).all() and (m0[1:] / m1[1:] <= 3.0).all()
@@ -132,8 +170,13 @@ def test_randomize_physics_gymnasium():
 
 def test_observation_and_action_noise_through_the_transform():
     base = make_env(EnvConfig(name="InvertedPendulum-v5"), 1, seed=0)
-    m = EventManager({"on": _ev(func="observation_noise", mode="step", params={"std": 0.5}),
-                      "an": _ev(func="action_noise", mode="step", params={"std": 0.5})}, "events.train")
+    m = EventManager(
+        {
+            "on": _ev(func="observation_noise", mode="step", params={"std": 0.5}),
+            "an": _ev(func="action_noise", mode="step", params={"std": 0.5}),
+        },
+        "events.train",
+    )
     env = TransformedEnv(base, EventTransform(m))
     td = env.reset()
     td["action"] = torch.zeros(1, 1)
@@ -148,11 +191,20 @@ def test_observation_and_action_noise_through_the_transform():
 
 def test_record_rollouts_and_eval_video_in_a_run(tmp_path):
     run_train(
-        ["env=push_cube", "env.num_envs=4", "env.num_eval_envs=2", "trainer.frames_per_batch=128",
-         "trainer.total_frames=256", "trainer.eval_every=256", "trainer.eval_episodes=2",
-         "env.max_episode_steps=20", "algorithm.num_epochs=1",
-         "events=[record_rollouts,eval_video]", "events.eval.record_video.params.resolution=[160,120]",
-         "events.eval.record_video.params.intrinsics=[150,150,80,60]"],
+        [
+            "env=push_cube",
+            "env.num_envs=4",
+            "env.num_eval_envs=2",
+            "trainer.frames_per_batch=128",
+            "trainer.total_frames=256",
+            "trainer.eval_every=256",
+            "trainer.eval_episodes=2",
+            "env.max_episode_steps=20",
+            "algorithm.num_epochs=1",
+            "events=[record_rollouts,eval_video]",
+            "events.eval.record_video.params.resolution=[160,120]",
+            "events.eval.record_video.params.intrinsics=[150,150,80,60]",
+        ],
         cwd=tmp_path,
     )
     run_dir = only_run_dir(tmp_path)

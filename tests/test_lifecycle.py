@@ -7,16 +7,30 @@ import json
 from conftest import only_run_dir, run_train
 from rlexp.checkpoint import load_checkpoint, step_checkpoints
 
-BASE = ["env=inverted_pendulum", "trainer.frames_per_batch=256", "trainer.save_every=256",
-        "trainer.eval_every=0", "algorithm.num_epochs=1"]
+BASE = [
+    "env=inverted_pendulum",
+    "trainer.frames_per_batch=256",
+    "trainer.save_every=256",
+    "trainer.eval_every=0",
+    "algorithm.num_epochs=1",
+]
 
 
 def test_non_finite_observation_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path):
     run_dir = tmp_path / "run"
     run_train([*BASE, "trainer.total_frames=512", f"hydra.run.dir={run_dir}"], cwd=tmp_path)
     before = {p.name: p.read_bytes() for p in (run_dir / "checkpoints").glob("*.pt")}
-    proc = run_train([*BASE, "trainer.total_frames=1024", f"hydra.run.dir={run_dir}", "events=noise",
-                      "events.train.observation_noise.params.std=inf"], cwd=tmp_path, check=False)
+    proc = run_train(
+        [
+            *BASE,
+            "trainer.total_frames=1024",
+            f"hydra.run.dir={run_dir}",
+            "events=noise",
+            "events.train.observation_noise.params.std=inf",
+        ],
+        cwd=tmp_path,
+        check=False,
+    )
     assert proc.returncode == 3, proc.stderr
     out = proc.stdout + proc.stderr
     assert "non-finite next/observation from the env at step 768" in out
@@ -27,15 +41,20 @@ def test_non_finite_observation_stops_the_run_and_keeps_the_last_good_checkpoint
 def test_keep_last_and_provenance(tmp_path):
     run_train([*BASE, "trainer.total_frames=1280", "trainer.keep_last=2"], cwd=tmp_path)
     run_dir = only_run_dir(tmp_path)
-    assert [p.name.rsplit("_", 1)[1] for p in step_checkpoints(run_dir / "checkpoints")] == \
-        ["000001024.pt", "000001280.pt"]
+    assert [p.name.rsplit("_", 1)[1] for p in step_checkpoints(run_dir / "checkpoints")] == [
+        "000001024.pt",
+        "000001280.pt",
+    ]
     prov = json.loads((run_dir / "provenance.json").read_text())
     assert prov["versions"]["torch"].startswith("2.") and prov["versions"]["torchrl"] == "0.14.1"
     assert prov["device"] == "cpu" and prov["host"] and prov["start_time"]
     assert "git_commit" in prov
     assert "torch==" in (run_dir / "pip-freeze.txt").read_text()
     ckpt = load_checkpoint(step_checkpoints(run_dir / "checkpoints")[-1])
-    assert ckpt["versions"]["torchrl"] == "0.14.1" and ckpt["config"]["env"]["name"] == "InvertedPendulum-v5"
+    assert (
+        ckpt["versions"]["torchrl"] == "0.14.1"
+        and ckpt["config"]["env"]["name"] == "InvertedPendulum-v5"
+    )
 
 
 def test_wandb_offline_writes_files_and_a_resumed_run_keeps_its_id(tmp_path, monkeypatch):
@@ -44,7 +63,9 @@ def test_wandb_offline_writes_files_and_a_resumed_run_keeps_its_id(tmp_path, mon
     monkeypatch.setenv("HOME", str(tmp_path))  # no ~/.netrc key
     run_dir = tmp_path / "run"
     args = [*BASE, "logger=[tensorboard,wandb]", f"hydra.run.dir={run_dir}"]
-    first = run_train([*args, "trainer.total_frames=512"], cwd=tmp_path, env_extra={"WANDB_MODE": None})
+    first = run_train(
+        [*args, "trainer.total_frames=512"], cwd=tmp_path, env_extra={"WANDB_MODE": None}
+    )
     assert "logging offline" in first.stdout + first.stderr
     run_id = (run_dir / "wandb_run_id.txt").read_text().strip()
     runs = sorted((run_dir / "wandb").glob("offline-run-*"))

@@ -117,10 +117,20 @@ def test_fast_collector_gives_the_same_batches_as_torchrl_loop(env_name):
         torch.manual_seed(0)
         env_cfg = to_root_config(compose([f"env={env_name}"])).env
         env = make_env(env_cfg, 4, seed=0)
-        pol = make_policy(PolicyConfig(), env.observation_spec["observation"].shape[-1],
-                          env.action_spec.shape[-1], env.action_spec)
-        col = cls(env, pol.sampling_policy(), frames_per_batch=4 * 150, total_frames=-1,
-                  trust_policy=True, track_traj_ids=False)
+        pol = make_policy(
+            PolicyConfig(),
+            env.observation_spec["observation"].shape[-1],
+            env.action_spec.shape[-1],
+            env.action_spec,
+        )
+        col = cls(
+            env,
+            pol.sampling_policy(),
+            frames_per_batch=4 * 150,
+            total_frames=-1,
+            trust_policy=True,
+            track_traj_ids=False,
+        )
         it = iter(col)
         out = [next(it) for _ in range(3)]  # 450 steps per env: episodes end and reset on the way
         col.shutdown()
@@ -132,6 +142,11 @@ def test_fast_collector_gives_the_same_batches_as_torchrl_loop(env_name):
         assert f.batch_size == s.batch_size
         for key in f.keys(True, True):
             assert torch.equal(f[key], s[key]), f"{key} differs"
-        for key in ("action_log_prob", ("next", "observation"), ("next", "reward"), ("next", "terminated"),
-                    ("next", "truncated")):
+        for key in (
+            "action_log_prob",
+            ("next", "observation"),
+            ("next", "reward"),
+            ("next", "terminated"),
+            ("next", "truncated"),
+        ):
             assert key in f.keys(True, True)

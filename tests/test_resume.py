@@ -14,20 +14,38 @@ import pytest
 import torch
 
 from conftest import REPO, run_train
-from rlexp.checkpoint import latest_checkpoint, latest_good_checkpoint, load_checkpoint, step_checkpoints
+from rlexp.checkpoint import (
+    latest_checkpoint,
+    latest_good_checkpoint,
+    load_checkpoint,
+    step_checkpoints,
+)
 
 
 def _cmd(env: str, run_dir: Path, frames: int, batch: int, extra: list[str]) -> list[str]:
-    return [f"env={env}", f"trainer.total_frames={2 * frames}", f"trainer.frames_per_batch={batch}",
-            f"trainer.save_every={frames}", "trainer.eval_every=0", "algorithm.num_epochs=2",
-            f"hydra.run.dir={run_dir}", "seed=5", *extra]
+    return [
+        f"env={env}",
+        f"trainer.total_frames={2 * frames}",
+        f"trainer.frames_per_batch={batch}",
+        f"trainer.save_every={frames}",
+        "trainer.eval_every=0",
+        "algorithm.num_epochs=2",
+        f"hydra.run.dir={run_dir}",
+        "seed=5",
+        *extra,
+    ]
 
 
 def _kill_after_checkpoint(args: list[str], cwd: Path, ckpt_dir: Path, step: int) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
     with open(cwd / "killed-run.txt", "w") as out:
-        proc = subprocess.Popen([sys.executable, str(REPO / "train.py"), *args], cwd=cwd, env=env,
-                                stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, str(REPO / "train.py"), *args],
+            cwd=cwd,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
         deadline = time.time() + 300
         while time.time() < deadline and proc.poll() is None:
             if any(p.name.endswith(f"_step_{step:09d}.pt") for p in ckpt_dir.glob("*.pt")):
@@ -35,15 +53,21 @@ def _kill_after_checkpoint(args: list[str], cwd: Path, ckpt_dir: Path, step: int
                 break
             time.sleep(0.02)
         proc.wait(timeout=60)
-    assert proc.returncode == -signal.SIGKILL, f"the run was not killed mid-way: {(cwd / 'killed-run.txt').read_text()}"
+    assert proc.returncode == -signal.SIGKILL, (
+        f"the run was not killed mid-way: {(cwd / 'killed-run.txt').read_text()}"
+    )
     steps = [int(p.stem.rsplit("_", 1)[1]) for p in step_checkpoints(ckpt_dir)]
     assert max(steps) < 2 * step, "the run finished before it was killed"
 
 
-def _assert_resume_is_exact(tmp_path: Path, env: str, frames: int, batch: int, extra: list[str]) -> None:
+def _assert_resume_is_exact(
+    tmp_path: Path, env: str, frames: int, batch: int, extra: list[str]
+) -> None:
     whole, broken = tmp_path / "whole", tmp_path / "broken"
     run_train(_cmd(env, whole, frames, batch, extra), cwd=tmp_path, timeout=600)
-    _kill_after_checkpoint(_cmd(env, broken, frames, batch, extra), tmp_path, broken / "checkpoints", frames)
+    _kill_after_checkpoint(
+        _cmd(env, broken, frames, batch, extra), tmp_path, broken / "checkpoints", frames
+    )
     proc = run_train(_cmd(env, broken, frames, batch, extra), cwd=tmp_path, timeout=600)
     assert "[resume] continuing from" in proc.stdout + proc.stderr
     a = load_checkpoint(latest_checkpoint(whole / "checkpoints"))
@@ -53,7 +77,9 @@ def _assert_resume_is_exact(tmp_path: Path, env: str, frames: int, batch: int, e
         assert torch.equal(value, b["policy"][key]), f"policy.{key} differs after resume"
     for i, state in a["algorithm"]["optimizer"]["state"].items():
         for k, v in state.items():
-            assert torch.equal(v, b["algorithm"]["optimizer"]["state"][i][k]), f"optimizer state {i}.{k} differs"
+            assert torch.equal(v, b["algorithm"]["optimizer"]["state"][i][k]), (
+                f"optimizer state {i}.{k} differs"
+            )
     assert a["windows"]["returns"] == b["windows"]["returns"]
 
 
@@ -63,9 +89,18 @@ def test_sigkill_and_resume_is_bit_identical_gymnasium(tmp_path):
 
 def test_corrupt_checkpoint_falls_back_to_the_previous_one(tmp_path, caplog):
     run_dir = tmp_path / "run"
-    run_train(["env=inverted_pendulum", "trainer.total_frames=768", "trainer.frames_per_batch=256",
-               "trainer.save_every=256", "trainer.eval_every=0", "algorithm.num_epochs=1",
-               f"hydra.run.dir={run_dir}"], cwd=tmp_path)
+    run_train(
+        [
+            "env=inverted_pendulum",
+            "trainer.total_frames=768",
+            "trainer.frames_per_batch=256",
+            "trainer.save_every=256",
+            "trainer.eval_every=0",
+            "algorithm.num_epochs=1",
+            f"hydra.run.dir={run_dir}",
+        ],
+        cwd=tmp_path,
+    )
     ckpts = step_checkpoints(run_dir / "checkpoints")
     assert len(ckpts) == 3
     ckpts[-1].write_bytes(ckpts[-1].read_bytes()[:1000])  # truncated write: the job died mid-save
@@ -77,14 +112,52 @@ def test_corrupt_checkpoint_falls_back_to_the_previous_one(tmp_path, caplog):
     with pytest.raises(ValueError, match="unreadable"):
         load_checkpoint(ckpts[-1])
     # The resumed run continues from the good one and replaces the broken file.
-    proc = run_train(["env=inverted_pendulum", "trainer.total_frames=768", "trainer.frames_per_batch=256",
-                      "trainer.save_every=256", "trainer.eval_every=0", "algorithm.num_epochs=1",
-                      f"hydra.run.dir={run_dir}"], cwd=tmp_path)
+    proc = run_train(
+        [
+            "env=inverted_pendulum",
+            "trainer.total_frames=768",
+            "trainer.frames_per_batch=256",
+            "trainer.save_every=256",
+            "trainer.eval_every=0",
+            "algorithm.num_epochs=1",
+            f"hydra.run.dir={run_dir}",
+        ],
+        cwd=tmp_path,
+    )
     assert "step_000000512.pt" in proc.stdout + proc.stderr
     assert load_checkpoint(ckpts[-1])["global_step"] == 768
 
 
 def test_sigkill_and_resume_is_bit_identical_push_cube(tmp_path):
     """The acceptance test of the lifecycle issue: PushCube, killed mid-run, resumed, bit-identical."""
-    _assert_resume_is_exact(tmp_path, "push_cube", frames=1024, batch=256,
-                            extra=["env.num_envs=8", "env.num_eval_envs=2", "policy=mlp_256"])
+    _assert_resume_is_exact(
+        tmp_path,
+        "push_cube",
+        frames=1024,
+        batch=256,
+        extra=["env.num_envs=8", "env.num_eval_envs=2", "policy=mlp_256"],
+    )
+
+
+def test_a_run_dir_refuses_a_different_experiment(tmp_path):
+    run_dir = tmp_path / "run"
+    base = [
+        "env=inverted_pendulum",
+        "trainer.frames_per_batch=256",
+        "trainer.save_every=256",
+        "trainer.eval_every=0",
+        "algorithm.num_epochs=1",
+        f"hydra.run.dir={run_dir}",
+    ]
+    run_train([*base, "trainer.total_frames=256"], cwd=tmp_path)
+    proc = run_train(
+        [*base, "trainer.total_frames=512", "algorithm.clip_epsilon=0.3"], cwd=tmp_path, check=False
+    )
+    assert proc.returncode == 2
+    assert (
+        "holds a different experiment (differs in algorithm.clip_epsilon)"
+        in proc.stdout + proc.stderr
+    )
+    # Training longer is a continuation, not a different experiment.
+    proc = run_train([*base, "trainer.total_frames=512"], cwd=tmp_path)
+    assert load_checkpoint(latest_checkpoint(run_dir / "checkpoints"))["global_step"] == 512

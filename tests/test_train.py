@@ -24,8 +24,15 @@ def test_train_writes_tensorboard_metrics_and_checkpoints_and_eval_reloads(tmp_p
     acc = EventAccumulator(str(run_dir / "tensorboard"))
     acc.Reload()
     tags = set(acc.Tags()["scalars"])
-    for tag in ("train/episode_return", "train/episode_length", "loss/policy", "loss/value",
-                "perf/sps", "eval/episode_return", "eval/episode_length"):
+    for tag in (
+        "train/episode_return",
+        "train/episode_length",
+        "loss/policy",
+        "loss/value",
+        "perf/sps",
+        "eval/episode_return",
+        "eval/episode_length",
+    ):
         assert tag in tags, f"{tag} missing from TensorBoard; have {sorted(tags)}"
     assert [e.step for e in acc.Scalars("loss/policy")] == [256, 512]
 
@@ -34,11 +41,15 @@ def test_train_writes_tensorboard_metrics_and_checkpoints_and_eval_reloads(tmp_p
     assert max(r["step"] for r in rows) == 512
 
     ckpts = sorted((run_dir / "checkpoints").glob("*_step_*.pt"))
-    assert [c.name for c in ckpts] == ["InvertedPendulum-v5_ppo_step_000000256.pt",
-                                       "InvertedPendulum-v5_ppo_step_000000512.pt"]
+    assert [c.name for c in ckpts] == [
+        "InvertedPendulum-v5_ppo_step_000000256.pt",
+        "InvertedPendulum-v5_ppo_step_000000512.pt",
+    ]
     best = load_checkpoint(run_dir / "checkpoints" / "best.pt")
     evals = [r["eval/episode_return"] for r in rows if "eval/episode_return" in r]
-    assert best["best_metric"] == max(evals) and best["last_eval"]["eval/episode_return"] == max(evals)
+    assert best["best_metric"] == max(evals) and best["last_eval"]["eval/episode_return"] == max(
+        evals
+    )
     ckpt = load_checkpoint(ckpts[-1])  # weights_only=True inside
     assert ckpt["global_step"] == 512
     assert {"policy", "algorithm", "windows", "rng", "config"} <= set(ckpt)
@@ -47,8 +58,13 @@ def test_train_writes_tensorboard_metrics_and_checkpoints_and_eval_reloads(tmp_p
     assert (run_dir / "config.yaml").is_file() and (run_dir / ".hydra" / "config.yaml").is_file()
 
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    proc = subprocess.run([sys.executable, "-m", "rlexp.cli", "eval", str(ckpts[-1]), "--episodes", "3"],
-                          capture_output=True, text=True, env=env, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "rlexp.cli", "eval", str(ckpts[-1]), "--episodes", "3"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "mean return" in proc.stdout and "over 3 episodes" in proc.stdout
     # A run dir works too (newest checkpoint).
@@ -73,11 +89,24 @@ def test_same_seed_gives_identical_parameters(tmp_path):
 
 def test_ctrl_c_saves_a_checkpoint_and_exits_0(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    console = open(tmp_path / "console.txt", "w")  # a file, not a pipe: a full pipe would block the child
+    console = open(
+        tmp_path / "console.txt", "w"
+    )  # a file, not a pipe: a full pipe would block the child
     proc = subprocess.Popen(
-        [sys.executable, str(REPO / "train.py"), "env=inverted_pendulum", "trainer.total_frames=10000000",
-         "trainer.frames_per_batch=256", "trainer.save_every=0", "trainer.eval_every=0"],
-        cwd=tmp_path, env=env, stdout=console, stderr=subprocess.STDOUT, text=True,
+        [
+            sys.executable,
+            str(REPO / "train.py"),
+            "env=inverted_pendulum",
+            "trainer.total_frames=10000000",
+            "trainer.frames_per_batch=256",
+            "trainer.save_every=0",
+            "trainer.eval_every=0",
+        ],
+        cwd=tmp_path,
+        env=env,
+        stdout=console,
+        stderr=subprocess.STDOUT,
+        text=True,
     )
     deadline = time.time() + 120
     log_file = None

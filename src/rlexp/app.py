@@ -65,12 +65,11 @@ def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> 
     from rlexp.algorithms.ppo import NonFiniteError, make_algorithm
     from rlexp.checkpoint import latest_good_checkpoint, load_checkpoint
     from rlexp.envs.factory import make_env
-    from rlexp.launch.slurm import install_preemption_handler
     from rlexp.events import EventManager
-    from rlexp.logging import make_logger
-    from rlexp.policies.actor_critic import make_policy
     from rlexp.launch import distributed
-    from rlexp.logging import MetricLogger
+    from rlexp.launch.slurm import install_preemption_handler
+    from rlexp.logging import MetricLogger, make_logger
+    from rlexp.policies.actor_critic import make_policy
     from rlexp.provenance import versions, write_provenance
     from rlexp.trainer import StopRequested, Trainer
 
@@ -83,10 +82,26 @@ def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> 
         device = f"cuda:{dist.local_rank}"  # each rank on its own GPU
     seed_everything(config.seed + dist.rank)
     run_dir.mkdir(parents=True, exist_ok=True)
+    if t.resume == "auto" and (run_dir / "config.yaml").is_file():
+        # Continuing in an existing run dir (requeue, re-run of a sweep dir): it must be the same
+        # experiment, or results of two configs would be mixed in one run.
+        saved = OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml"), resolve=True)
+        diffs = config_differences(saved, to_dict(config), ignore=RESUME_MAY_CHANGE)
+        if diffs:
+            raise ConfigError(
+                f"run dir {run_dir} holds a different experiment (differs in {', '.join(diffs)}); "
+                "use a new hydra.run.dir / hydra.sweep.dir, or trainer.resume=never to start over there"
+            )
     status = read_status(run_dir)
-    if status.get("state") == "finished" and t.resume == "auto" and status.get("global_step", 0) >= total_frames(config, dist.world_size):
+    if (
+        status.get("state") == "finished"
+        and t.resume == "auto"
+        and status.get("global_step", 0) >= total_frames(config, dist.world_size)
+    ):
         # A re-run of the same sweep: this job already finished its budget; report it, train nothing.
-        log.info("run dir %s already finished at step %s: skipping", run_dir, status.get("global_step"))
+        log.info(
+            "run dir %s already finished at step %s: skipping", run_dir, status.get("global_step")
+        )
         return dict(status.get("final_eval") or {})
 
     t.device = device  # the saved config records the device actually used
@@ -96,7 +111,9 @@ def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> 
     from rlexp.config.json_format import write_json_experiment
 
     if dist.is_main:
-        write_json_experiment(config, run_dir)  # the same config as train_config.json + gym_config.json
+        write_json_experiment(
+            config, run_dir
+        )  # the same config as train_config.json + gym_config.json
     if dist.is_main:
         write_provenance(run_dir, device)
     log.info("run dir: %s (device %s, seed %d)", run_dir, device, config.seed)
@@ -115,8 +132,14 @@ def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> 
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec.shape[-1]
     log.info("env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, act_dim)
-    policy = make_policy(config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
-                         e.clip_observations).to(device)
+    policy = make_policy(
+        config.policy,
+        obs_dim,
+        act_dim,
+        env.action_spec,
+        e.normalize_observations,
+        e.clip_observations,
+    ).to(device)
     if dist.enabled:  # same initial parameters everywhere
         distributed.broadcast_([*policy.parameters(), *policy.buffers()])
     total = total_frames(config, dist.world_size)
@@ -141,7 +164,9 @@ def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> 
         versions=versions(),
         dist=dist,
     )
-    install_preemption_handler(trainer)  # under SLURM: the preemption signal checkpoints, then requeues
+    install_preemption_handler(
+        trainer
+    )  # under SLURM: the preemption signal checkpoints, then requeues
     if ckpt is not None:
         trainer.load_state_dict(ckpt)
     write_status(run_dir, "running", trainer.global_step)
@@ -151,17 +176,28 @@ def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> 
             trainer.eval_once()
         write_status(run_dir, "finished", trainer.global_step, trainer.last_eval)
     except KeyboardInterrupt:
-        log.warning("interrupted at step %d: saving a checkpoint before exiting", trainer.global_step)
+        log.warning(
+            "interrupted at step %d: saving a checkpoint before exiting", trainer.global_step
+        )
         trainer.save_checkpoint()
         write_status(run_dir, "interrupted", trainer.global_step, trainer.last_eval)
     except StopRequested as exc:
-        log.warning("stopped at step %d (%s): checkpoint %s", trainer.global_step, exc, trainer.last_checkpoint)
+        log.warning(
+            "stopped at step %d (%s): checkpoint %s",
+            trainer.global_step,
+            exc,
+            trainer.last_checkpoint,
+        )
         write_status(run_dir, "stopped", trainer.global_step, trainer.last_eval, reason=str(exc))
         trainer.close()
         raise
     except NonFiniteError as exc:
         write_status(run_dir, "failed", trainer.global_step, trainer.last_eval, reason=str(exc))
-        log.error("stopped: %s; the last good checkpoint is %s", exc, trainer.last_checkpoint or ckpt and ckpt["path"])
+        log.error(
+            "stopped: %s; the last good checkpoint is %s",
+            exc,
+            trainer.last_checkpoint or ckpt and ckpt["path"],
+        )
         trainer.close()
         sys.exit(3)
     finally:
@@ -170,6 +206,34 @@ def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> 
         distributed.shutdown()
     log.info("done: %d env steps; checkpoint %s", trainer.global_step, trainer.last_checkpoint)
     return trainer.last_eval
+
+
+#: Keys a continuation may change: the budget (train longer), how to resume, the device, the console.
+RESUME_MAY_CHANGE = (
+    "trainer.total_frames",
+    "trainer.iterations",
+    "trainer.resume",
+    "trainer.device",
+    "trainer.progress",
+    "trainer.strict_device",
+)
+
+
+def config_differences(
+    a: dict[str, Any], b: dict[str, Any], ignore: tuple[str, ...] = (), prefix: str = ""
+) -> list[str]:
+    """Dotted keys whose values differ between two plain config dicts."""
+    out = []
+    for key in sorted(set(a) | set(b)):
+        path = f"{prefix}{key}"
+        if path in ignore:
+            continue
+        va, vb = a.get(key), b.get(key)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += config_differences(va, vb, ignore, path + ".")
+        elif va != vb:
+            out.append(path)
+    return out
 
 
 def read_status(run_dir: Path) -> dict[str, Any]:
@@ -181,15 +245,22 @@ def read_status(run_dir: Path) -> dict[str, Any]:
         return {}
 
 
-def write_status(run_dir: Path, state: str, global_step: int, final_eval: dict | None = None, **extra: Any) -> None:
+def write_status(
+    run_dir: Path, state: str, global_step: int, final_eval: dict | None = None, **extra: Any
+) -> None:
     """``status.json``: running | finished | interrupted | stopped | failed, the step and the last eval
     (what sweeps and ``rlexp report`` read to tell finished jobs from unfinished ones). Rank 0 only."""
     from rlexp.launch.distributed import info
 
     if not info().is_main:
         return
-    info = {"state": state, "global_step": global_step, "final_eval": final_eval or {},
-            "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **extra}
+    info = {
+        "state": state,
+        "global_step": global_step,
+        "final_eval": final_eval or {},
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        **extra,
+    }
     tmp = run_dir / ".status.json.tmp"
     tmp.write_text(json.dumps(info, indent=2) + "\n")
     os.replace(tmp, run_dir / "status.json")
@@ -213,7 +284,9 @@ def _task(cfg: DictConfig) -> float | None:
                 sys.exit(2)
     hc = HydraConfig.get()
     run_dir = Path(hc.runtime.output_dir)
-    sweep_group = Path(hc.sweep.dir).name if hc.mode is not None and hc.mode.name == "MULTIRUN" else None
+    sweep_group = (
+        Path(hc.sweep.dir).name if hc.mode is not None and hc.mode.name == "MULTIRUN" else None
+    )
     try:
         metrics: dict[str, Any] = train(config, run_dir, sweep_group)
     except ConfigError as exc:

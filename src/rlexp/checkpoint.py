@@ -45,10 +45,20 @@ def set_rng_state(state: dict[str, Any]) -> None:
     random.setstate(state["python"])
     np_s = state["numpy"]
     np.random.set_state(
-        ("MT19937", np_s["key"].numpy().astype(np.uint32), np_s["pos"], np_s["has_gauss"], np_s["cached_gaussian"])
+        (
+            "MT19937",
+            np_s["key"].numpy().astype(np.uint32),
+            np_s["pos"],
+            np_s["has_gauss"],
+            np_s["cached_gaussian"],
+        )
     )
     torch.set_rng_state(state["torch"])
-    if state.get("cuda") and torch.cuda.is_available() and len(state["cuda"]) == torch.cuda.device_count():
+    if (
+        state.get("cuda")
+        and torch.cuda.is_available()
+        and len(state["cuda"]) == torch.cuda.device_count()
+    ):
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
@@ -90,7 +100,9 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         ckpt = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise ValueError(f"checkpoint {str(p)!r} is unreadable (truncated or corrupt?): {exc}") from exc
+        raise ValueError(
+            f"checkpoint {str(p)!r} is unreadable (truncated or corrupt?): {exc}"
+        ) from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ValueError(f"{str(p)!r} is not an rlexp checkpoint (format {FORMAT!r})")
     ckpt["path"] = str(p)
@@ -104,7 +116,9 @@ def checkpoint_path(ckpt_dir: Path, exp_name: str, global_step: int) -> Path:
 def step_checkpoints(directory: Path) -> list[Path]:
     """``*_step_N.pt`` files in ``directory`` (or its ``checkpoints/``), oldest step first."""
     candidates = list(directory.glob("*.pt")) + list((directory / "checkpoints").glob("*.pt"))
-    stepped = sorted((int(m.group(1)), str(c)) for c in candidates if (m := _STEP_RE.search(c.name)))
+    stepped = sorted(
+        (int(m.group(1)), str(c)) for c in candidates if (m := _STEP_RE.search(c.name))
+    )
     return [Path(c) for _, c in stepped]
 
 

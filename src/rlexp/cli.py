@@ -29,8 +29,14 @@ def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) ->
     n = num_envs or max(1, e.num_eval_envs)
     env = make_env(e, n, seed)
     obs_dim = env.observation_spec["observation"].shape[-1]
-    policy = make_policy(config.policy, obs_dim, env.action_spec.shape[-1], env.action_spec,
-                         e.normalize_observations, e.clip_observations)
+    policy = make_policy(
+        config.policy,
+        obs_dim,
+        env.action_spec.shape[-1],
+        env.action_spec,
+        e.normalize_observations,
+        e.clip_observations,
+    )
     policy.load_state_dict(ckpt["policy"])
     act = policy.sampling_policy(deterministic=True)
     returns: list[float] = []
@@ -45,8 +51,13 @@ def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) ->
                 ep_ret[i] = 0.0
     env.close()
     returns = returns[:episodes]
-    return {"path": ckpt["path"], "global_step": int(ckpt["global_step"]),
-            "mean_return": float(np.mean(returns)), "std_return": float(np.std(returns)), "episodes": len(returns)}
+    return {
+        "path": ckpt["path"],
+        "global_step": int(ckpt["global_step"]),
+        "mean_return": float(np.mean(returns)),
+        "std_return": float(np.std(returns)),
+        "episodes": len(returns),
+    }
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -59,12 +70,16 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="rlexp", description="rlexp experiment tools")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("train", help="train (same as python train.py; Hydra overrides follow)")
-    ev = sub.add_parser("eval", help="evaluate a checkpoint: mean return over N deterministic episodes")
+    ev = sub.add_parser(
+        "eval", help="evaluate a checkpoint: mean return over N deterministic episodes"
+    )
     ev.add_argument("checkpoint", help="a checkpoint file, or a run dir (its newest checkpoint)")
     ev.add_argument("--episodes", type=int, default=10)
     ev.add_argument("--num-envs", type=int, default=None)
     ev.add_argument("--seed", type=int, default=12345)
-    rep = sub.add_parser("report", help="a sweep's per-configuration statistics: report.md, report.csv, curves.png")
+    rep = sub.add_parser(
+        "report", help="a sweep's per-configuration statistics: report.md, report.csv, curves.png"
+    )
     rep.add_argument("sweep_dir", help="a multirun dir, e.g. multirun/2026-11-22/10-00-00")
     rep.add_argument("--metric", default="eval/episode_return", help="score and curve metric")
     rep.add_argument("--no-plot", action="store_true", help="skip curves.png")
@@ -85,8 +100,10 @@ def main(argv: list[str] | None = None) -> None:
         except (FileNotFoundError, ValueError) as exc:
             print(f"rlexp eval: {exc}", file=sys.stderr)
             sys.exit(2)
-        print(f"checkpoint {res['path']} (step {res['global_step']}): mean return "
-              f"{res['mean_return']:.3f} +- {res['std_return']:.3f} over {res['episodes']} episodes")
+        print(
+            f"checkpoint {res['path']} (step {res['global_step']}): mean return "
+            f"{res['mean_return']:.3f} +- {res['std_return']:.3f} over {res['episodes']} episodes"
+        )
 
 
 if __name__ == "__main__":

@@ -66,11 +66,15 @@ def _wandb_mode(requested: str) -> str:
         return requested
     if os.environ.get("WANDB_MODE"):
         return os.environ["WANDB_MODE"]
-    has_key = bool(os.environ.get("WANDB_API_KEY")) or (Path.home() / ".netrc").exists() and "api.wandb.ai" in (
-        Path.home() / ".netrc"
-    ).read_text(errors="ignore")
+    has_key = (
+        bool(os.environ.get("WANDB_API_KEY"))
+        or (Path.home() / ".netrc").exists()
+        and "api.wandb.ai" in (Path.home() / ".netrc").read_text(errors="ignore")
+    )
     if not has_key:
-        log.warning("W&B: no API key found; logging offline under the run dir (sync later with `wandb sync`)")
+        log.warning(
+            "W&B: no API key found; logging offline under the run dir (sync later with `wandb sync`)"
+        )
         return "offline"
     return "online"
 
@@ -78,8 +82,15 @@ def _wandb_mode(requested: str) -> str:
 class WandbBackend:
     """Weights & Biases run; files under ``<run_dir>/wandb``."""
 
-    def __init__(self, run_dir: Path, cfg: LoggerConfig, run_name: str, config: dict, run_id: str,
-                 group: str | None = None) -> None:
+    def __init__(
+        self,
+        run_dir: Path,
+        cfg: LoggerConfig,
+        run_name: str,
+        config: dict,
+        run_id: str,
+        group: str | None = None,
+    ) -> None:
         import wandb
 
         self.run = wandb.init(
@@ -137,7 +148,9 @@ def wandb_run_id(run_dir: Path) -> str:
     return run_id
 
 
-def make_logger(cfg: LoggerConfig, run_dir: Path, run_name: str, config: dict, group: str | None = None) -> MetricLogger:
+def make_logger(
+    cfg: LoggerConfig, run_dir: Path, run_name: str, config: dict, group: str | None = None
+) -> MetricLogger:
     """Build the configured metric sinks for one run (``group``: the sweep, for W&B)."""
     backends: list[Backend] = []
     if cfg.jsonl:

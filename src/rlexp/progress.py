@@ -36,13 +36,17 @@ class Progress:
                 transient=False,
             )
             self._bar.__enter__()
-            self._task = self._bar.add_task("train", total=self.total, completed=self.start, sps="-", ret="-")
+            self._task = self._bar.add_task(
+                "train", total=self.total, completed=self.start, sps="-", ret="-"
+            )
         return self
 
     def update(self, step: int, sps: float, ret: float | None) -> None:
         if self._bar is not None:
             ret_s = "-" if ret is None else f"{ret:.2f}"
-            self._bar.update(self._task, completed=min(step, self.total), sps=f"{sps:.0f}", ret=ret_s)
+            self._bar.update(
+                self._task, completed=min(step, self.total), sps=f"{sps:.0f}", ret=ret_s
+            )
 
     def __exit__(self, *exc) -> None:
         if self._bar is not None:

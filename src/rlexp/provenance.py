@@ -31,7 +31,9 @@ def versions() -> dict[str, str]:
 
 def _git(*args: str) -> str | None:
     try:
-        proc = subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True, timeout=20)
+        proc = subprocess.run(
+            ["git", "-C", str(REPO), *args], capture_output=True, text=True, timeout=20
+        )
     except (OSError, subprocess.TimeoutExpired):
         return None
     return proc.stdout if proc.returncode == 0 else None
@@ -54,8 +56,14 @@ def write_provenance(run_dir: Path, device: str) -> dict:
     if diff:
         (run_dir / "git.diff").write_text(diff)
     # pip freeze's content, read from package metadata (a pip subprocess costs ~0.3 s of start-up)
-    dists = sorted({f"{d.metadata['Name']}=={d.version}" for d in metadata.distributions() if d.metadata["Name"]},
-                   key=str.lower)
+    dists = sorted(
+        {
+            f"{d.metadata['Name']}=={d.version}"
+            for d in metadata.distributions()
+            if d.metadata["Name"]
+        },
+        key=str.lower,
+    )
     (run_dir / "pip-freeze.txt").write_text("\n".join(dists) + "\n")
     (run_dir / "provenance.json").write_text(json.dumps(info, indent=2) + "\n")
     return info

@@ -105,8 +105,12 @@ class Trainer:
         self.collector: RolloutCollector | None = None  # built when training starts, after a resume
         self._event_transform: EventTransform | None = None
         self._resume_rng: dict[str, Any] | None = None
-        self.stop_reason: str | None = None  # set by request_stop (e.g. from a SLURM signal handler)
-        if event_manager.has("step", "reset"):  # only then: runs without such events pay nothing per step
+        self.stop_reason: str | None = (
+            None  # set by request_stop (e.g. from a SLURM signal handler)
+        )
+        if event_manager.has(
+            "step", "reset"
+        ):  # only then: runs without such events pay nothing per step
             self._event_transform = EventTransform(event_manager, run_dir)
             self.env = TransformedEnv(env, self._event_transform)
         self.progress: Progress | None = None
@@ -117,7 +121,9 @@ class Trainer:
         if self.global_step == 0:
             self.event_manager.fire("startup", self._ctx())
         self._start_collector()
-        if self._resume_rng is not None:  # after the collector's construction, which draws from torch's RNG
+        if (
+            self._resume_rng is not None
+        ):  # after the collector's construction, which draws from torch's RNG
             set_rng_state(self._resume_rng)
             self._resume_rng = None
         self.progress = Progress(total_timesteps, enabled=self.cfg.progress, start=self.global_step)
@@ -132,12 +138,21 @@ class Trainer:
                     self.eval_once()
                 if crossed(before, self.global_step, self.cfg.save_every):
                     self.save_checkpoint()
-                if self.stop_reason is not None:  # a safe point: checkpoint, then let the caller decide
+                if self.dist.enabled:  # a signal may reach one rank only: all stop together
+                    self._agree_on_stop()
+                if (
+                    self.stop_reason is not None
+                ):  # a safe point: checkpoint, then let the caller decide
                     self.save_checkpoint()
                     raise StopRequested(self.stop_reason)
         if self.dist.enabled:
             self.check_ranks_in_sync()
         self.save_checkpoint()
+
+    def _agree_on_stop(self) -> None:
+        requested = torch.tensor([float(self.stop_reason is not None)])
+        if all_reduce_sum(requested).item() > 0 and self.stop_reason is None:
+            self.stop_reason = "stop requested on another rank"
 
     def check_ranks_in_sync(self) -> None:
         """Distributed: every rank must hold the same parameters (gradients were averaged)."""
@@ -145,7 +160,9 @@ class Trainer:
         digests = all_gather_object(digest)
         if len(set(digests)) != 1:
             raise RuntimeError(f"ranks diverged: parameter digests {digests}")
-        log.info("[dist] parameters identical on all %d ranks (sha256 %s)", self.dist.world_size, digest)
+        log.info(
+            "[dist] parameters identical on all %d ranks (sha256 %s)", self.dist.world_size, digest
+        )
 
     def collect_rollout(self) -> TensorDictBase:
         """One batch of ``frames_per_batch`` env steps through the TorchRL collector."""
@@ -158,7 +175,9 @@ class Trainer:
         if self.cfg.nan_guard:
             for key in (("next", "observation"), ("next", "reward")):
                 if not torch.isfinite(batch[key]).all():
-                    raise NonFiniteError(f"non-finite {'/'.join(key)} from the env at step {self.global_step}")
+                    raise NonFiniteError(
+                        f"non-finite {'/'.join(key)} from the env at step {self.global_step}"
+                    )
         self._track_episodes(batch)
         return batch
 
@@ -169,7 +188,9 @@ class Trainer:
             losses = self.algorithm.update(batch)
         except NonFiniteError as exc:
             raise NonFiniteError(f"{exc} at step {self.global_step}") from None
-        self.policy.normalizer.update(batch["observation"], all_reduce_sum if self.dist.enabled else None)
+        self.policy.normalizer.update(
+            batch["observation"], all_reduce_sum if self.dist.enabled else None
+        )
         self._timing["update"] = time.perf_counter() - t0
         return losses
 
@@ -225,7 +246,9 @@ class Trainer:
             ep_ret += nxt["reward"].reshape(n).cpu().numpy()
             ep_len += 1
             if "metrics" in nxt.keys() and "success" in nxt["metrics"].keys():
-                ep_success = np.maximum(ep_success, nxt["metrics", "success"].reshape(n).cpu().numpy())
+                ep_success = np.maximum(
+                    ep_success, nxt["metrics", "success"].reshape(n).cpu().numpy()
+                )
             done = nxt["done"].reshape(n).cpu().numpy()
             for i in np.flatnonzero(done):
                 if done_count[i] < quota[i]:
@@ -246,8 +269,12 @@ class Trainer:
         self.logger.log(metrics, self.global_step)
         log.info(
             "[eval] step=%d return=%.2f +- %.2f length=%.1f success=%.2f (%d episodes)",
-            self.global_step, metrics["eval/episode_return"], metrics["eval/episode_return_std"],
-            metrics["eval/episode_length"], metrics["eval/success_rate"], len(returns),
+            self.global_step,
+            metrics["eval/episode_return"],
+            metrics["eval/episode_return_std"],
+            metrics["eval/episode_length"],
+            metrics["eval/success_rate"],
+            len(returns),
         )
         events.fire("trigger", self._ctx(env, metrics=metrics), signal="eval_end")
         self.event_manager.fire("trigger", self._ctx(metrics=metrics), signal="eval_end")
@@ -291,7 +318,10 @@ class Trainer:
                 "running_return": self._ep_ret.copy(),
                 "running_length": self._ep_len.copy(),
             },
-            "events": {"train": self.event_manager.state_dict(), "eval": self.eval_event_manager.state_dict()},
+            "events": {
+                "train": self.event_manager.state_dict(),
+                "eval": self.eval_event_manager.state_dict(),
+            },
             "envs": envs,
             "rng": rng_state(),
             "last_eval": dict(self.last_eval),
@@ -357,8 +387,12 @@ class Trainer:
         self.event_manager.fire("trigger", self._ctx(), signal="new_best")
 
     def _ctx(self, env: EnvBase | None = None, **kw: Any) -> EventContext:
-        return EventContext(env=env if env is not None else self.env, global_step=self.global_step,
-                            run_dir=self.run_dir, **kw)
+        return EventContext(
+            env=env if env is not None else self.env,
+            global_step=self.global_step,
+            run_dir=self.run_dir,
+            **kw,
+        )
 
     def _track_episodes(self, batch: TensorDictBase) -> None:
         """Update the return/length windows and per-term means from a [num_envs, T] rollout."""

@@ -51,7 +51,9 @@ class PPO:
         self.policy = policy
         self.total_iterations = max(1, total_iterations)
         self.nan_guard = nan_guard
-        self.grad_sync = grad_sync  # distributed: averages the gradients over ranks after every backward
+        self.grad_sync = (
+            grad_sync  # distributed: averages the gradients over ranks after every backward
+        )
         self.gae = make_gae(cfg, policy.critic)
         self.loss = ClipPPOLoss(
             actor_network=policy.actor,
@@ -87,7 +89,12 @@ class PPO:
             group["lr"] = lr
         self.compute_advantages(batch)
         flat = batch.reshape(-1).select(
-            "observation", "action", "action_log_prob", "advantage", "value_target", "state_value",
+            "observation",
+            "action",
+            "action_log_prob",
+            "advantage",
+            "value_target",
+            "state_value",
             strict=False,
         )
         n = flat.shape[0]
@@ -113,11 +120,15 @@ class PPO:
                 if self.cfg.max_grad_norm > 0:
                     grad_norm = torch.nn.utils.clip_grad_norm_(self.params, self.cfg.max_grad_norm)
                 else:
-                    grad_norm = torch.nn.utils.get_total_norm([p.grad for p in self.params if p.grad is not None])
+                    grad_norm = torch.nn.utils.get_total_norm(
+                        [p.grad for p in self.params if p.grad is not None]
+                    )
                 if self.nan_guard and not (torch.isfinite(total) and torch.isfinite(grad_norm)):
                     bad = [k for k in LOSS_KEYS if k in out.keys() and not torch.isfinite(out[k])]
                     what = f"loss ({', '.join(bad)})" if bad else "gradient norm"
-                    raise NonFiniteError(f"non-finite {what} in PPO update (epoch {epoch}, minibatch {start // mb})")
+                    raise NonFiniteError(
+                        f"non-finite {what} in PPO update (epoch {epoch}, minibatch {start // mb})"
+                    )
                 self.optimizer.step()
                 for k in LOSS_KEYS:
                     if k in out.keys():

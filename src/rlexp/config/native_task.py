@@ -59,4 +59,6 @@ class NativeTaskConfig:
     rewards: dict[str, RewardTermConfig] = field(default_factory=dict)
     actions: dict[str, ActionTermConfig] = field(default_factory=dict)
     extensions: dict[str, Any] = field(default_factory=dict)  # free values, e.g. success_threshold
-    scene: dict[str, Any] = field(default_factory=dict)  # scene overrides (cube size/mass/init_pos, init_qpos)
+    scene: dict[str, Any] = field(
+        default_factory=dict
+    )  # scene overrides (cube size/mass/init_pos, init_qpos)

@@ -21,18 +21,28 @@ class TrainerConfig:
     """The training loop: budget, collection size, evaluation, checkpoints, device."""
 
     exp_name: str = "rlexp"  # run name: logger run name and checkpoint prefix
-    total_frames: int = 1_000_000  # env steps to train for, summed over all envs (Collector's total_frames)
+    total_frames: int = (
+        1_000_000  # env steps to train for, summed over all envs (Collector's total_frames)
+    )
     iterations: int | None = None  # if set, total_frames = iterations * frames_per_batch
-    frames_per_batch: int = 2048  # env steps per rollout, summed over env.num_envs (Collector's frames_per_batch)
+    frames_per_batch: int = (
+        2048  # env steps per rollout, summed over env.num_envs (Collector's frames_per_batch)
+    )
     device: str = "auto"  # auto | cpu | cuda | cuda:N; auto picks CUDA when present
-    strict_device: bool = False  # a CUDA device on a machine without CUDA: error (true) or CPU + warning
+    strict_device: bool = (
+        False  # a CUDA device on a machine without CUDA: error (true) or CPU + warning
+    )
     eval_every: int = 50_000  # evaluate when global_step crosses a multiple of this (0: never)
     eval_episodes: int = 10  # episodes per evaluation, spread over env.num_eval_envs
-    save_every: int = 100_000  # checkpoint when global_step crosses a multiple of this (0: only at the end)
+    save_every: int = (
+        100_000  # checkpoint when global_step crosses a multiple of this (0: only at the end)
+    )
     keep_last: int = 5  # step checkpoints kept on disk (older ones are deleted; <= 0 keeps all)
     resume: str = "auto"  # auto: continue from the newest good checkpoint in the run dir | never | a checkpoint path
     best_metric: str = "eval/episode_return"  # eval metric that best.pt follows (higher is better)
-    nan_guard: bool = True  # stop with a clear error on NaN/Inf in observations, losses or gradients
+    nan_guard: bool = (
+        True  # stop with a clear error on NaN/Inf in observations, losses or gradients
+    )
     log_every: int = 1  # log training metrics every this many iterations
     progress: bool = True  # live progress bar on the console
     torch_threads: int = 1  # torch intra-op threads; one is fastest for small networks
@@ -56,7 +66,9 @@ class PolicyConfig:
     init_log_std: float = 0.0  # initial log standard deviation of the actions
     min_log_std: float = -5.0  # log-std is clamped to [min_log_std, max_log_std]
     max_log_std: float = 2.0
-    ortho_init: bool = True  # orthogonal init (gain sqrt(2), 0.01 for the action mean, 1 for the value)
+    ortho_init: bool = (
+        True  # orthogonal init (gain sqrt(2), 0.01 for the action mean, 1 for the value)
+    )
 
 
 @dataclass
@@ -92,10 +104,14 @@ class EnvConfig:
     num_envs: int = 1  # parallel training envs
     num_eval_envs: int = 1  # parallel evaluation envs
     max_episode_steps: int | None = None  # time limit (None: the task's own)
-    normalize_observations: bool = True  # running mean/std normalisation (statistics are checkpointed)
+    normalize_observations: bool = (
+        True  # running mean/std normalisation (statistics are checkpointed)
+    )
     clip_observations: float = 10.0  # normalised observations are clipped to +- this
     vectorization: str = "sync"  # gymnasium vector env mode for num_envs > 1: sync | async
-    kwargs: dict[str, Any] = field(default_factory=dict)  # extra keyword arguments for gymnasium.make
+    kwargs: dict[str, Any] = field(
+        default_factory=dict
+    )  # extra keyword arguments for gymnasium.make
     native: NativeTaskConfig | None = None  # term configuration of a native task (backend=native)
 
 

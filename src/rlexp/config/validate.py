@@ -36,7 +36,11 @@ def total_frames(config: RootConfig, world_size: int = 1) -> int:
     """Env steps to train for, summed over envs and processes (``iterations`` counts batches of
     ``frames_per_batch`` per process)."""
     t = config.trainer
-    return t.iterations * t.frames_per_batch * world_size if t.iterations is not None else t.total_frames
+    return (
+        t.iterations * t.frames_per_batch * world_size
+        if t.iterations is not None
+        else t.total_frames
+    )
 
 
 def validate(config: RootConfig) -> None:
@@ -52,7 +56,9 @@ def validate(config: RootConfig) -> None:
             f"env.num_envs={e.num_envs} (each env contributes frames_per_batch / num_envs steps)"
         )
     if t.iterations is not None and t.iterations < 1:
-        raise ConfigError(f"trainer.iterations={t.iterations} must be >= 1 (or null to use total_frames)")
+        raise ConfigError(
+            f"trainer.iterations={t.iterations} must be >= 1 (or null to use total_frames)"
+        )
     if total_frames(config) < 1:
         raise ConfigError(f"trainer.total_frames={t.total_frames} must be >= 1")
     if a.mini_batch_size < 1 or a.mini_batch_size > t.frames_per_batch:
@@ -62,7 +68,9 @@ def validate(config: RootConfig) -> None:
     if a.num_epochs < 1:
         raise ConfigError(f"algorithm.num_epochs={a.num_epochs} must be >= 1")
     if not 0.0 <= a.gamma <= 1.0 or not 0.0 <= a.lmbda <= 1.0:
-        raise ConfigError(f"algorithm.gamma={a.gamma} and algorithm.lmbda={a.lmbda} must be in [0, 1]")
+        raise ConfigError(
+            f"algorithm.gamma={a.gamma} and algorithm.lmbda={a.lmbda} must be in [0, 1]"
+        )
     if a.clip_epsilon <= 0:
         raise ConfigError(f"algorithm.clip_epsilon={a.clip_epsilon} must be > 0")
     if a.lr <= 0:
@@ -76,4 +84,6 @@ def validate(config: RootConfig) -> None:
     if e.backend not in BACKENDS:
         raise ConfigError(f"env.backend={e.backend!r}; choose from {list(BACKENDS)}")
     if e.backend == "native" and e.native is None:
-        raise ConfigError(f"env.backend=native needs env.native (env.name={e.name!r}); use env=push_cube or env=cart_pole")
+        raise ConfigError(
+            f"env.backend=native needs env.native (env.name={e.name!r}); use env=push_cube or env=cart_pole"
+        )

@@ -132,9 +132,17 @@ class GymnasiumEnv(EnvBase):
             # Restored from a checkpoint: the first full reset hands back the restored state
             # (copies that had never been reset are reset as usual).
             restored, self._restored = self._restored, np.zeros(self.num_envs, dtype=bool)
-            obs = np.stack([self._current_obs(i) if restored[i] else self._reset_one(i)
-                            for i in range(self.num_envs)]).astype(np.float32)
-            return TensorDict({"observation": torch.from_numpy(obs)}, batch_size=self.batch_size, device=self.device)
+            obs = np.stack(
+                [
+                    self._current_obs(i) if restored[i] else self._reset_one(i)
+                    for i in range(self.num_envs)
+                ]
+            ).astype(np.float32)
+            return TensorDict(
+                {"observation": torch.from_numpy(obs)},
+                batch_size=self.batch_size,
+                device=self.device,
+            )
         obs = np.empty((self.num_envs, self.obs_dim), dtype=np.float32)
         for i in range(self.num_envs):
             if mask is not None and not mask[i]:
@@ -211,22 +219,31 @@ class GymnasiumEnv(EnvBase):
             u = env.unwrapped
             state = np.empty(mujoco.mj_stateSize(u.model, spec))
             mujoco.mj_getState(u.model, u.data, state, spec)
-            copies.append({
-                "physics": state,
-                "rng": u.np_random.bit_generator.state,
-                "elapsed_steps": -1 if _time_limit(env) is None or _time_limit(env)._elapsed_steps is None
-                else _time_limit(env)._elapsed_steps,
-            })
-        return {"env_id": self.env_id, "copies": copies, "reset_obs": self._reset_obs.copy(),
-                "pending_reset": self._pending_reset.copy()}
+            copies.append(
+                {
+                    "physics": state,
+                    "rng": u.np_random.bit_generator.state,
+                    "elapsed_steps": -1
+                    if _time_limit(env) is None or _time_limit(env)._elapsed_steps is None
+                    else _time_limit(env)._elapsed_steps,
+                }
+            )
+        return {
+            "env_id": self.env_id,
+            "copies": copies,
+            "reset_obs": self._reset_obs.copy(),
+            "pending_reset": self._pending_reset.copy(),
+        }
 
     def load_env_state(self, sd: dict) -> None:
         """Restore ``env_state()``; the next full ``reset()`` continues from it instead of resetting."""
         import mujoco
 
         if sd["env_id"] != self.env_id or len(sd["copies"]) != self.num_envs:
-            raise ValueError(f"env state is for {sd['env_id']} x{len(sd['copies'])}; this env is "
-                             f"{self.env_id} x{self.num_envs}")
+            raise ValueError(
+                f"env state is for {sd['env_id']} x{len(sd['copies'])}; this env is "
+                f"{self.env_id} x{self.num_envs}"
+            )
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         for i, (env, c) in enumerate(zip(self._envs, sd["copies"], strict=True)):
             if int(c["elapsed_steps"]) < 0:
@@ -278,7 +295,9 @@ def _has_reset(env: gym.Env) -> bool:
     return True
 
 
-def make_torchrl_gym_env(env_id: str, num_envs: int, max_episode_steps: int | None, make_kwargs: dict):
+def make_torchrl_gym_env(
+    env_id: str, num_envs: int, max_episode_steps: int | None, make_kwargs: dict
+):
     """The reference path: TorchRL's own ``GymEnv`` with a float32 cast (slower per step)."""
     from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
 

@@ -21,7 +21,9 @@ log = logging.getLogger(__name__)
 
 def _ids(ctx: EventContext) -> np.ndarray:
     n = int(ctx.env.batch_size.numel())
-    return np.arange(n) if ctx.env_ids is None else np.asarray(ctx.env_ids, dtype=np.int64).reshape(-1)
+    return (
+        np.arange(n) if ctx.env_ids is None else np.asarray(ctx.env_ids, dtype=np.int64).reshape(-1)
+    )
 
 
 def _base_env(env: Any) -> Any:
@@ -78,8 +80,10 @@ class RandomizePhysics:
         for key, rng_range in ranges.items():
             field = key.removesuffix("_range")
             if field not in _PHYSICS_FIELDS:
-                raise ValueError(f"randomize_physics: unknown parameter {key!r}; choose from "
-                                 f"{[f + '_range' for f in _PHYSICS_FIELDS]}")
+                raise ValueError(
+                    f"randomize_physics: unknown parameter {key!r}; choose from "
+                    f"{[f + '_range' for f in _PHYSICS_FIELDS]}"
+                )
             attr, cols = _PHYSICS_FIELDS[field]
             nominal = self._nominal(env, field, attr, cols)
             if field not in self.factors:
@@ -93,7 +97,9 @@ class RandomizePhysics:
             values = np.array(getattr(_nominal_model(env), attr), dtype=float)
             self.nominal[field] = values[:, cols].reshape(-1) if cols else values.reshape(-1)
             if field == "actuator_gain":
-                self.nominal["actuator_bias"] = np.array(_nominal_model(env).actuator_biasprm[:, 1], dtype=float)
+                self.nominal["actuator_bias"] = np.array(
+                    _nominal_model(env).actuator_biasprm[:, 1], dtype=float
+                )
         return self.nominal[field]
 
     def _apply(self, env: Any, field: str, ids: np.ndarray) -> None:
@@ -107,11 +113,15 @@ class RandomizePhysics:
             else:
                 target[:] = values
             if field == "actuator_gain":
-                model.actuator_biasprm[:, 1] = self.nominal["actuator_bias"] * self.factors[field][i]
+                model.actuator_biasprm[:, 1] = (
+                    self.nominal["actuator_bias"] * self.factors[field][i]
+                )
 
     def state_dict(self) -> dict[str, Any]:
-        return {"factors": {k: torch.from_numpy(v.copy()) for k, v in self.factors.items()},
-                "nominal": {k: torch.from_numpy(v.copy()) for k, v in self.nominal.items()}}
+        return {
+            "factors": {k: torch.from_numpy(v.copy()) for k, v in self.factors.items()},
+            "nominal": {k: torch.from_numpy(v.copy()) for k, v in self.nominal.items()},
+        }
 
     def load_state_dict(self, sd: dict[str, Any], env: Any = None) -> None:
         self.factors = {k: np.asarray(v, dtype=float) for k, v in sd["factors"].items()}
@@ -196,8 +206,11 @@ def record_rollouts(ctx: EventContext, save_path: str | None = None, every: int 
         "next_observation": b["next", "observation"],
     }
     path = out_dir / f"step_{ctx.global_step:09d}.npz"
-    np.savez_compressed(path, global_step=np.int64(ctx.global_step),
-                        **{k: v.detach().cpu().numpy() for k, v in arrays.items()})
+    np.savez_compressed(
+        path,
+        global_step=np.int64(ctx.global_step),
+        **{k: v.detach().cpu().numpy() for k, v in arrays.items()},
+    )
 
 
 @register_event("record_video")
@@ -214,17 +227,44 @@ class RecordVideo:
         self.frames: list[np.ndarray] = []
         self.written: list[Path] = []
 
-    def __call__(self, ctx: EventContext, *, resolution=(640, 480), eye=None, target=None, up=(0, 0, 1),
-                 intrinsics=None, fovy=None, env_id: int = 0, max_frames: int = 2000, **_: Any) -> None:
+    def __call__(
+        self,
+        ctx: EventContext,
+        *,
+        resolution=(640, 480),
+        eye=None,
+        target=None,
+        up=(0, 0, 1),
+        intrinsics=None,
+        fovy=None,
+        env_id: int = 0,
+        max_frames: int = 2000,
+        **_: Any,
+    ) -> None:
         if len(self.frames) >= max_frames:
             return
         env = _base_env(ctx.env)
-        frame = env.render(env_id=env_id, width=int(resolution[0]), height=int(resolution[1]), eye=eye,
-                           target=target, up=up, intrinsics=intrinsics, fovy=fovy)
+        frame = env.render(
+            env_id=env_id,
+            width=int(resolution[0]),
+            height=int(resolution[1]),
+            eye=eye,
+            target=target,
+            up=up,
+            intrinsics=intrinsics,
+            fovy=fovy,
+        )
         self.frames.append(np.asarray(frame, dtype=np.uint8))
 
-    def finalize(self, ctx: EventContext, *, name: str = "eval", save_path: str | None = None, fps: int = 25,
-                 **_: Any) -> None:
+    def finalize(
+        self,
+        ctx: EventContext,
+        *,
+        name: str = "eval",
+        save_path: str | None = None,
+        fps: int = 25,
+        **_: Any,
+    ) -> None:
         if not self.frames:
             return
         import imageio.v2 as imageio

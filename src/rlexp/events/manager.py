@@ -57,7 +57,9 @@ class EventContext:
     global_step: int = 0
     rng: np.random.Generator | None = None  # the manager's generator (checkpointed)
     run_dir: Path | None = None
-    tensordict: Any = None  # step events: the step's tensordict (phase "action": before the env step)
+    tensordict: Any = (
+        None  # step events: the step's tensordict (phase "action": before the env step)
+    )
     phase: str | None = None  # step events: "action" (before env.step) or "observation" (after)
     batch: Any = None  # interval events during training: the rollout just collected
     metrics: dict[str, float] = field(default_factory=dict)  # trigger events: e.g. the eval metrics
@@ -87,7 +89,10 @@ def resolve_event_func(name: str, where: str) -> Callable[..., Any]:
             return getattr(importlib.import_module(module), attr)
         except (ImportError, AttributeError) as exc:
             raise ValueError(f"{where}.func={name!r} cannot be imported: {exc}") from exc
-    raise ValueError(f"{where}.func={name!r} is not a known event function" + _choices_hint(name, list(EVENT_FUNCS)))
+    raise ValueError(
+        f"{where}.func={name!r} is not a known event function"
+        + _choices_hint(name, list(EVENT_FUNCS))
+    )
 
 
 class EventManager:
@@ -99,7 +104,10 @@ class EventManager:
         for name, ev in events.items():
             func = resolve_event_func(ev.func, f"{where}.{name}")
             if ev.mode not in MODES:
-                raise ValueError(f"{where}.{name}.mode={ev.mode!r} is not a mode" + _choices_hint(ev.mode, list(MODES)))
+                raise ValueError(
+                    f"{where}.{name}.mode={ev.mode!r} is not a mode"
+                    + _choices_hint(ev.mode, list(MODES))
+                )
             if ev.mode == "interval" and ev.interval_step < 1:
                 raise ValueError(f"{where}.{name}.interval_step={ev.interval_step} must be >= 1")
             if isinstance(func, type):
@@ -130,7 +138,7 @@ class EventManager:
     def finalize(self, ctx: EventContext) -> None:
         """Let stateful events write what they gathered (e.g. the eval video) at the end of a round."""
         ctx.rng = self.rng
-        for name, ev, func in self.events:
+        for _, ev, func in self.events:
             if hasattr(func, "finalize"):
                 func.finalize(ctx, **{k: v for k, v in ev.params.items() if k != "signal"})
 
@@ -138,7 +146,11 @@ class EventManager:
         return {
             "counters": dict(self.counters),
             "rng": self.rng.bit_generator.state,
-            "events": {name: func.state_dict() for name, _, func in self.events if hasattr(func, "state_dict")},
+            "events": {
+                name: func.state_dict()
+                for name, _, func in self.events
+                if hasattr(func, "state_dict")
+            },
         }
 
     def load_state_dict(self, sd: dict[str, Any], env: Any = None) -> None:

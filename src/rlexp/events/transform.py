@@ -28,7 +28,9 @@ class EventTransform(Transform):
         self._reset_events = manager.has("reset")
 
     def _ctx(self, **kw) -> EventContext:
-        return EventContext(env=self.parent, global_step=self.global_step, run_dir=self.run_dir, **kw)
+        return EventContext(
+            env=self.parent, global_step=self.global_step, run_dir=self.run_dir, **kw
+        )
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self._step_events:
@@ -40,7 +42,9 @@ class EventTransform(Transform):
             self.manager.fire("step", self._ctx(tensordict=next_tensordict, phase="observation"))
         return next_tensordict
 
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
         if not self._reset_events:
             return tensordict_reset
         mask = None if tensordict is None else tensordict.get("_reset", None)
@@ -49,6 +53,8 @@ class EventTransform(Transform):
         if ids.size:
             self.manager.fire("reset", self._ctx(env_ids=ids, tensordict=tensordict_reset))
             base = self.parent.base_env
-            if hasattr(base, "current_tensordict"):  # events may have moved objects: fresh observation
+            if hasattr(
+                base, "current_tensordict"
+            ):  # events may have moved objects: fresh observation
                 tensordict_reset.set("observation", base.current_tensordict().get("observation"))
         return tensordict_reset

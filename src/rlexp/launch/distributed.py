@@ -67,7 +67,9 @@ def _env_from_submitit() -> None:
         env = submitit.helpers.TorchDistributedEnvironment().export()
         log.info("distributed from SLURM: rank %d of %d", env.rank, env.world_size)
     except Exception as exc:  # not inside a submitit job
-        raise RuntimeError(f"--distributed under SLURM needs submitit's environment: {exc}") from exc
+        raise RuntimeError(
+            f"--distributed under SLURM needs submitit's environment: {exc}"
+        ) from exc
 
 
 def init(argv: Sequence[str]) -> list[str]:
@@ -77,7 +79,9 @@ def init(argv: Sequence[str]) -> list[str]:
 
     global _INFO
     _env_from_submitit()
-    missing = [k for k in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT") if k not in os.environ]
+    missing = [
+        k for k in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT") if k not in os.environ
+    ]
     if missing:
         raise RuntimeError(
             f"--distributed needs a launcher that sets {missing}: run it with "
@@ -85,7 +89,9 @@ def init(argv: Sequence[str]) -> list[str]:
         )
     backend = "nccl" if torch.cuda.is_available() else "gloo"
     dist.init_process_group(backend=backend)
-    _INFO = DistInfo(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), backend)
+    _INFO = DistInfo(
+        dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), backend
+    )
     if backend == "nccl":
         torch.cuda.set_device(_INFO.local_rank)
     stamp = [time.strftime("%Y-%m-%d/%H-%M-%S")] if _INFO.is_main else [None]
@@ -93,7 +99,9 @@ def init(argv: Sequence[str]) -> list[str]:
     args = list(argv)
     if not any(a.startswith("hydra.run.dir=") for a in args):
         args.append(f"hydra.run.dir=outputs/{stamp[0]}")
-    if not _INFO.is_main:  # one run dir: only rank 0 writes Hydra's files; each rank logs to its own file
+    if (
+        not _INFO.is_main
+    ):  # one run dir: only rank 0 writes Hydra's files; each rank logs to its own file
         args += ["hydra.output_subdir=null", f"hydra.job.name=train_rank{_INFO.rank}"]
     log.info("distributed: rank %d of %d (%s)", _INFO.rank, _INFO.world_size, backend)
     return args
@@ -107,13 +115,19 @@ def init_in_job() -> None:
 
     global _INFO
     _env_from_submitit()
-    missing = [k for k in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT") if k not in os.environ]
+    missing = [
+        k for k in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT") if k not in os.environ
+    ]
     if missing:
-        raise RuntimeError(f"--distributed with -m needs a launcher that starts several tasks per job "
-                           f"(hydra/launcher=slurm hydra.launcher.tasks_per_node=N); {missing} are not set")
+        raise RuntimeError(
+            f"--distributed with -m needs a launcher that starts several tasks per job "
+            f"(hydra/launcher=slurm hydra.launcher.tasks_per_node=N); {missing} are not set"
+        )
     backend = "nccl" if torch.cuda.is_available() else "gloo"
     dist.init_process_group(backend=backend)
-    _INFO = DistInfo(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), backend)
+    _INFO = DistInfo(
+        dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), backend
+    )
     if backend == "nccl":
         torch.cuda.set_device(_INFO.local_rank)
 

@@ -39,7 +39,9 @@ class ObservationNormalizer(nn.Module):
     iteration all see the same normalisation.
     """
 
-    def __init__(self, dim: int, clip: float = 10.0, enabled: bool = True, eps: float = 1e-8) -> None:
+    def __init__(
+        self, dim: int, clip: float = 10.0, enabled: bool = True, eps: float = 1e-8
+    ) -> None:
         super().__init__()
         self.enabled = enabled
         self.clip = clip
@@ -51,14 +53,22 @@ class ObservationNormalizer(nn.Module):
         self.register_buffer("_shift", torch.zeros(dim))
 
     @torch.no_grad()
-    def update(self, obs: torch.Tensor, reduce_sum: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
+    def update(
+        self, obs: torch.Tensor, reduce_sum: Callable[[torch.Tensor], torch.Tensor] | None = None
+    ) -> None:
         """Fold a batch into the statistics (``reduce_sum``: sums over ranks, so all ranks agree)."""
         if not self.enabled:
             return
         x = obs.reshape(-1, obs.shape[-1]).to(torch.float64)
         # count, sum and sum of squared deviations from the current mean (stable, and reducible)
         centred = x - self.mean
-        stats = torch.cat([torch.tensor([float(x.shape[0])], dtype=torch.float64), centred.sum(0), centred.pow(2).sum(0)])
+        stats = torch.cat(
+            [
+                torch.tensor([float(x.shape[0])], dtype=torch.float64),
+                centred.sum(0),
+                centred.pow(2).sum(0),
+            ]
+        )
         if reduce_sum is not None:
             stats = reduce_sum(stats)
         n, dim = stats[0], x.shape[-1]
@@ -105,7 +115,9 @@ def _ortho_init(mlp: nn.Sequential, last_gain: float) -> None:
 class GaussianActorNet(nn.Module):
     """obs -> (loc, scale) with a learned state-independent log-std, clamped to its bounds."""
 
-    def __init__(self, normalizer: ObservationNormalizer, mlp: nn.Sequential, act_dim: int, cfg: PolicyConfig):
+    def __init__(
+        self, normalizer: ObservationNormalizer, mlp: nn.Sequential, act_dim: int, cfg: PolicyConfig
+    ):
         super().__init__()
         self.normalizer = normalizer
         self.mlp = mlp
@@ -145,7 +157,9 @@ class SamplingPolicy(TensorDictModuleBase):
         self.in_keys = ["observation"]
         self.out_keys = ["loc", "scale", "action", "action_log_prob"]
 
-    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def sample(
+        self, obs: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(loc, scale, action, log-probability of the action) for a batch of observations."""
         loc, scale = self.actor_net(obs)
         if self.deterministic:
@@ -169,8 +183,15 @@ class SamplingPolicy(TensorDictModuleBase):
 class ActorCritic(nn.Module):
     """Holds the normaliser, actor and critic; its ``state_dict`` is the policy part of a checkpoint."""
 
-    def __init__(self, cfg: PolicyConfig, obs_dim: int, act_dim: int, action_spec: TensorSpec,
-                 normalize_observations: bool = True, clip_observations: float = 10.0) -> None:
+    def __init__(
+        self,
+        cfg: PolicyConfig,
+        obs_dim: int,
+        act_dim: int,
+        action_spec: TensorSpec,
+        normalize_observations: bool = True,
+        clip_observations: float = 10.0,
+    ) -> None:
         super().__init__()
         if cfg.name != "actor_critic":
             raise ValueError(f"policy.name={cfg.name!r}; rlexp's PPO supports 'actor_critic'")
@@ -198,7 +219,15 @@ class ActorCritic(nn.Module):
         return SamplingPolicy(self.actor_net, deterministic)
 
 
-def make_policy(cfg: PolicyConfig, obs_dim: int, act_dim: int, action_spec: TensorSpec,
-                normalize_observations: bool = True, clip_observations: float = 10.0) -> ActorCritic:
+def make_policy(
+    cfg: PolicyConfig,
+    obs_dim: int,
+    act_dim: int,
+    action_spec: TensorSpec,
+    normalize_observations: bool = True,
+    clip_observations: float = 10.0,
+) -> ActorCritic:
     """Build the actor-critic for an env with ``obs_dim`` observations and ``act_dim`` actions."""
-    return ActorCritic(cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations)
+    return ActorCritic(
+        cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations
+    )

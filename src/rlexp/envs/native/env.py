@@ -295,7 +295,9 @@ class NativeEnv(EnvBase):
             n, dtype=bool
         )  # reset inside _step, not yet handed out by _reset
         self._targets: dict[str, np.ndarray] = {}
-        self._restored = False  # set by load_env_state: the next full reset hands back the restored state
+        self._restored = (
+            False  # set by load_env_state: the next full reset hands back the restored state
+        )
         self.last_reset_was_restore = False
         self._render_data: mujoco.MjData | None = None
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
