@@ -20,6 +20,9 @@ def test_non_finite_observation_stops_the_run_and_keeps_the_last_good_checkpoint
     run_dir = tmp_path / "run"
     run_train([*BASE, "trainer.total_frames=512", f"hydra.run.dir={run_dir}"], cwd=tmp_path)
     before = {p.name: p.read_bytes() for p in (run_dir / "checkpoints").glob("*.pt")}
+    # Continue it (an explicit resume: the events differ from the first part) with an env that
+    # starts producing infinite observations.
+    last = max((run_dir / "checkpoints").glob("*_step_*.pt"))
     proc = run_train(
         [
             *BASE,
@@ -27,6 +30,7 @@ def test_non_finite_observation_stops_the_run_and_keeps_the_last_good_checkpoint
             f"hydra.run.dir={run_dir}",
             "events=noise",
             "events.train.observation_noise.params.std=inf",
+            f"trainer.resume={last}",
         ],
         cwd=tmp_path,
         check=False,

@@ -124,6 +124,9 @@ def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> 
         ckpt = latest_good_checkpoint(run_dir / "checkpoints")
     elif t.resume not in ("never", ""):
         ckpt = load_checkpoint(t.resume)
+        diffs = config_differences(ckpt["config"], config_dict, ignore=RESUME_MAY_CHANGE)
+        if diffs:
+            log.warning("resuming %s with a different config (%s)", t.resume, ", ".join(diffs))
 
     env = make_env(e, e.num_envs, config.seed + dist.rank)  # each rank its own envs: seed + rank
     eval_env = None  # rank 0 alone evaluates
