@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 
-from conftest import only_run_dir, run_train
+from conftest import REPO, only_run_dir, run_train
 from rlexp.checkpoint import load_checkpoint, step_checkpoints
 
 BASE = [
@@ -100,3 +103,33 @@ def test_tensorboard_continues_the_step_axis_on_resume(tmp_path):
         acc.Reload()
         steps += [e.step for e in acc.Scalars("loss/policy")]
     assert sorted(steps) == [256, 512, 768, 1024]
+
+
+def test_wandb_in_a_multirun_one_run_per_job_grouped_by_the_sweep(tmp_path):
+    from wandb_reader import run_info
+
+    sweep_dir = tmp_path / "sweep"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "train.py"),
+            "-m",
+            *BASE,
+            "trainer.total_frames=256",
+            "logger=wandb",
+            "seed=0,1",
+            f"hydra.sweep.dir={sweep_dir}",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(REPO / "src"), "WANDB_MODE": "offline"},
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    infos = [
+        run_info(next((sweep_dir / job / "wandb").glob("offline-run-*/run-*.wandb")))
+        for job in ("0", "1")
+    ]
+    assert infos[0]["id"] != infos[1]["id"]
+    assert infos[0]["group"] == infos[1]["group"] == sweep_dir.name

@@ -273,3 +273,36 @@ def _status(run_dir: Path) -> dict:
         return json.loads((run_dir / "status.json").read_text())
     except (OSError, ValueError):
         return {}
+
+
+@pytest.mark.slurm
+def test_distributed_job_on_slurm_starts_its_ranks_as_tasks(cluster, tmp_path):
+    """--distributed with tasks_per_node=2: one SLURM job, two ranks (submitit's environment),
+    gradients averaged, one run dir."""
+    sweep_dir = tmp_path / "sweep"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            str(REPO / "train.py"),
+            "-m",
+            "--distributed",
+            *SLURM,
+            "hydra.launcher.tasks_per_node=2",
+            *TINY,
+            "trainer.total_frames=1024",
+            "trainer.eval_every=0",
+            f"hydra.sweep.dir={sweep_dir}",
+        ],
+        cwd=tmp_path,
+        env=env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    finish(proc)
+    assert [p.name for p in sweep_dir.iterdir() if p.name.isdigit()] == ["0"]
+    log = (sweep_dir / "0" / "train.log").read_text()
+    assert "rank 0 of 2" in log and "rank 1 of 2" in log
+    digests = re.findall(r"parameters identical on all 2 ranks \(sha256 (\w+)\)", log)
+    assert len(digests) == 2 and digests[0] == digests[1]
+    assert json.loads((sweep_dir / "0" / "status.json").read_text())["global_step"] == 1024

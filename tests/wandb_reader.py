@@ -56,3 +56,21 @@ def history(path: str | Path) -> list[dict]:
                 }
             )
     return rows
+
+
+def run_info(path: str | Path) -> dict:
+    """The run record of a ``run-*.wandb`` file: id, group, name, project."""
+    from wandb.proto import wandb_internal_pb2 as pb
+
+    for raw in read_records(path):
+        rec = pb.Record()
+        rec.ParseFromString(raw)
+        if rec.WhichOneof("record_type") == "run":
+            r = rec.run
+            return {
+                "id": r.run_id,
+                "group": r.run_group,
+                "name": r.display_name,
+                "project": r.project,
+            }
+    raise ValueError(f"{path} has no run record")

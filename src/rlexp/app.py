@@ -308,6 +308,7 @@ def main() -> None:
     if wanted and any(a in ("-m", "--multirun") for a in rest):
         # A sweep: the launcher's jobs start the ranks (SLURM tasks_per_node); each job joins its group.
         os.environ["RLEXP_DISTRIBUTED"] = "1"
+        sys.argv = [sys.argv[0], *rest]
     elif wanted:
         try:
             rest = distributed.init(rest)
