@@ -49,5 +49,13 @@ format: install
 	$(VENV)/bin/ruff format src tests train.py
 	$(VENV)/bin/ruff check --fix src tests train.py
 
+## PPO env-steps/s: rlexp vs Stable-Baselines3, CleanRL-style PyTorch and the floors, plus start-up
+## (docs/performance.md); writes benchmarks/results.md. ARGS="--quick" for a smoke run (< 2 min).
+## The baselines are the `bench` extra, installed by name so rlexp's editable install is left alone;
+## they need no other torch / gymnasium / numpy than rlexp's (checked with pip install --dry-run).
+bench: install
+	$(PY) -m pip install --disable-pip-version-check "stable-baselines3>=2.9,<3" "py-spy>=0.3"
+	$(PY) benchmarks/ppo_throughput.py $(ARGS)
+
 clean:
 	rm -rf $(VENV) outputs .pytest_cache

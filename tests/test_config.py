@@ -132,3 +132,9 @@ def test_several_loggers_at_once():
     assert config.logger.tensorboard.enabled and config.logger.wandb.enabled
     config = to_root_config(compose(["logger=none"]))
     assert not config.logger.tensorboard.enabled and not config.logger.wandb.enabled
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml")))
+def test_every_experiment_preset_composes(name):
+    config = to_root_config(compose([f"+experiment={name}"]))
+    assert isinstance(config, RootConfig)
