@@ -72,8 +72,8 @@ def _env_from_submitit() -> None:
         ) from exc
 
 
-def init(argv: Sequence[str]) -> list[str]:
-    """Before Hydra: join the process group and agree on one run dir. Returns Hydra's arguments."""
+def _join(how_to_launch: str) -> None:
+    """Join the process group from the launcher's environment (gloo on CPU, nccl on CUDA)."""
     import torch
     import torch.distributed as dist
 
@@ -83,10 +83,7 @@ def init(argv: Sequence[str]) -> list[str]:
         k for k in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT") if k not in os.environ
     ]
     if missing:
-        raise RuntimeError(
-            f"--distributed needs a launcher that sets {missing}: run it with "
-            "`torchrun --nproc_per_node=N train.py --distributed ...` (or under SLURM, docs/distributed.md)"
-        )
+        raise RuntimeError(f"{how_to_launch}; {missing} are not set")
     backend = "nccl" if torch.cuda.is_available() else "gloo"
     dist.init_process_group(backend=backend)
     _INFO = DistInfo(
@@ -94,6 +91,16 @@ def init(argv: Sequence[str]) -> list[str]:
     )
     if backend == "nccl":
         torch.cuda.set_device(_INFO.local_rank)
+
+
+def init(argv: Sequence[str]) -> list[str]:
+    """Before Hydra: join the process group and agree on one run dir. Returns Hydra's arguments."""
+    import torch.distributed as dist
+
+    _join(
+        "--distributed needs a launcher that sets the ranks: run it with "
+        "`torchrun --nproc_per_node=N train.py --distributed ...` (or under SLURM, docs/distributed.md)"
+    )
     stamp = [time.strftime("%Y-%m-%d/%H-%M-%S")] if _INFO.is_main else [None]
     dist.broadcast_object_list(stamp, src=0)
     args = list(argv)
@@ -103,33 +110,17 @@ def init(argv: Sequence[str]) -> list[str]:
         not _INFO.is_main
     ):  # one run dir: only rank 0 writes Hydra's files; each rank logs to its own file
         args += ["hydra.output_subdir=null", f"hydra.job.name=train_rank{_INFO.rank}"]
-    log.info("distributed: rank %d of %d (%s)", _INFO.rank, _INFO.world_size, backend)
+    log.info("distributed: rank %d of %d (%s)", _INFO.rank, _INFO.world_size, _INFO.backend)
     return args
 
 
 def init_in_job() -> None:
     """Inside a launcher's job (SLURM via submitit, ``tasks_per_node=N``): join the process group.
     The Hydra job dir is already shared by the job's tasks; rank 0 alone writes into it."""
-    import torch
-    import torch.distributed as dist
-
-    global _INFO
-    _env_from_submitit()
-    missing = [
-        k for k in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT") if k not in os.environ
-    ]
-    if missing:
-        raise RuntimeError(
-            f"--distributed with -m needs a launcher that starts several tasks per job "
-            f"(hydra/launcher=slurm hydra.launcher.tasks_per_node=N); {missing} are not set"
-        )
-    backend = "nccl" if torch.cuda.is_available() else "gloo"
-    dist.init_process_group(backend=backend)
-    _INFO = DistInfo(
-        dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), backend
+    _join(
+        "--distributed with -m needs a launcher that starts several tasks per job "
+        "(hydra/launcher=slurm hydra.launcher.tasks_per_node=N)"
     )
-    if backend == "nccl":
-        torch.cuda.set_device(_INFO.local_rank)
 
 
 def shutdown() -> None:
