@@ -89,18 +89,10 @@ def test_sigkill_and_resume_is_bit_identical_gymnasium(tmp_path):
 
 def test_corrupt_checkpoint_falls_back_to_the_previous_one(tmp_path, caplog):
     run_dir = tmp_path / "run"
-    run_train(
-        [
-            "env=inverted_pendulum",
-            "trainer.total_frames=768",
-            "trainer.frames_per_batch=256",
-            "trainer.save_every=256",
-            "trainer.eval_every=0",
-            "algorithm.num_epochs=1",
-            f"hydra.run.dir={run_dir}",
-        ],
-        cwd=tmp_path,
-    )
+    args = ["env=inverted_pendulum", "trainer.total_frames=768", "trainer.frames_per_batch=256",
+            "trainer.save_every=256", "trainer.eval_every=0", "algorithm.num_epochs=1",
+            f"hydra.run.dir={run_dir}"]  # fmt: skip
+    run_train(args, cwd=tmp_path)
     ckpts = step_checkpoints(run_dir / "checkpoints")
     assert len(ckpts) == 3
     ckpts[-1].write_bytes(ckpts[-1].read_bytes()[:1000])  # truncated write: the job died mid-save
@@ -112,18 +104,7 @@ def test_corrupt_checkpoint_falls_back_to_the_previous_one(tmp_path, caplog):
     with pytest.raises(ValueError, match="unreadable"):
         load_checkpoint(ckpts[-1])
     # The resumed run continues from the good one and replaces the broken file.
-    proc = run_train(
-        [
-            "env=inverted_pendulum",
-            "trainer.total_frames=768",
-            "trainer.frames_per_batch=256",
-            "trainer.save_every=256",
-            "trainer.eval_every=0",
-            "algorithm.num_epochs=1",
-            f"hydra.run.dir={run_dir}",
-        ],
-        cwd=tmp_path,
-    )
+    proc = run_train(args, cwd=tmp_path)
     assert "step_000000512.pt" in proc.stdout + proc.stderr
     assert load_checkpoint(ckpts[-1])["global_step"] == 768
 
