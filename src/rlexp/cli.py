@@ -13,13 +13,11 @@ log = logging.getLogger("rlexp")
 
 def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) -> dict[str, float]:
     """Rebuild the run's env and policy from a checkpoint and evaluate it deterministically."""
-    import numpy as np
-    import torch
-
     from rlexp.app import seed_everything
     from rlexp.checkpoint import load_checkpoint
     from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
+    from rlexp.evaluation import run_episodes
     from rlexp.policies.actor_critic import make_policy
 
     ckpt = load_checkpoint(checkpoint)
@@ -38,25 +36,14 @@ def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) ->
         e.clip_observations,
     )
     policy.load_state_dict(ckpt["policy"])
-    act = policy.sampling_policy(deterministic=True)
-    returns: list[float] = []
-    ep_ret = np.zeros(n)
-    with torch.no_grad():
-        td = env.reset()
-        while len(returns) < episodes:
-            out, td = env.step_and_maybe_reset(act(td))
-            ep_ret += out["next", "reward"].reshape(n).numpy()
-            for i in np.flatnonzero(out["next", "done"].reshape(n).numpy()):
-                returns.append(float(ep_ret[i]))
-                ep_ret[i] = 0.0
+    metrics = run_episodes(env, policy.sampling_policy(deterministic=True), episodes)
     env.close()
-    returns = returns[:episodes]
     return {
         "path": ckpt["path"],
         "global_step": int(ckpt["global_step"]),
-        "mean_return": float(np.mean(returns)),
-        "std_return": float(np.std(returns)),
-        "episodes": len(returns),
+        "mean_return": metrics["eval/episode_return"],
+        "std_return": metrics["eval/episode_return_std"],
+        "episodes": int(metrics["eval/episodes"]),
     }
 
 

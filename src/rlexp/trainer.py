@@ -23,6 +23,7 @@ from rlexp.checkpoint import (
 )
 from rlexp.collector import RolloutCollector
 from rlexp.config.schema import TrainerConfig
+from rlexp.evaluation import run_episodes
 from rlexp.events import EventContext, EventManager
 from rlexp.events.transform import EventTransform
 from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
@@ -224,45 +225,24 @@ class Trainer:
         t_start = time.perf_counter()
         env = self.eval_env
         n = int(env.batch_size.numel())
-        quota = np.full(n, self.cfg.eval_episodes // n)
-        quota[: self.cfg.eval_episodes % n] += 1
-        policy = self.policy.sampling_policy(deterministic=True)
-        returns: list[float] = []
-        lengths: list[int] = []
-        successes: list[float] = []
-        ep_ret = np.zeros(n)
-        ep_len = np.zeros(n, dtype=np.int64)
-        ep_success = np.zeros(n)
-        done_count = np.zeros(n, dtype=np.int64)
-        td = env.reset()
         events = self.eval_event_manager
-        events.fire("reset", self._ctx(env, env_ids=np.arange(n)))
-        while (done_count < quota).any():
-            td = policy(td)
+
+        def on_reset(td: TensorDictBase) -> TensorDictBase:
+            events.fire("reset", self._ctx(env, env_ids=np.arange(n)))
+            base = _base_env(env)
+            if events.has("reset") and hasattr(
+                base, "current_tensordict"
+            ):  # objects may have moved
+                td.set("observation", base.current_tensordict().get("observation"))
+            return td
+
+        def on_step(td: TensorDictBase) -> None:
             events.fire("step", self._ctx(env, tensordict=td, phase="action"))
             events.fire("interval", self._ctx(env, tensordict=td))
-            out, td = env.step_and_maybe_reset(td)
-            nxt = out["next"]
-            ep_ret += nxt["reward"].reshape(n).cpu().numpy()
-            ep_len += 1
-            if "metrics" in nxt.keys() and "success" in nxt["metrics"].keys():
-                ep_success = np.maximum(
-                    ep_success, nxt["metrics", "success"].reshape(n).cpu().numpy()
-                )
-            done = nxt["done"].reshape(n).cpu().numpy()
-            for i in np.flatnonzero(done):
-                if done_count[i] < quota[i]:
-                    returns.append(float(ep_ret[i]))
-                    lengths.append(int(ep_len[i]))
-                    successes.append(float(ep_success[i]))
-                    done_count[i] += 1
-                ep_ret[i], ep_len[i], ep_success[i] = 0.0, 0, 0.0
-        metrics = {
-            "eval/episode_return": float(np.mean(returns)),
-            "eval/episode_return_std": float(np.std(returns)),
-            "eval/episode_length": float(np.mean(lengths)),
-            "eval/success_rate": float(np.mean(successes)),
-        }
+
+        policy = self.policy.sampling_policy(deterministic=True)
+        metrics = run_episodes(env, policy, self.cfg.eval_episodes, on_step, on_reset)
+        episodes = int(metrics.pop("eval/episodes"))
         self.last_eval = metrics
         events.finalize(self._ctx(env))
         self._timing["eval"] += time.perf_counter() - t_start
@@ -274,7 +254,7 @@ class Trainer:
             metrics["eval/episode_return_std"],
             metrics["eval/episode_length"],
             metrics["eval/success_rate"],
-            len(returns),
+            episodes,
         )
         events.fire("trigger", self._ctx(env, metrics=metrics), signal="eval_end")
         self.event_manager.fire("trigger", self._ctx(metrics=metrics), signal="eval_end")

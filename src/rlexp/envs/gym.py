@@ -198,7 +198,9 @@ class GymnasiumEnv(EnvBase):
             "terminated": torch.from_numpy(terminated),
             "truncated": torch.from_numpy(truncated),
         }
-        if self.device.type == "cpu":  # shapes and dtypes are ours: skip per-entry validation (~25 us)
+        if (
+            self.device.type == "cpu"
+        ):  # shapes and dtypes are ours: skip per-entry validation (~25 us)
             return TensorDict._new_unsafe(out, batch_size=self.batch_size, device=self.device)
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
 

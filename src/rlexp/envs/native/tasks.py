@@ -73,27 +73,20 @@ def _push_cube_fell(env: NativeEnv) -> np.ndarray:
     return cube[:, 2] < float(env.extensions["cube_min_z"])
 
 
+UR_ARM_JOINTS = (
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
+)
+
 PUSH_CUBE = TaskSpec(
     name="push_cube",
     asset="push_cube.xml",
-    robot_joints=(
-        "shoulder_pan_joint",
-        "shoulder_lift_joint",
-        "elbow_joint",
-        "wrist_1_joint",
-        "wrist_2_joint",
-        "wrist_3_joint",
-    ),
-    parts={
-        "arm": (
-            "shoulder_pan_joint",
-            "shoulder_lift_joint",
-            "elbow_joint",
-            "wrist_1_joint",
-            "wrist_2_joint",
-            "wrist_3_joint",
-        )
-    },
+    robot_joints=UR_ARM_JOINTS,
+    parts={"arm": UR_ARM_JOINTS},
     # The file's [0, -1.57, 1.57, -1.57, -1.57, 0] holds the tool 0.49 m up; this bends the elbow
     # further so the tool starts pointing down ~0.15 m above the table, beside the cube's region.
     init_qpos=(0.0, -1.57, 2.2, -2.2, -1.57, 0.0),
