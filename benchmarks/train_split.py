@@ -1,16 +1,20 @@
 """Where the time of one PPO iteration goes: env stepping, policy, framework, GAE, update.
 
-Runs the real rlexp components (GymnasiumEnv, SamplingPolicy, RolloutCollector, GAE, ClipPPOLoss)
-for a few iterations and times each part; physics and policy are also timed alone so the
-"framework" share (TensorDict / collector bookkeeping) is what is left of collection.
+Runs the real rlexp components (the env, the sampling policy, RolloutCollector, GAE, ClipPPOLoss,
+built from the same composed config as ``benchmarks/ppo_throughput.py``'s settings) for a few
+iterations and times each part; physics and policy are also timed alone so the "framework" share
+(TensorDict / collector bookkeeping) is what is left of collection.
 
-    .venv/bin/python benchmarks/train_split.py [--env HalfCheetah-v5] [--iterations 5]
+    .venv/bin/python benchmarks/train_split.py [--setting standard|batched] [--iterations 5]
+        [--compile true|false] [--collector rlexp|torchrl]
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -18,12 +22,12 @@ import torch
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--env", default="HalfCheetah-v5")
-    parser.add_argument("--num-envs", type=int, default=1)
-    parser.add_argument("--frames-per-batch", type=int, default=2048)
+    parser.add_argument("--setting", choices=["standard", "batched"], default="standard")
     parser.add_argument("--iterations", type=int, default=5)
-    parser.add_argument("--epochs", type=int, default=10)
-    parser.add_argument("--mini-batch", type=int, default=64)
+    parser.add_argument("--steps-per-env", type=int, default=0, help="override the batch length")
+    parser.add_argument(
+        "--compile", choices=["auto", "true", "false"], default="false", help="algorithm.compile"
+    )
     parser.add_argument(
         "--collector",
         choices=["rlexp", "torchrl"],
@@ -34,33 +38,40 @@ def main() -> None:
 
     torch.set_num_threads(1)
     torch.manual_seed(0)
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from dataclasses import asdict
+
+    from ppo_throughput import SETTINGS, Setting, compose
+
     from rlexp import _speedups
     from rlexp.algorithms.ppo import make_algorithm
     from rlexp.collector import RolloutCollector
-    from rlexp.config.schema import AlgorithmConfig, EnvConfig, PolicyConfig
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import make_policy
 
     _speedups.apply()
-    env = make_env(EnvConfig(name=args.env), args.num_envs, seed=0)
+    s = SETTINGS[args.setting]
+    if args.steps_per_env:
+        s = Setting(**{**asdict(s), "steps_per_env": args.steps_per_env})
+    config = compose(s, 100, 1, 0, [f"algorithm.compile={args.compile}"])
+    env = make_env(config.env, config.env.num_envs, seed=0)
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
-    policy = make_policy(PolicyConfig(), obs_dim, act_dim, env.action_spec)
-    algo = make_algorithm(
-        AlgorithmConfig(num_epochs=args.epochs, mini_batch_size=args.mini_batch), policy, 100
-    )
+    policy = make_policy(config.policy, obs_dim, act_dim, env.action_spec)
+    algo = make_algorithm(config.algorithm, policy, 100)
     from torchrl.collectors import Collector
 
     cls = RolloutCollector if args.collector == "rlexp" else Collector
+    frames = config.trainer.frames_per_batch
     collector = cls(
         env,
         policy.sampling_policy(),
-        frames_per_batch=args.frames_per_batch,
+        frames_per_batch=frames,
         total_frames=-1,
         trust_policy=True,
         track_traj_ids=False,
     )
     rollouts = iter(collector)
-    next(rollouts)  # warm-up
+    algo.update(next(rollouts))  # warm-up (and the compile, if on)
 
     t_collect, t_gae, t_update = [], [], []
     for _ in range(args.iterations):
@@ -76,37 +87,33 @@ def main() -> None:
         t_gae.append(t2 - t1)
         t_update.append(t3 - t2 - (t2 - t1))
 
-    # Physics alone: the same Gymnasium env, random actions, no TorchRL.
-    import gymnasium as gym
-
-    raw = gym.make(args.env)
-    raw.reset(seed=0)
-    a = raw.action_space.sample()
-    n = args.frames_per_batch
+    # Physics alone: the env's own step on random actions, no collector, no policy.
+    n_envs = config.env.num_envs
+    steps = frames // n_envs
+    base = make_env(config.env, n_envs, seed=1)
+    base.reset()
+    low, high = base.action_spec.space.low, base.action_spec.space.high
+    actions = [low + (high - low) * torch.rand_like(low) for _ in range(16)]
     t0 = time.perf_counter()
-    for _ in range(n):
-        _, _, term, trunc, _ = raw.step(a)
-        if term or trunc:
-            raw.reset()
-    t_env = (time.perf_counter() - t0) / n * args.frames_per_batch
-    # Policy alone: the sampling policy's forward on one observation at a time, as in collection.
-    from tensordict import TensorDict
-
-    sp = policy.sampling_policy()
-    td = TensorDict(
-        {"observation": torch.zeros(args.num_envs, obs_dim)}, batch_size=[args.num_envs]
-    )
+    for i in range(steps):
+        nxt = base.step_action(actions[i % 16])
+        base.autoreset_observation(nxt)
+    t_env = time.perf_counter() - t0
+    # Policy alone: the collector's sampling function on one observation batch at a time.
+    sample = policy.sampling_policy().sampler()
+    obs = torch.zeros(n_envs, obs_dim)
     with torch.no_grad():
         t0 = time.perf_counter()
-        for _ in range(n // args.num_envs):
-            sp(td)
+        for _ in range(steps):
+            sample(obs)
         t_pol = time.perf_counter() - t0
 
     c, g, u = (float(np.median(x)) for x in (t_collect, t_gae, t_update))
     framework = max(c - t_env - t_pol, 0.0)
     total = c + g + u
     print(
-        f"{args.env} x{args.num_envs}, {args.frames_per_batch} steps/iteration, {args.collector} collector, "
+        f"{args.setting}: {config.env.name} x{n_envs}, {frames} steps/iteration, "
+        f"{args.collector} collector, compile={args.compile} (compiled: {algo.compiled}), "
         f"median of {args.iterations}"
     )
     print("| part | s / iteration | share |\n|---|---|---|")
@@ -118,7 +125,7 @@ def main() -> None:
         ("PPO update", u),
     ):
         print(f"| {name} | {v:.3f} | {100 * v / total:.0f}% |")
-    print(f"| **total** | {total:.3f} | env-steps/s {args.frames_per_batch / total:.0f} |")
+    print(f"| **total** | {total:.3f} | env-steps/s {frames / total:.0f} |")
     collector.shutdown()
 
 

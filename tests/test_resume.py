@@ -120,6 +120,17 @@ def test_sigkill_and_resume_is_bit_identical_push_cube(tmp_path):
     )
 
 
+def test_sigkill_and_resume_is_bit_identical_with_the_compiled_loss(tmp_path):
+    """algorithm.compile=true: the resumed process compiles again at a different point of the run
+    (compiling draws random numbers, and TorchRL's compiled entropy draws a sample every call); the
+    continuation must still be bit-identical."""
+    extra = ["env.num_envs=4", "env.num_eval_envs=0", "algorithm.compile=true",
+             "algorithm.entropy_coeff=0.01", "algorithm.mini_batch_size=64"]  # fmt: skip
+    _assert_resume_is_exact(tmp_path, "push_cube", frames=512, batch=256, extra=extra)
+    logs = "".join(p.read_text() for p in tmp_path.rglob("train.log"))
+    assert logs.count("[ppo] loss compiled in") == 3, "each of the three processes compiles once"
+
+
 def test_a_run_dir_refuses_a_different_experiment(tmp_path):
     run_dir = tmp_path / "run"
     base = [

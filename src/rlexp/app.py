@@ -219,6 +219,7 @@ RESUME_MAY_CHANGE = (
     "trainer.device",
     "trainer.progress",
     "trainer.strict_device",
+    "algorithm.compile",  # how the loss runs, not what it computes
 )
 
 

@@ -47,14 +47,14 @@ class RolloutCollector(Collector):
     def rollout(self) -> TensorDictBase:
         if not self._fast:
             return super().rollout()
-        env, sampler = self.env, self._sampler
+        env, sample = self.env, self._sampler.sampler()  # constants of this rollout computed once
         steps = self.frames_per_batch  # per env
         obs = self._obs if self._obs is not None else self._carrier.get("observation")
         keys = ("observation", "loc", "scale", "action", "action_log_prob")
         root: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
         nexts: list[TensorDictBase] = []
         for _ in range(steps):
-            loc, scale, action, log_prob = sampler.sample(obs)
+            loc, scale, action, log_prob = sample(obs)
             nxt = env.step_action(action)
             for k, v in zip(keys, (obs, loc, scale, action, log_prob), strict=True):
                 root[k].append(v)

@@ -93,6 +93,9 @@ class AlgorithmConfig:
     max_grad_norm: float = 0.5  # gradient-norm clipping (<= 0: off)
     num_epochs: int = 10  # passes over each rollout
     mini_batch_size: int = 64  # transitions per minibatch
+    # torch.compile of the loss (forward and backward): auto | true | false. auto compiles when the
+    # run is long enough to win back the compile time (docs/performance.md)
+    compile: str = "auto"
 
 
 @dataclass

@@ -75,6 +75,8 @@ def validate(config: RootConfig) -> None:
         raise ConfigError(f"algorithm.clip_epsilon={a.clip_epsilon} must be > 0")
     if a.lr <= 0:
         raise ConfigError(f"algorithm.lr={a.lr} must be > 0")
+    if str(a.compile).strip().lower() not in ("auto", "true", "false"):
+        raise ConfigError(f"algorithm.compile={a.compile!r}; choose auto, true or false")
     if t.device != "auto" and not (t.device == "cpu" or t.device.startswith("cuda")):
         raise ConfigError(f"trainer.device={t.device!r}; choose auto, cpu, cuda or cuda:N")
     if t.torch_threads < 1:

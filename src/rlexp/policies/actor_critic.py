@@ -14,6 +14,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
+from torch.nn import functional as F
 from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
@@ -89,7 +90,7 @@ class ObservationNormalizer(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         if not self.enabled:
             return obs
-        return torch.clamp(obs * self._scale + self._shift, -self.clip, self.clip)
+        return torch.clamp(torch.addcmul(self._shift, obs, self._scale), -self.clip, self.clip)
 
 
 def make_mlp(in_dim: int, out_dim: int, cfg: MLPConfig, key: str) -> nn.Sequential:
@@ -125,9 +126,13 @@ class GaussianActorNet(nn.Module):
         self.min_log_std = cfg.min_log_std
         self.max_log_std = cfg.max_log_std
 
+    def log_scale(self) -> torch.Tensor:
+        """The clamped log standard deviation, [act_dim]."""
+        return torch.clamp(self.log_std, self.min_log_std, self.max_log_std)
+
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         loc = self.mlp(self.normalizer(obs))
-        scale = torch.clamp(self.log_std, self.min_log_std, self.max_log_std).exp().expand_as(loc)
+        scale = self.log_scale().exp().expand_as(loc)
         return loc, scale
 
 
@@ -141,6 +146,9 @@ class CriticNet(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.mlp(self.normalizer(obs))
+
+
+SampleFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
 
 
 class SamplingPolicy(TensorDictModuleBase):
@@ -157,19 +165,44 @@ class SamplingPolicy(TensorDictModuleBase):
         self.in_keys = ["observation"]
         self.out_keys = ["loc", "scale", "action", "action_log_prob"]
 
+    def sampler(self) -> SampleFn:
+        """``obs -> (loc, scale, action, log-probability of the action)`` for one rollout.
+
+        What cannot change while a rollout is collected (the clamped log-std, the log-density's
+        constant, the list of layers) is computed once here; each call then runs the normaliser,
+        the MLP's layers as plain functions (no ``nn.Module`` dispatch) and five tensor ops. Build
+        a new one after the parameters change shape or identity (every rollout, in practice).
+        """
+        net = self.actor_net
+        norm = net.normalizer
+        log_scale = net.log_scale().detach()
+        scale = log_scale.exp()
+        log_norm = (log_scale + _LOG_SQRT_2PI).sum()  # -log of the density's normalising constant
+        layers = [_as_function(m) for m in net.mlp]
+        deterministic = self.deterministic
+
+        def sample(
+            obs: torch.Tensor,
+        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+            x = norm(obs)
+            for layer in layers:
+                x = layer(x)
+            loc = x
+            scales = scale.expand_as(loc)
+            if deterministic:
+                return loc, scales, loc, (-log_norm).expand(loc.shape[:-1])
+            noise = torch.randn_like(loc)
+            action = torch.addcmul(loc, scales, noise)
+            log_prob = noise.pow(2).sum(-1).mul(-0.5) - log_norm
+            return loc, scales, action, log_prob
+
+        return sample
+
     def sample(
         self, obs: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(loc, scale, action, log-probability of the action) for a batch of observations."""
-        loc, scale = self.actor_net(obs)
-        if self.deterministic:
-            action = loc
-            log_prob = (-scale.log() - _LOG_SQRT_2PI).sum(-1)
-        else:
-            noise = torch.randn_like(loc)
-            action = loc + scale * noise
-            log_prob = (-0.5 * noise.pow(2) - scale.log() - _LOG_SQRT_2PI).sum(-1)
-        return loc, scale, action, log_prob
+        return self.sampler()(obs)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         loc, scale, action, log_prob = self.sample(tensordict.get("observation"))
@@ -178,6 +211,21 @@ class SamplingPolicy(TensorDictModuleBase):
         tensordict.set("action", action)
         tensordict.set("action_log_prob", log_prob)
         return tensordict
+
+
+def _as_function(module: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:
+    """A layer of an MLP as a plain function of its input (same kernels as calling the module)."""
+    if isinstance(module, nn.Linear):
+        weight, bias = module.weight, module.bias
+        return lambda x: F.linear(x, weight, bias)
+    fn = _FUNCTIONAL.get(type(module))
+    return fn if fn is not None else module
+
+
+_FUNCTIONAL: dict[type[nn.Module], Callable[[torch.Tensor], torch.Tensor]] = {
+    nn.Tanh: torch.tanh,
+    nn.ReLU: torch.relu,
+}
 
 
 class ActorCritic(nn.Module):
