@@ -302,19 +302,23 @@ def test_ppo_update_matches_a_plain_torch_ppo(compile_loss):
     )
     pol = make_policy(PolicyConfig(), obs_dim, act_dim, Bounded(-1.0, 1.0, shape=(act_dim,)))
     pol.normalizer.update(torch.randn(100, obs_dim) * 2 + 1)
-    obs = torch.randn(envs, steps, obs_dim)
-    with torch.no_grad():
-        loc, scale, action, log_prob = pol.sampling_policy().sample(obs)
     terminated = torch.zeros(envs, steps, 1, dtype=torch.bool)
     truncated = torch.zeros(envs, steps, 1, dtype=torch.bool)
     terminated[0, 7], truncated[1, 15], terminated[1, 20] = True, True, True
+    # A rollout's layout: s_t+1 is the step's next observation unless the episode ended there.
+    next_obs = torch.randn(envs, steps, obs_dim)
+    obs = torch.randn(envs, steps, obs_dim)
+    continues = ~(terminated | truncated)[:, :-1]
+    obs[:, 1:] = torch.where(continues, next_obs[:, :-1], obs[:, 1:])
+    with torch.no_grad():
+        loc, scale, action, log_prob = pol.sampling_policy().sample(obs)
     batch = TensorDict(
         {
             "observation": obs,
             "action": action,
             "action_log_prob": log_prob + 0.2 * torch.randn(envs, steps),  # ratios leave the clip
             "next": {
-                "observation": torch.randn(envs, steps, obs_dim),
+                "observation": next_obs,
                 "reward": torch.randn(envs, steps, 1),
                 "terminated": terminated,
                 "truncated": truncated,
@@ -339,3 +343,30 @@ def test_ppo_update_matches_a_plain_torch_ppo(compile_loss):
     ):
         torch.testing.assert_close(p, r, rtol=1e-4, atol=1e-5, msg=f"parameter {name} differs")
         assert (p - p0).abs().max() > 1e-3, f"{name} did not move: the comparison would be vacuous"
+
+
+@pytest.mark.parametrize("env_name", ["hopper", "push_cube"])
+def test_advantages_equal_torchrl_gae_with_its_own_value_network(env_name):
+    """compute_advantages reuses V(s_t+1) for V(s'_t) where the rollout continues: the values,
+    advantages and targets are those of TorchRL's GAE evaluating V(s) and V(s') itself."""
+    from conftest import compose
+    from rlexp.algorithms.ppo import make_algorithm
+    from rlexp.collector import RolloutCollector
+    from rlexp.config.validate import to_root_config
+    from rlexp.envs.factory import make_env
+
+    torch.manual_seed(0)
+    env = make_env(to_root_config(compose([f"env={env_name}"])).env, 4, seed=0)
+    obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+    pol = make_policy(PolicyConfig(), obs_dim, act_dim, env.action_spec)
+    col = RolloutCollector(
+        env, pol.sampling_policy(), frames_per_batch=4 * 300, total_frames=-1, trust_policy=True
+    )
+    batch = next(iter(col))
+    col.shutdown()
+    pol.normalizer.update(batch["observation"])  # a non-trivial critic input
+    assert batch["next", "done"].any(), "episodes must end inside the rollout"
+    mine = make_algorithm(AlgorithmConfig(), pol, 1).compute_advantages(batch.clone())
+    theirs = make_gae(AlgorithmConfig(), pol.critic)(batch.clone())
+    for key in ("state_value", ("next", "state_value"), "advantage", "value_target"):
+        torch.testing.assert_close(mine[key], theirs[key], rtol=1e-5, atol=1e-5, msg=str(key))

@@ -40,8 +40,11 @@ class NonFiniteError(FloatingPointError):
     """A NaN or Inf in a loss, a gradient or an observation: the run stops, checkpoints stay as they were."""
 
 
-def make_gae(cfg: AlgorithmConfig, value_network) -> GAE:
-    """TorchRL's GAE: bootstraps from V(next obs) unless ``terminated``; ``done`` cuts the trace."""
+def make_gae(cfg: AlgorithmConfig, value_network=None) -> GAE:
+    """TorchRL's GAE: bootstraps from V(next obs) unless ``terminated``; ``done`` cuts the trace.
+
+    With ``value_network=None`` it reads ``state_value`` and ``("next", "state_value")`` from the
+    batch (``PPO.compute_advantages`` fills them)."""
     return GAE(
         gamma=cfg.gamma,
         lmbda=cfg.lmbda,
@@ -75,7 +78,7 @@ class PPO:
         self.grad_sync = (
             grad_sync  # distributed: averages the gradients over ranks after every backward
         )
-        self.gae = make_gae(cfg, policy.critic)
+        self.gae = make_gae(cfg)  # values come from compute_advantages
         self.loss = ClipPPOLoss(
             actor_network=policy.actor,
             critic_network=policy.critic,
@@ -106,7 +109,26 @@ class PPO:
 
     @torch.no_grad()
     def compute_advantages(self, batch: TensorDictBase) -> TensorDictBase:
-        """Writes ``advantage`` and ``value_target`` (time is the last batch dim)."""
+        """Writes ``state_value``, ``("next", "state_value")``, ``advantage`` and ``value_target``
+        (time is the last batch dim) with TorchRL's GAE.
+
+        The values are computed here, not by GAE's value network: V(s_t) in one pass over the
+        rollout, and V(s'_t) reused from V(s_t+1) wherever the next observation *is* the following
+        step's observation (bit-equal: no reset in between), so the critic runs again only on the
+        final observations of finished episodes and on the last step. Half the critic work of
+        evaluating V(s) and V(s') separately (TorchRL's way), same values.
+        """
+        critic = self.policy.critic_net
+        obs = batch.get("observation")
+        next_obs = batch.get(("next", "observation"))
+        value = critic(obs)  # [*B, T, 1]
+        follows = (next_obs[..., :-1, :] == obs[..., 1:, :]).all(-1)  # [*B, T-1]
+        own = torch.cat([~follows, follows.new_ones(follows.shape[:-1] + (1,))], dim=-1)
+        next_value = torch.empty_like(value)
+        next_value[..., :-1, :] = value[..., 1:, :]
+        next_value[own] = critic(next_obs[own])
+        batch.set("state_value", value)
+        batch.set(("next", "state_value"), next_value)
         return self.gae(batch)
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
