@@ -20,6 +20,7 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from rlexp.config.schema import AlgorithmConfig
+from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import ActorCritic
 
 log = logging.getLogger(__name__)
@@ -96,6 +97,13 @@ class PPO:
         self.params = [p for p in policy.parameters() if p.requires_grad]
         self.optimizer = make_optimizer(self.params, cfg)
         self.compile = parse_compile(cfg.compile)
+        if self.compile == "true":  # fail at build time, naming the key, not at the first update
+            problem = compile_unavailable(self.params[0].device if self.params else None)
+            if problem is not None:
+                raise ConfigError(
+                    f"algorithm.compile=true, but torch.compile cannot run here: {problem}; "
+                    "use algorithm.compile=auto or false"
+                )
         self._loss_fn: Callable[[TensorDictBase], TensorDictBase] = self.loss
         self._compile_decided = False
         self.compiled = False  # whether the loss runs through torch.compile
@@ -223,13 +231,8 @@ class PPO:
                 AUTO_COMPILE_MIN_SAVING_S,
             )
             return
-        device = self.params[0].device if self.params else torch.device("cpu")
-        problem = compile_unavailable(device)
-        if problem is not None:
-            if self.compile == "true":
-                raise ValueError(
-                    f"algorithm.compile=true, but torch.compile cannot run here: {problem}"
-                )
+        problem = compile_unavailable(self.params[0].device if self.params else None)
+        if problem is not None:  # (only auto gets here: true was checked at build time)
             log.warning("[ppo] algorithm.compile=auto: eager loss (%s)", problem)
             return
         log.info(
@@ -284,9 +287,9 @@ def parse_compile(value: str | bool) -> str:
     return choice
 
 
-def compile_unavailable(device: torch.device) -> str | None:
+def compile_unavailable(device: torch.device | None) -> str | None:
     """Why ``torch.compile`` (inductor) cannot run on ``device`` here, or None when it can."""
-    if device.type == "cpu":
+    if device is None or device.type == "cpu":
         compilers = [os.environ.get("CXX", ""), "g++", "c++", "clang++"]
         if not any(c and shutil.which(c) for c in compilers):
             return "no C++ compiler found (inductor needs one for CPU code; install g++ or set CXX)"
