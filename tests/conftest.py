@@ -85,3 +85,17 @@ TINY = [
 @pytest.fixture
 def tiny_overrides() -> list[str]:
     return list(TINY)
+
+
+def _compile_problem() -> str | None:
+    import torch
+
+    from rlexp.algorithms.ppo import compile_unavailable
+
+    return compile_unavailable(torch.device("cpu"))
+
+
+#: For tests that really run torch.compile: inductor needs a C++ compiler for CPU code.
+needs_compiler = pytest.mark.skipif(
+    _compile_problem() is not None, reason=f"torch.compile cannot run here: {_compile_problem()}"
+)

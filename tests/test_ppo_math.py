@@ -8,6 +8,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.modules import ValueOperator
 
+import conftest
 from rlexp.algorithms.ppo import make_gae
 from rlexp.config.schema import AlgorithmConfig, PolicyConfig
 from rlexp.policies.actor_critic import ObservationNormalizer, make_policy
@@ -279,7 +280,9 @@ def _reference_ppo_update(pol, batch, cfg, seed):
     return {k: s / count for k, s in sums.items()}
 
 
-@pytest.mark.parametrize("compile_loss", ["false", "true"])
+@pytest.mark.parametrize(
+    "compile_loss", ["false", pytest.param("true", marks=conftest.needs_compiler)]
+)
 def test_ppo_update_matches_a_plain_torch_ppo(compile_loss):
     """The optimised update (TorchRL GAE + ClipPPOLoss, fused Adam, statistics kept as tensors, the
     loss through torch.compile when on) moves the parameters exactly as a PPO written out by hand."""

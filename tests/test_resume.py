@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import REPO, run_train
+from conftest import REPO, needs_compiler, run_train
 from rlexp.checkpoint import (
     latest_checkpoint,
     latest_good_checkpoint,
@@ -120,6 +120,7 @@ def test_sigkill_and_resume_is_bit_identical_push_cube(tmp_path):
     )
 
 
+@needs_compiler
 def test_sigkill_and_resume_is_bit_identical_with_the_compiled_loss(tmp_path):
     """algorithm.compile=true: the resumed process compiles again at a different point of the run
     (compiling draws random numbers, and TorchRL's compiled entropy draws a sample every call); the
