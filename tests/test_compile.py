@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 
 import pytest
+import torch
 from torchrl.data import Bounded
 
 from conftest import run_train
@@ -63,3 +64,50 @@ def test_a_bad_compile_value_is_a_config_error_on_the_command_line(tmp_path, tin
     assert proc.returncode == 2
     assert "algorithm.compile='maybe'" in proc.stdout + proc.stderr
     assert not list(tmp_path.rglob("checkpoints"))
+
+
+def _minibatch(n: int = 16):
+    from tensordict import TensorDict
+
+    return TensorDict(
+        {
+            "observation": torch.randn(n, 5),
+            "action": torch.rand(n, 2) * 2 - 1,
+            "action_log_prob": torch.randn(n),
+            "advantage": torch.randn(n, 1),
+            "value_target": torch.randn(n, 1),
+        },
+        batch_size=[n],
+    )
+
+
+def _broken_compile(module, **kwargs):
+    def call(*args, **kw):
+        torch.rand(3)  # a backend that drew random numbers before it failed
+        raise RuntimeError("inductor exploded")
+
+    return call
+
+
+def test_auto_falls_back_to_eager_when_compiling_fails(monkeypatch, caplog):
+    monkeypatch.setattr(ppo.torch, "compile", _broken_compile)
+    algo = _algo("auto", iterations=10_000)
+    algo._decide_compile(updates=10_000 * 320, mb=64)
+    mb = _minibatch()
+    torch.manual_seed(3)
+    with caplog.at_level(logging.WARNING, logger="rlexp.algorithms.ppo"):
+        out = algo._loss_fn(mb)
+    after = torch.rand(1)
+    torch.manual_seed(3)
+    assert torch.equal(after, torch.rand(1)), "the failed compile's random draws were not undone"
+    assert "torch.compile failed" in caplog.text and "inductor exploded" in caplog.text
+    assert not algo.compiled and algo._loss_fn is algo.loss
+    torch.testing.assert_close(out["loss_objective"], algo.loss(mb)["loss_objective"])
+
+
+def test_compile_true_does_not_hide_a_failing_compile(monkeypatch):
+    monkeypatch.setattr(ppo.torch, "compile", _broken_compile)
+    algo = _algo("true", iterations=1)
+    algo._decide_compile(updates=1, mb=64)
+    with pytest.raises(RuntimeError, match="inductor exploded"):
+        algo._loss_fn(_minibatch())

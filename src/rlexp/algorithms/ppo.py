@@ -252,19 +252,21 @@ class PPO:
             # throw-away call, put the RNGs back, then make the real call like every later one.
             t0 = time.perf_counter()
             rng = rng_state()
+            failure: Exception | None = None
             try:
                 warm = compiled(minibatch)
                 sum(warm[k] for k in LOSS_KEYS if k in warm.keys()).backward()
-            except Exception as exc:
-                set_rng_state(rng)
+            except Exception as exc:  # a backend failure: fall back unless the user insisted
                 if self.compile == "true":
                     raise
-                log.warning("[ppo] torch.compile failed, eager loss from here on: %s", exc)
+                failure = exc
+            finally:  # also on Ctrl-C: the checkpoint saved then must hold the run's own RNGs
+                set_rng_state(rng)
+                self.optimizer.zero_grad(set_to_none=True)
+            if failure is not None:
+                log.warning("[ppo] torch.compile failed, eager loss from here on: %s", failure)
                 self._loss_fn, self.compiled = self.loss, False
                 return self.loss(minibatch)
-            finally:
-                self.optimizer.zero_grad(set_to_none=True)
-            set_rng_state(rng)
             log.info("[ppo] loss compiled in %.1f s", time.perf_counter() - t0)
             self._loss_fn = compiled
             return compiled(minibatch)
