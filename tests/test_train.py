@@ -125,3 +125,48 @@ def test_ctrl_c_saves_a_checkpoint_and_exits_0(tmp_path):
     ckpt = load_checkpoint(latest_checkpoint(run_dir))
     assert ckpt["global_step"] >= 512
     assert "interrupted" in log_file.read_text()
+
+
+def test_collection_and_eval_run_one_torch_thread_and_the_update_torch_threads(
+    tmp_path, monkeypatch
+):
+    """trainer.torch_threads is for the update; stepping envs with more threads only slows it."""
+    from conftest import compose
+    from rlexp.algorithms.ppo import PPO
+    from rlexp.app import train
+    from rlexp.config.validate import to_root_config
+    from rlexp.envs.gym import GymnasiumEnv
+
+    seen: dict[str, set[int]] = {"step": set(), "update": set()}
+    step, update = GymnasiumEnv.step_action, PPO.update
+
+    def spy_step(self, action):
+        seen["step"].add(torch.get_num_threads())
+        return step(self, action)
+
+    def spy_update(self, batch):
+        seen["update"].add(torch.get_num_threads())
+        return update(self, batch)
+
+    monkeypatch.setattr(GymnasiumEnv, "step_action", spy_step)
+    monkeypatch.setattr(PPO, "update", spy_update)
+    before = torch.get_num_threads()
+    config = to_root_config(
+        compose(
+            [
+                "env=inverted_pendulum",
+                "trainer.total_frames=512",
+                "trainer.frames_per_batch=256",
+                "trainer.eval_every=256",
+                "trainer.eval_episodes=1",
+                "algorithm.num_epochs=1",
+                "trainer.torch_threads=2",
+                "logger=none",
+            ]  # fmt: skip
+        )
+    )
+    try:
+        train(config, tmp_path / "run")
+    finally:
+        torch.set_num_threads(before)
+    assert seen == {"step": {1}, "update": {2}}

@@ -45,7 +45,9 @@ class TrainerConfig:
     )
     log_every: int = 1  # log training metrics every this many iterations
     progress: bool = True  # live progress bar on the console
-    torch_threads: int = 1  # torch intra-op threads; one is fastest for small networks
+    # torch intra-op threads for the PPO update (collection and evaluation run with one): 1 is
+    # fastest for small networks; large minibatches on a machine of your own: the cores you have
+    torch_threads: int = 1
 
 
 @dataclass
