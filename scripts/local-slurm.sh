@@ -121,8 +121,8 @@ start() {
     write_conf
     start_munge
     if ! pid_alive "$STATE_DIR/slurmctld.pid"; then
-        log "starting slurmctld"
-        /usr/sbin/slurmctld
+        log "starting slurmctld (fresh state: no jobs from an earlier start)"
+        /usr/sbin/slurmctld -c
     fi
     if ! pid_alive "$STATE_DIR/slurmd.pid"; then
         log "starting slurmd"
@@ -145,7 +145,15 @@ start() {
 
 stop() {
     need_root
-    local f
+    local f jobs
+    # End this cluster's jobs first: a job whose slurmd goes away mid-run leaves its slurmstepd/srun
+    # behind, and they would hold the node after the next start.
+    jobs=$(squeue -h -o %i 2>/dev/null || true)
+    if [[ -n $jobs ]]; then
+        log "cancelling jobs: $(echo $jobs)"
+        scancel $jobs 2>/dev/null || true
+        for _ in $(seq 50); do [[ -z $(squeue -h -o %i 2>/dev/null) ]] && break; sleep 0.2; done
+    fi
     for f in slurmd slurmctld; do
         if pid_alive "$STATE_DIR/$f.pid"; then
             log "stopping $f"

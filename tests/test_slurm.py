@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -112,13 +113,25 @@ TINY = [
 ]
 
 
+def _job_ids() -> set[str]:
+    out = subprocess.run(["squeue", "-h", "-o", "%i"], capture_output=True, text=True).stdout
+    return set(out.split())
+
+
 @pytest.fixture(scope="module")
-def cluster() -> None:
+def cluster() -> Iterator[None]:
     if (
         shutil.which("sbatch") is None
         or subprocess.run(["sinfo"], capture_output=True).returncode != 0
     ):
         pytest.skip("no SLURM cluster answers: start one with `sudo scripts/local-slurm.sh start`")
+    before = _job_ids()
+    yield
+    # A job can still be winding down (a rank's srun step) after the launcher has its result:
+    # leave nothing of ours holding the node.
+    left = sorted(_job_ids() - before)
+    if left:
+        subprocess.run(["scancel", *left], capture_output=True)
 
 
 def env() -> dict[str, str]:
