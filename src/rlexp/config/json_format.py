@@ -551,13 +551,27 @@ def _map_trainer(
         )
 
 
-def _map_policy(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
-    """policy.*: actor-critic MLPs."""
-    p = tf.obj(tf.get(train, "policy", "", "object"), "policy", POLICY_KEYS)
-    name = tf.get(p, "name", "policy", "str", choices=POLICIES)
+def _named_section(
+    tf: _File,
+    train: dict[str, Any],
+    section: str,
+    keys: tuple[str, ...],
+    choices: tuple[str, ...],
+    m: _Mapped,
+) -> dict[str, Any]:
+    """The ``policy`` / ``algorithm`` object: its keys checked, its ``name`` one rlexp supports
+    (mapped to ``<section>.name``)."""
+    obj = tf.obj(tf.get(train, section, "", "object"), section, keys)
+    name = tf.get(obj, "name", section, "str", choices=choices)
     if name in NOT_SUPPORTED:
         raise tf.error(NOT_SUPPORTED[name])
-    m.leaves["policy.name"] = name
+    m.leaves[f"{section}.name"] = name
+    return obj
+
+
+def _map_policy(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
+    """policy.*: actor-critic MLPs."""
+    p = _named_section(tf, train, "policy", POLICY_KEYS, POLICIES, m)
     for part in ("actor", "critic"):
         where = f"policy.{part}"
         net = tf.obj(tf.get(p, part, "policy", "object"), where, NET_KEYS)
@@ -575,11 +589,7 @@ def _map_policy(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
 
 def _map_algorithm(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
     """algorithm.*: PPO's keyword arguments under rlexp's (TorchRL's) names."""
-    a = tf.obj(tf.get(train, "algorithm", "", "object"), "algorithm", ALGORITHM_KEYS)
-    name = tf.get(a, "name", "algorithm", "str", choices=ALGORITHMS)
-    if name in NOT_SUPPORTED:
-        raise tf.error(NOT_SUPPORTED[name])
-    m.leaves["algorithm.name"] = name
+    a = _named_section(tf, train, "algorithm", ALGORITHM_KEYS, ALGORITHMS, m)
     c = tf.obj(tf.get(a, "cfg", "algorithm", "object", {}), "algorithm.cfg", tuple(PPO_KEYS))
     frames, num_envs = m.leaves["trainer.frames_per_batch"], m.leaves["env.num_envs"]
     ranges: dict[str, tuple[str, float | None, float | None]] = {  # kind, low, high (low None: > 0)
