@@ -113,9 +113,18 @@ def test_unknown_gym_env_suggests_the_closest(tmp_path):
 
 def test_bad_override_on_the_command_line_is_one_clear_error(tmp_path):
     proc = run_train(["algorithm.clip_epsiln=0.1"], cwd=tmp_path, check=False, timeout=120)
-    assert proc.returncode != 0
-    assert "clip_epsiln" in proc.stderr + proc.stdout
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [proc.stderr.strip()], "one line, no traceback"
+    assert "algorithm.clip_epsiln is not a config key" in proc.stderr
+    assert "did you mean algorithm.clip_epsilon?" in proc.stderr
     assert not (tmp_path / "outputs").exists()
+
+
+def test_activation_names_checked_before_torch_are_the_builders():
+    from rlexp.config.validate import ACTIVATIONS
+    from rlexp.policies.actor_critic import ACTIVATIONS as BUILT
+
+    assert sorted(ACTIVATIONS) == sorted(BUILT)
 
 
 def test_cross_field_error_on_the_command_line_exits_2(tmp_path):

@@ -87,7 +87,9 @@ def test_same_seed_gives_identical_parameters(tmp_path):
     assert any(not torch.equal(a[k], c[k]) for k in a), "a different seed gave identical parameters"
 
 
-def test_ctrl_c_saves_a_checkpoint_and_exits_0(tmp_path):
+def test_ctrl_c_saves_a_checkpoint_and_exits_130(tmp_path):
+    """Ctrl-C stops at the end of the iteration with a checkpoint; exit 130 (128 + SIGINT), so a
+    shell loop around train.py stops too (docs/faults.md)."""
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
     console = open(
         tmp_path / "console.txt", "w"
@@ -120,7 +122,7 @@ def test_ctrl_c_saves_a_checkpoint_and_exits_0(tmp_path):
     proc.send_signal(signal.SIGINT)
     proc.wait(timeout=120)
     console.close()
-    assert proc.returncode == 0, (tmp_path / "console.txt").read_text()
+    assert proc.returncode == 128 + signal.SIGINT, (tmp_path / "console.txt").read_text()
     run_dir = log_file.parent
     ckpt = load_checkpoint(latest_checkpoint(run_dir))
     assert ckpt["global_step"] >= 512

@@ -1,16 +1,19 @@
 """Entry point: Hydra composes ``conf/``, ``train(config, run_dir)`` builds the objects and runs.
 
-``main()`` is what ``python train.py`` and ``rlexp train`` call. Heavy libraries (torch, torchrl)
-are imported only once the config has composed and validated, so a bad override fails in a second.
+``main()`` is what ``python train.py`` and ``rlexp train`` call. The command line is checked first
+(``rlexp.config.precheck``): a bad override or a config that cannot be built prints one line and
+exits 2 before Hydra creates a run dir. A run then locks its dir, builds everything, and only then
+writes ``config.yaml``, provenance and logs. How each way of ending shows up (status, exit code):
+docs/faults.md.
 """
 
 from __future__ import annotations
 
-import json
 import logging
+import math
 import os
 import sys
-import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +23,19 @@ from omegaconf import DictConfig, OmegaConf
 
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
+from rlexp.rundir import (
+    EXIT_CONFIG,
+    EXIT_FAILED,
+    EXIT_NONFINITE,
+    EXIT_SIGNAL_BASE,
+    RESUME_MAY_CHANGE,
+    RunDirLock,
+    check_same_experiment,
+    clean_temp_files,
+    config_differences,
+    read_status,
+    write_status,
+)
 
 log = logging.getLogger(__name__)
 
@@ -57,250 +73,364 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+class RunEnded(Exception):
+    """The run stopped before finishing; ``exit_code`` is what ``python train.py`` exits with
+    (``rlexp.rundir``: 1 failed, 3 non-finite values, 128 + N interrupted by signal N)."""
+
+    def __init__(self, message: str, exit_code: int) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
 def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> dict[str, float]:
-    """Build envs, policy, PPO, loggers and Trainer from ``config``; train; return the last eval."""
+    """Lock the run dir, build envs, policy, PPO, loggers and Trainer from ``config``, train, and
+    return the last eval. Nothing is written into the run dir before the config has built."""
     import torch
 
     from rlexp import _speedups
-    from rlexp.algorithms.ppo import NonFiniteError, make_algorithm
-    from rlexp.checkpoint import latest_good_checkpoint, load_checkpoint
-    from rlexp.envs.factory import make_env
-    from rlexp.events import EventManager
+    from rlexp.launch import distributed
+    from rlexp.launch.signals import stop_on_signals
+
+    dist = distributed.info()
+    _speedups.apply()
+    torch.set_num_threads(config.trainer.torch_threads)
+    lock = RunDirLock(run_dir)
+    with stop_on_signals() as stops:
+        try:
+            if dist.is_main:
+                lock.acquire()  # before anything is read or written: one run per dir
+            _agree(failed=False)
+            return _train_locked(config, run_dir, sweep_group, stops)
+        except ConfigError:
+            _agree(failed=True)
+            raise
+        finally:
+            lock.release()
+            distributed.shutdown()
+
+
+_AGREED: dict[int, bool] = {}
+
+
+def _agree(failed: bool) -> None:
+    """Distributed, once: a rank that failed before training tells the others, so that no rank
+    waits in a collective for one that has exited."""
+    from rlexp.launch import distributed
+
+    dist = distributed.info()
+    if not dist.enabled or _AGREED.get(id(dist)):
+        return
+    import torch
+
+    _AGREED[id(dist)] = True
+    if distributed.all_reduce_sum(torch.tensor([float(failed)])).item() > 0 and not failed:
+        raise ConfigError("another rank failed before training (see rank 0's log)")
+
+
+def _train_locked(
+    config: RootConfig, run_dir: Path, sweep_group: str | None, stops: Any
+) -> dict[str, float]:
+    from rlexp.checkpoint import check_checkpoint_fits, latest_good_checkpoint
+    from rlexp.config.checks import check_resume_checkpoint
     from rlexp.launch import distributed
     from rlexp.launch.slurm import install_preemption_handler
     from rlexp.logging import MetricLogger, make_logger
-    from rlexp.policies.actor_critic import make_policy
-    from rlexp.provenance import versions, write_provenance
-    from rlexp.trainer import StopRequested, Trainer
+    from rlexp.provenance import versions
 
-    t, e = config.trainer, config.env
+    t = config.trainer
     dist = distributed.info()
-    _speedups.apply()
-    torch.set_num_threads(t.torch_threads)
     device = resolve_device(t.device, t.strict_device)
     if dist.enabled and device.startswith("cuda"):
         device = f"cuda:{dist.local_rank}"  # each rank on its own GPU
     seed_everything(config.seed + dist.rank)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    if t.resume == "auto" and (run_dir / "config.yaml").is_file():
-        # Continuing in an existing run dir (requeue, re-run of a sweep dir): it must be the same
-        # experiment, or results of two configs would be mixed in one run.
-        saved = OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml"), resolve=True)
-        diffs = config_differences(saved, to_dict(config), ignore=RESUME_MAY_CHANGE)
-        if diffs:
-            raise ConfigError(
-                f"run dir {run_dir} holds a different experiment (differs in {', '.join(diffs)}); "
-                "use a new hydra.run.dir / hydra.sweep.dir, or trainer.resume=never to start over there"
-            )
+    total = total_frames(config, dist.world_size)
+
+    # -- the run dir: what it holds decides what this run does (nothing is written here yet) -------
     status = read_status(run_dir)
+    step_done = status.get("global_step")
     if (
         status.get("state") == "finished"
         and t.resume == "auto"
-        and status.get("global_step", 0) >= total_frames(config, dist.world_size)
+        and isinstance(step_done, int)
+        and step_done >= total
     ):
         # A re-run of the same sweep: this job already finished its budget; report it, train nothing.
-        log.info(
-            "run dir %s already finished at step %s: skipping", run_dir, status.get("global_step")
-        )
-        return dict(status.get("final_eval") or {})
-
+        log.info("run dir %s already finished at step %s: skipping", run_dir, step_done)
+        final = status.get("final_eval")
+        return dict(final) if isinstance(final, dict) else {}
+    if dist.is_main:
+        clean_temp_files(run_dir)
     t.device = device  # the saved config records the device actually used
     config_dict = to_dict(config)
-    if dist.is_main:
-        (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(config_dict)))
-    from rlexp.config.json_format import write_json_experiment
-
-    if dist.is_main:
-        write_json_experiment(
-            config, run_dir
-        )  # the same config as train_config.json + gym_config.json
-    if dist.is_main:
-        write_provenance(run_dir, device)
-    log.info("run dir: %s (device %s, seed %d)", run_dir, device, config.seed)
-
-    # Resume before anything is built from scratch: a requeued job continues where it stopped.
     ckpt = None
     if t.resume == "auto":
+        check_same_experiment(run_dir, config_dict)  # a continuation, or a different experiment?
         ckpt = latest_good_checkpoint(run_dir / "checkpoints")
-    elif t.resume not in ("never", ""):
-        ckpt = load_checkpoint(t.resume)
-        diffs = config_differences(ckpt["config"], config_dict, ignore=RESUME_MAY_CHANGE)
-        if diffs:
-            log.warning("resuming %s with a different config (%s)", t.resume, ", ".join(diffs))
 
-    env = make_env(e, e.num_envs, config.seed + dist.rank)  # each rank its own envs: seed + rank
-    eval_env = None  # rank 0 alone evaluates
-    if e.num_eval_envs > 0 and dist.is_main:
-        eval_env = make_env(e, e.num_eval_envs, config.seed + 1_000_000)
-    obs_dim = env.observation_spec["observation"].shape[-1]
-    act_dim = env.action_spec.shape[-1]
-    log.info("env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, act_dim)
-    policy = make_policy(
-        config.policy,
-        obs_dim,
-        act_dim,
-        env.action_spec,
-        e.normalize_observations,
-        e.clip_observations,
-    ).to(device)
-    if dist.enabled:  # same initial parameters everywhere
-        distributed.broadcast_([*policy.parameters(), *policy.buffers()])
-    total = total_frames(config, dist.world_size)
-    iterations = -(-total // (t.frames_per_batch * dist.world_size))
-    grad_sync = distributed.all_reduce_mean_ if dist.enabled else None
-    algorithm = make_algorithm(config.algorithm, policy, iterations, t.nan_guard, grad_sync)
+    # -- build: a failure here is a config error (one line, exit 2, no config.yaml) ---------------
+    try:
+        objects = build(config, run_dir, device, total)
+        if ckpt is not None:
+            check_checkpoint_fits(ckpt, config, objects.policy)
+        elif t.resume not in ("auto", "never", ""):
+            ckpt = check_resume_checkpoint(config, objects.policy)
+            diffs = config_differences(ckpt["config"], config_dict, ignore=RESUME_MAY_CHANGE)
+            if diffs:
+                log.warning("resuming %s with a different config (%s)", t.resume, ", ".join(diffs))
+    except ConfigError:
+        raise
+    except Exception as exc:
+        raise ConfigError(f"the run cannot be built from this config: {_first_line(exc)}") from None
+
+    # -- from here on the run dir is written -------------------------------------------------------
+    if dist.is_main:
+        _write_run_files(config, config_dict, run_dir, device)
+    log.info("run dir: %s (device %s, seed %d)", run_dir, device, config.seed)
     if dist.is_main:
         logger = make_logger(config.logger, run_dir, t.exp_name, config_dict, group=sweep_group)
     else:
         logger = MetricLogger([])
-    trainer = Trainer(
-        cfg=t,
-        policy=policy,
-        algorithm=algorithm,
-        env=env,
-        eval_env=eval_env,
-        logger=logger,
-        event_manager=EventManager(config.events.train, "events.train", seed=config.seed + 2),
-        eval_event_manager=EventManager(config.events.eval, "events.eval", seed=config.seed + 3),
-        run_dir=run_dir,
-        config_dict=config_dict,
-        versions=versions(),
-        dist=dist,
-    )
-    install_preemption_handler(
-        trainer
-    )  # under SLURM: the preemption signal checkpoints, then requeues
+    trainer = objects.trainer(logger, config_dict, versions())
     if ckpt is not None:
         trainer.load_state_dict(ckpt)
+    stops.attach(trainer)  # SIGINT / SIGTERM / SIGHUP: checkpoint at the end of the iteration
+    install_preemption_handler(trainer)  # under SLURM: the preemption signal checkpoints, requeues
+    return _run(trainer, run_dir, total, stops, ckpt)
+
+
+def _run(
+    trainer: Any, run_dir: Path, total: int, stops: Any, ckpt: dict | None
+) -> dict[str, float]:
+    """Train; every way out leaves ``status.json`` saying how the run ended and why."""
+    from rlexp.algorithms.ppo import NonFiniteError
+    from rlexp.launch.slurm import stop_requested_by_signal
+    from rlexp.trainer import StopRequested
+
+    def last_good() -> str:
+        path = trainer.last_checkpoint or (ckpt and ckpt["path"])
+        return f"the last good checkpoint is {path}" if path else "no checkpoint was written"
+
     write_status(run_dir, "running", trainer.global_step)
     try:
+        if stops.requested and trainer.global_step == 0:
+            raise StopRequested(stops.reason())  # a signal during the build: nothing to save yet
+        _check_writable(trainer.ckpt_dir)  # now, not after the first hour of training
         trainer.train(total)
-        if eval_env is not None and not trainer.last_eval:
+        if trainer.eval_env is not None and not trainer.last_eval:
             trainer.eval_once()
         write_status(run_dir, "finished", trainer.global_step, trainer.last_eval)
-    except KeyboardInterrupt:
-        log.warning(
-            "interrupted at step %d: saving a checkpoint before exiting", trainer.global_step
-        )
-        trainer.save_checkpoint()
-        write_status(run_dir, "interrupted", trainer.global_step, trainer.last_eval)
     except StopRequested as exc:
-        log.warning(
-            "stopped at step %d (%s): checkpoint %s",
-            trainer.global_step,
-            exc,
-            trainer.last_checkpoint,
-        )
-        write_status(run_dir, "stopped", trainer.global_step, trainer.last_eval, reason=str(exc))
-        trainer.close()
-        raise
+        step = trainer.global_step
+        if stop_requested_by_signal():  # SLURM preemption: the launcher requeues the job
+            log.warning(
+                "stopped at step %d (%s): checkpoint %s", step, exc, trainer.last_checkpoint
+            )
+            write_status(run_dir, "stopped", step, trainer.last_eval, reason=str(exc))
+            raise
+        log.warning("interrupted at step %d (%s): %s", step, exc, last_good())
+        write_status(run_dir, "interrupted", step, trainer.last_eval, reason=str(exc))
+        raise RunEnded(f"interrupted ({exc})", EXIT_SIGNAL_BASE + (stops.signum or 2)) from None
+    except (
+        KeyboardInterrupt
+    ):  # a second Ctrl-C: no checkpoint mid-iteration (it would not be exact)
+        step = trainer.global_step
+        reason = f"interrupted twice at step {step}: stopped without a checkpoint; {last_good()}"
+        log.warning("%s", reason)
+        write_status(run_dir, "interrupted", step, trainer.last_eval, reason=reason)
+        raise RunEnded(reason, EXIT_SIGNAL_BASE + 2) from None
     except NonFiniteError as exc:
-        write_status(run_dir, "failed", trainer.global_step, trainer.last_eval, reason=str(exc))
-        log.error(
-            "stopped: %s; the last good checkpoint is %s",
-            exc,
-            trainer.last_checkpoint or ckpt and ckpt["path"],
-        )
-        trainer.close()
-        sys.exit(3)
+        reason = f"{exc}; {last_good()}"
+        write_status(run_dir, "failed", trainer.global_step, trainer.last_eval, reason=reason)
+        raise RunEnded(f"stopped: {reason}", EXIT_NONFINITE) from None
+    except OSError as exc:  # an unwritable checkpoints/, a full disk
+        where = f" ({exc.filename})" if exc.filename else ""
+        reason = f"{exc.strerror or exc}{where}; {last_good()}"
+        _try_write_status(run_dir, trainer, reason)
+        raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
+    except Exception as exc:
+        _try_write_status(run_dir, trainer, f"{type(exc).__name__}: {_first_line(exc)}")
+        raise
     finally:
-        if not trainer.logger.closed:
-            trainer.close()
-        distributed.shutdown()
+        trainer.close()
     log.info("done: %d env steps; checkpoint %s", trainer.global_step, trainer.last_checkpoint)
     return trainer.last_eval
 
 
-#: Keys a continuation may change: the budget (train longer), how to resume, the device, the console.
-RESUME_MAY_CHANGE = (
-    "trainer.total_frames",
-    "trainer.iterations",
-    "trainer.resume",
-    "trainer.device",
-    "trainer.progress",
-    "trainer.strict_device",
-    "algorithm.compile",  # how the loss runs, not what it computes
-)
+def _check_writable(directory: Path) -> None:
+    """``OSError`` if checkpoints cannot be written in ``directory`` (created if missing)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    probe = directory / f".write-test.tmp-{os.getpid()}"
+    probe.write_bytes(b"")
+    probe.unlink()
 
 
-def config_differences(
-    a: dict[str, Any], b: dict[str, Any], ignore: tuple[str, ...] = (), prefix: str = ""
-) -> list[str]:
-    """Dotted keys whose values differ between two plain config dicts."""
-    out = []
-    for key in sorted(set(a) | set(b)):
-        path = f"{prefix}{key}"
-        if path in ignore:
-            continue
-        va, vb = a.get(key), b.get(key)
-        if isinstance(va, dict) and isinstance(vb, dict):
-            out += config_differences(va, vb, ignore, path + ".")
-        elif va != vb:
-            out.append(path)
-    return out
-
-
-def read_status(run_dir: Path) -> dict[str, Any]:
-    """``status.json`` of a run dir ({} when there is none)."""
-    path = run_dir / "status.json"
+def _try_write_status(run_dir: Path, trainer: Any, reason: str) -> None:
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
+        write_status(run_dir, "failed", trainer.global_step, trainer.last_eval, reason=reason)
+    except OSError as exc:
+        log.error("could not write %s: %s", run_dir / "status.json", exc)
 
 
-def write_status(
-    run_dir: Path, state: str, global_step: int, final_eval: dict | None = None, **extra: Any
-) -> None:
-    """``status.json``: running | finished | interrupted | stopped | failed, the step and the last eval
-    (what sweeps and ``rlexp report`` read to tell finished jobs from unfinished ones). Rank 0 only."""
-    from rlexp.launch.distributed import info
+def _first_line(exc: BaseException) -> str:
+    text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
-    if not info().is_main:
-        return
-    info = {
-        "state": state,
-        "global_step": global_step,
-        "final_eval": final_eval or {},
-        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        **extra,
-    }
-    tmp = run_dir / ".status.json.tmp"
-    tmp.write_text(json.dumps(info, indent=2) + "\n")
-    os.replace(tmp, run_dir / "status.json")
+
+def _write_run_files(config: RootConfig, config_dict: dict, run_dir: Path, device: str) -> None:
+    """``config.yaml``, the same config as JSON (train_config.json + gym_config.json), provenance."""
+    from rlexp.config.json_format import write_json_experiment
+    from rlexp.provenance import write_provenance
+
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(config_dict)))
+    write_json_experiment(config, run_dir)
+    write_provenance(run_dir, device)
+
+
+#: The eval envs' seed is the run's seed plus this (far from the per-rank training seeds).
+EVAL_SEED_OFFSET = 1_000_000
+
+
+@dataclass
+class Built:
+    """The run's objects before the Trainer exists (building them writes nothing)."""
+
+    config: RootConfig
+    run_dir: Path
+    env: Any
+    eval_env: Any
+    policy: Any
+    algorithm: Any
+    events: Any
+    eval_events: Any
+
+    def trainer(self, logger: Any, config_dict: dict, versions: dict) -> Any:
+        from rlexp.launch import distributed
+        from rlexp.trainer import Trainer
+
+        return Trainer(
+            cfg=self.config.trainer,
+            policy=self.policy,
+            algorithm=self.algorithm,
+            env=self.env,
+            eval_env=self.eval_env,
+            logger=logger,
+            event_manager=self.events,
+            eval_event_manager=self.eval_events,
+            run_dir=self.run_dir,
+            config_dict=config_dict,
+            versions=versions,
+            dist=distributed.info(),
+            eval_seed=self.config.seed + EVAL_SEED_OFFSET,
+        )
+
+
+def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
+    """Envs, policy, algorithm and event managers, in that order (nothing is written)."""
+    from rlexp.algorithms.ppo import make_algorithm
+    from rlexp.envs.factory import make_env
+    from rlexp.events import EventManager
+    from rlexp.launch import distributed
+    from rlexp.policies.actor_critic import make_policy
+
+    t, e = config.trainer, config.env
+    dist = distributed.info()
+    env = make_env(e, e.num_envs, config.seed + dist.rank)  # each rank its own envs: seed + rank
+    eval_env = None  # rank 0 alone evaluates; eval_every=0 or eval_episodes=0: no evaluation at all
+    if e.num_eval_envs > 0 and dist.is_main and t.eval_every > 0 and t.eval_episodes > 0:
+        eval_env = make_env(e, e.num_eval_envs, config.seed + EVAL_SEED_OFFSET)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim = env.action_spec.shape[-1]
+    log.info("env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, act_dim)
+    policy = make_policy(
+        config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
+        e.clip_observations,
+    ).to(device)  # fmt: skip
+    if dist.enabled:  # same initial parameters everywhere
+        distributed.broadcast_([*policy.parameters(), *policy.buffers()])
+    iterations = -(-total // (t.frames_per_batch * dist.world_size))
+    grad_sync = distributed.all_reduce_mean_ if dist.enabled else None
+    algorithm = make_algorithm(config.algorithm, policy, iterations, t.nan_guard, grad_sync)
+    return Built(
+        config=config,
+        run_dir=run_dir,
+        env=env,
+        eval_env=eval_env,
+        policy=policy,
+        algorithm=algorithm,
+        events=EventManager(config.events.train, "events.train", seed=config.seed + 2),
+        eval_events=EventManager(config.events.eval, "events.eval", seed=config.seed + 3),
+    )
+
+
+#: Set by ``main`` once the command line passed ``precheck`` (a single run): the job need not build
+#: the config a second time.
+_PRECHECKED: dict[str, Any] = {}
 
 
 def _task(cfg: DictConfig) -> float | None:
-    """Hydra's task function: typed config in, final eval return out (for sweepers)."""
+    """Hydra's task function: typed config in, final eval return out (for sweepers).
+
+    A single run exits with the code of how it ended (docs/faults.md). In a sweep, a job that fails
+    records the reason in its own dir and returns NaN, so the launcher goes on with the other jobs;
+    the sweep's end (``rlexp.launch.sweep``) reports the failed ones and sets the exit code.
+    """
+    hc = HydraConfig.get()
+    multirun = hc.mode is not None and hc.mode.name == "MULTIRUN"
+    run_dir = Path(hc.runtime.output_dir)
+    sweep_group = Path(hc.sweep.dir).name if multirun else None
     try:
         config = to_root_config(cfg)
-    except ConfigError as exc:
-        log.error("config error: %s", exc)
-        sys.exit(2)
-    if os.environ.get("RLEXP_DISTRIBUTED") == "1":
-        from rlexp.launch import distributed
+        if not _PRECHECKED.get("config"):
+            from rlexp.config.checks import check_buildable
 
-        if not distributed.info().enabled:
-            try:
-                distributed.init_in_job()
-            except RuntimeError as exc:
-                log.error("%s", exc)
-                sys.exit(2)
-    hc = HydraConfig.get()
-    run_dir = Path(hc.runtime.output_dir)
-    sweep_group = (
-        Path(hc.sweep.dir).name if hc.mode is not None and hc.mode.name == "MULTIRUN" else None
-    )
-    try:
+            check_buildable(config)
+        if os.environ.get("RLEXP_DISTRIBUTED") == "1":
+            _join_distributed()
         metrics: dict[str, Any] = train(config, run_dir, sweep_group)
     except ConfigError as exc:
-        log.error("config error: %s", exc)
-        sys.exit(2)
-    return metrics.get("eval/episode_return")
+        return _failed(run_dir, f"config error: {exc}", EXIT_CONFIG, multirun, exc)
+    except RunEnded as exc:
+        if exc.exit_code >= EXIT_SIGNAL_BASE:  # a signal: stop the whole sweep too
+            log.error("%s", exc)
+            sys.exit(exc.exit_code)
+        return _failed(run_dir, str(exc), exc.exit_code, multirun, exc)
+    except KeyboardInterrupt:  # Ctrl-C twice while the run was being built: nothing to save
+        log.error("interrupted before training started")
+        sys.exit(EXIT_SIGNAL_BASE + 2)
+    value = metrics.get("eval/episode_return")
+    return value if value is not None or not multirun else math.nan
+
+
+def _join_distributed() -> None:
+    from rlexp.launch import distributed
+
+    if not distributed.info().enabled:
+        try:
+            distributed.init_in_job()
+        except RuntimeError as exc:
+            raise ConfigError(str(exc)) from None
+
+
+def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Exception) -> float:
+    """One line; a single run exits with ``code``, a sweep job records it and returns NaN."""
+    from rlexp.rundir import RunDirBusy
+
+    log.error("%s", message)
+    if not multirun:
+        sys.exit(code)
+    state = read_status(run_dir).get("state")
+    if not isinstance(exc, RunDirBusy) and state in (None, "failed"):  # never another run's status
+        try:
+            write_status(run_dir, "failed", 0, reason=message, exit_code=code)
+        except OSError as err:
+            log.error("could not record the failure in %s: %s", run_dir, err)
+    return math.nan
 
 
 def main() -> None:
-    """``python train.py [--distributed] [overrides]``: compose ``conf/`` with Hydra and train."""
+    """``python train.py [--distributed] [overrides]``: check the command line, then compose
+    ``conf/`` with Hydra and train."""
+    from rlexp.config.precheck import precheck
     from rlexp.launch import distributed
 
     register_configs()
@@ -309,12 +439,16 @@ def main() -> None:
     if wanted and any(a in ("-m", "--multirun") for a in rest):
         # A sweep: the launcher's jobs start the ranks (SLURM tasks_per_node); each job joins its group.
         os.environ["RLEXP_DISTRIBUTED"] = "1"
-        sys.argv = [sys.argv[0], *rest]
     elif wanted:
         try:
             rest = distributed.init(rest)
         except RuntimeError as exc:
             print(f"error: {exc}", file=sys.stderr)
-            sys.exit(2)
-        sys.argv = [sys.argv[0], *rest]
+            sys.exit(EXIT_CONFIG)
+    try:
+        _PRECHECKED["config"] = precheck(rest, CONF_DIR)
+    except ConfigError as exc:
+        print(f"config error: {exc}", file=sys.stderr)
+        sys.exit(EXIT_CONFIG)
+    sys.argv = [sys.argv[0], *rest]
     hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")(_task)()

@@ -93,20 +93,65 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> Path:
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """Load a checkpoint file (``weights_only=True``), or the newest one in a run/checkpoint dir."""
     p = Path(path)
-    if p.is_dir():
-        p = latest_checkpoint(p)
-    if not p.is_file():
-        raise FileNotFoundError(f"checkpoint {str(p)!r} does not exist")
+    try:
+        if p.is_dir():
+            p = latest_checkpoint(p)
+        if not p.is_file():
+            raise FileNotFoundError(f"checkpoint {str(p)!r} does not exist")
+    except OSError as exc:  # a symlink loop, a path too long, no permission
+        if isinstance(exc, FileNotFoundError) and exc.args and "does not exist" in str(exc):
+            raise
+        raise FileNotFoundError(
+            f"checkpoint {str(p)!r} cannot be read: {exc.strerror or exc}"
+        ) from None
     try:
         ckpt = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ValueError(
-            f"checkpoint {str(p)!r} is unreadable (truncated or corrupt?): {exc}"
-        ) from exc
+            f"checkpoint {str(p)!r} is unreadable (truncated, corrupt or not a weights-only "
+            f"checkpoint): {first}"
+        ) from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ValueError(f"{str(p)!r} is not an rlexp checkpoint (format {FORMAT!r})")
+    step = ckpt.get("global_step")
+    if not isinstance(step, int) or isinstance(step, bool) or step < 0:
+        raise ValueError(f"checkpoint {str(p)!r} has global_step={step!r}; expected an int >= 0")
+    for key in ("policy", "algorithm", "config"):
+        if not isinstance(ckpt.get(key), dict):
+            raise ValueError(
+                f"checkpoint {str(p)!r} has no {key!r} section: not a complete rlexp checkpoint"
+            )
     ckpt["path"] = str(p)
     return ckpt
+
+
+def check_checkpoint_fits(ckpt: dict[str, Any], config: Any, policy: torch.nn.Module) -> None:
+    """``ValueError`` naming the part that differs when ``ckpt`` cannot continue ``config``: another
+    env (name, backend, native task) or policy shapes that do not match (``policy`` is loaded)."""
+    saved_env = ckpt["config"].get("env") or {}
+    env = config.env
+    mine = {"env.name": env.name, "env.backend": env.backend}
+    theirs = {"env.name": saved_env.get("name"), "env.backend": saved_env.get("backend")}
+    if env.native is not None:
+        mine["env.native.task"] = env.native.task
+        theirs["env.native.task"] = (saved_env.get("native") or {}).get("task")
+    for key, value in mine.items():
+        if theirs[key] != value:
+            raise ValueError(
+                f"the checkpoint is of {key}={theirs[key]!r}, this run has {key}={value!r}"
+            )
+    try:
+        policy.load_state_dict(ckpt["policy"])
+    except (RuntimeError, KeyError, TypeError) as exc:
+        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+        detail = next(
+            (ln for ln in lines if ln.startswith(("size mismatch", "Missing", "Unexpected"))),
+            lines[-1] if lines else "",
+        )
+        raise ValueError(
+            f"the checkpoint's policy does not fit this config's policy ({detail})"
+        ) from None
 
 
 def checkpoint_path(ckpt_dir: Path, exp_name: str, global_step: int) -> Path:
@@ -142,6 +187,9 @@ def latest_good_checkpoint(directory: Path) -> dict[str, Any] | None:
 
 def prune_checkpoints(directory: Path, keep_last: int) -> None:
     """Delete all but the newest ``keep_last`` step checkpoints (``keep_last <= 0``: keep all)."""
+    for tmp in directory.glob(".*.tmp-*"):  # left by a write that a kill interrupted
+        if not tmp.name.endswith(f"-{os.getpid()}"):
+            tmp.unlink(missing_ok=True)
     if keep_last <= 0:
         return
     for path in step_checkpoints(directory)[:-keep_last]:

@@ -96,6 +96,7 @@ class Trainer:
         config_dict: dict[str, Any],
         versions: dict[str, str] | None = None,
         dist: DistInfo | None = None,
+        eval_seed: int = 0,
     ) -> None:
         self.cfg = cfg
         self.policy = policy
@@ -110,6 +111,7 @@ class Trainer:
         self.config_dict = config_dict
         self.versions = dict(versions or {})
         self.dist = dist or DistInfo()  # rank / world size; rank 0 alone logs, evaluates and saves
+        self.eval_seed = eval_seed  # every eval round starts fresh episodes from this seed
         self.global_step = 0
         self.ret_window: deque[float] = deque(maxlen=100)
         self.len_window: deque[int] = deque(maxlen=100)
@@ -261,6 +263,9 @@ class Trainer:
             events.fire("interval", self._ctx(env, tensordict=td))
 
         policy = self.policy.sampling_policy(deterministic=True)
+        # Fresh episodes from the same seed every round: rounds compare like with like, and a resumed
+        # run evaluates exactly as an uninterrupted one (no eval episode spans two rounds).
+        env.set_seed(self.eval_seed)
         with one_torch_thread():
             metrics = run_episodes(env, policy, self.cfg.eval_episodes, on_step, on_reset)
         episodes = int(metrics.pop("eval/episodes"))
@@ -304,11 +309,10 @@ class Trainer:
     # -- state ---------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         """Everything a bit-exact continuation needs (see docs/checkpoints.md)."""
-        envs = {}
-        for name, env in (("train", self.env), ("eval", self.eval_env)):
-            base = _base_env(env)
-            if base is not None and hasattr(base, "env_state"):
-                envs[name] = base.env_state()
+        envs = {}  # the training envs mid-episode; eval rounds start from fresh resets
+        base = _base_env(self.env)
+        if base is not None and hasattr(base, "env_state"):
+            envs["train"] = base.env_state()
         return {
             "global_step": self.global_step,
             "policy": self.policy.state_dict(),
@@ -342,12 +346,10 @@ class Trainer:
         if len(w.get("running_return", ())) == self._num_envs:
             self._ep_ret[:] = np.asarray(w["running_return"])
             self._ep_len[:] = np.asarray(w["running_length"])
-        for name, env in (("train", self.env), ("eval", self.eval_env)):
-            base = _base_env(env)
-            if not self.dist.is_main:
-                break  # the checkpoint holds rank 0's envs; other ranks continue with fresh episodes
-            if base is not None and name in sd.get("envs", {}) and hasattr(base, "load_env_state"):
-                base.load_env_state(sd["envs"][name])
+        base = _base_env(self.env)
+        # The checkpoint holds rank 0's envs; other ranks continue with fresh episodes.
+        if self.dist.is_main and "train" in sd.get("envs", {}) and hasattr(base, "load_env_state"):
+            base.load_env_state(sd["envs"]["train"])
         self.event_manager.load_state_dict(sd["events"]["train"], self.env)
         self.eval_event_manager.load_state_dict(sd["events"]["eval"], self.eval_env)
         self.last_eval = dict(sd.get("last_eval", {}))

@@ -5,6 +5,10 @@ Below the entry point no code reads a DictConfig: it gets a ``RootConfig`` and i
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
+import math
+import re
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -20,6 +24,7 @@ def to_root_config(cfg: DictConfig | dict[str, Any]) -> RootConfig:
     """Typed, validated config from Hydra's composed config (or a plain dict, e.g. a checkpoint's)."""
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.merge(OmegaConf.structured(RootConfig), cfg)
+    check_known_keys(cfg)
     config = OmegaConf.to_object(cfg)
     if not isinstance(config, RootConfig):
         raise ConfigError("the composed config does not use the rlexp_schema root schema")
@@ -43,9 +48,82 @@ def total_frames(config: RootConfig, world_size: int = 1) -> int:
     )
 
 
+#: Every name a run writes into a file name: a single safe path component (no "/", no "..").
+SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._=+-]*")
+MAX_NAME = 128  # checkpoint names add ~20 characters; file systems allow 255
+#: Seeds are used with numpy's legacy seeding and added to per-rank / eval offsets.
+MAX_SEED = 2**31 - 1
+DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")
+#: Activation names the MLP builder accepts (rlexp.policies.actor_critic.ACTIVATIONS; a test keeps
+#: the two in step). Here so that a typo fails before torch is imported.
+ACTIVATIONS = ("elu", "gelu", "relu", "silu", "swish", "tanh")
+#: Typed float fields that may be infinite (every other float must be finite).
+INFINITE_OK: tuple[str, ...] = ()
+
+
+def check_known_keys(cfg: DictConfig, prefix: str = "") -> None:
+    """Keys that the schema does not have: ``+trainer.foo=1`` (Hydra adds it past the schema, and
+    ``to_object`` would drop it silently) or a key in an experiment file."""
+    obj_type = OmegaConf.get_type(cfg)
+    if dataclasses.is_dataclass(obj_type):
+        fields = [f.name for f in dataclasses.fields(obj_type)]
+        for key in cfg.keys():
+            if key not in fields:
+                where = f"{prefix}{key}"
+                close = difflib.get_close_matches(str(key), fields, n=1)
+                hint = f"; did you mean {prefix}{close[0]}?" if close else ""
+                raise ConfigError(
+                    f"{where} is not a config key (the {prefix.rstrip('.') or 'root'} section has "
+                    f"{sorted(fields)}){hint}"
+                )
+    for key in cfg.keys():
+        node = cfg._get_node(key)
+        if isinstance(node, DictConfig) and not node._is_none() and not node._is_missing():
+            check_known_keys(node, f"{prefix}{key}.")
+
+
+def _check_floats(obj: Any, where: str, typed: bool) -> None:
+    """NaN anywhere, and infinity in a typed float field, is an error naming the key."""
+    if isinstance(obj, float):
+        if math.isnan(obj) or (typed and math.isinf(obj) and where not in INFINITE_OK):
+            raise ConfigError(f"{where}={obj} must be a finite number")
+    elif dataclasses.is_dataclass(obj):
+        for f in dataclasses.fields(obj):
+            _check_floats(getattr(obj, f.name), f"{where}.{f.name}".lstrip("."), True)
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            _check_floats(v, f"{where}.{k}", False)
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            _check_floats(v, f"{where}[{i}]", False)
+
+
+def check_name(key: str, value: str) -> None:
+    """``value`` becomes part of a file name: one safe path component, of a sane length."""
+    if not isinstance(value, str) or not SAFE_NAME.fullmatch(value) or ".." in value:
+        raise ConfigError(
+            f"{key}={value!r} is not a safe file name: use letters, digits and . _ = + - "
+            "(starting with a letter or digit, no '/' or '..')"
+        )
+    if len(value) > MAX_NAME:
+        raise ConfigError(f"{key} is {len(value)} characters long; at most {MAX_NAME}")
+
+
 def validate(config: RootConfig) -> None:
     """Cross-field rules that a schema alone cannot express."""
     t, e, a = config.trainer, config.env, config.algorithm
+    _check_floats(config, "", True)
+    check_name("trainer.exp_name", t.exp_name)
+    if not 0 <= config.seed <= MAX_SEED:
+        raise ConfigError(f"seed={config.seed} must be in [0, {MAX_SEED}]")
+    for part in ("actor", "critic"):
+        act = getattr(config.policy, part).activation
+        if act not in ACTIVATIONS:
+            close = difflib.get_close_matches(act, ACTIVATIONS, n=1)
+            raise ConfigError(
+                f"policy.{part}.activation={act!r}; choose from {list(ACTIVATIONS)}"
+                + (f"; did you mean {close[0]!r}?" if close else "")
+            )
     if e.num_envs < 1:
         raise ConfigError(f"env.num_envs={e.num_envs} must be >= 1")
     if e.num_eval_envs < 0:
@@ -77,10 +155,16 @@ def validate(config: RootConfig) -> None:
         raise ConfigError(f"algorithm.lr={a.lr} must be > 0")
     if str(a.compile).strip().lower() not in ("auto", "true", "false"):
         raise ConfigError(f"algorithm.compile={a.compile!r}; choose auto, true or false")
-    if t.device != "auto" and not (t.device == "cpu" or t.device.startswith("cuda")):
+    if not DEVICE.fullmatch(t.device):
         raise ConfigError(f"trainer.device={t.device!r}; choose auto, cpu, cuda or cuda:N")
     if t.torch_threads < 1:
         raise ConfigError(f"trainer.torch_threads={t.torch_threads} must be >= 1")
+    for key in ("eval_every", "save_every", "eval_episodes"):
+        if getattr(t, key) < 0:
+            raise ConfigError(f"trainer.{key}={getattr(t, key)} must be >= 0 (0: off)")
+    if t.log_every < 1:
+        raise ConfigError(f"trainer.log_every={t.log_every} must be >= 1 (iterations)")
+    _check_events(config)
     from rlexp.envs.factory import BACKENDS
 
     if e.backend not in BACKENDS:
@@ -89,3 +173,18 @@ def validate(config: RootConfig) -> None:
         raise ConfigError(
             f"env.backend=native needs env.native (env.name={e.name!r}); use env=push_cube or env=cart_pole"
         )
+
+
+def _check_events(config: RootConfig) -> None:
+    """Every event names a known function and mode (the registry imports torch: only when used)."""
+    events = {"events.train": config.events.train, "events.eval": config.events.eval}
+    if not any(events.values()):
+        return
+    from rlexp.events.manager import check_event
+
+    for where, group in events.items():
+        for name, ev in group.items():
+            try:
+                check_event(ev, f"{where}.{name}")
+            except (ValueError, KeyError, TypeError) as exc:
+                raise ConfigError(str(exc.args[0] if exc.args else exc)) from None

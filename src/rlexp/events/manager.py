@@ -95,6 +95,18 @@ def resolve_event_func(name: str, where: str) -> Callable[..., Any]:
     )
 
 
+def check_event(ev: EventTermConfig, where: str) -> Callable[..., Any]:
+    """The event's function, after checking its name and mode (``where``: its dotted config key)."""
+    func = resolve_event_func(ev.func, where)
+    if ev.mode not in MODES:
+        raise ValueError(
+            f"{where}.mode={ev.mode!r} is not a mode" + _choices_hint(ev.mode, list(MODES))
+        )
+    if ev.mode == "interval" and ev.interval_step < 1:
+        raise ValueError(f"{where}.interval_step={ev.interval_step} must be >= 1")
+    return func
+
+
 class EventManager:
     """Fires the configured events, in config order, with per-event counters and one RNG."""
 
@@ -102,14 +114,7 @@ class EventManager:
         self.where = where
         self.events: list[tuple[str, EventTermConfig, Callable[..., Any]]] = []
         for name, ev in events.items():
-            func = resolve_event_func(ev.func, f"{where}.{name}")
-            if ev.mode not in MODES:
-                raise ValueError(
-                    f"{where}.{name}.mode={ev.mode!r} is not a mode"
-                    + _choices_hint(ev.mode, list(MODES))
-                )
-            if ev.mode == "interval" and ev.interval_step < 1:
-                raise ValueError(f"{where}.{name}.interval_step={ev.interval_step} must be >= 1")
+            func = check_event(ev, f"{where}.{name}")
             if isinstance(func, type):
                 func = func()
             self.events.append((name, ev, func))

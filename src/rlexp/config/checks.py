@@ -1,0 +1,72 @@
+"""Checks that need the libraries: build the env, policy and event managers once, and read the
+checkpoint given to ``trainer.resume``, so that a config that cannot run fails before anything is
+written (``python train.py``: before Hydra creates the run dir; in a sweep: before the job writes).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from rlexp.config.schema import RootConfig
+from rlexp.config.validate import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+def _msg(exc: BaseException) -> str:
+    text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def check_buildable(config: RootConfig) -> None:
+    """Build one env copy, the policy and the event managers; check a resume checkpoint against them."""
+    from rlexp.envs.factory import make_env
+    from rlexp.events import EventManager
+    from rlexp.policies.actor_critic import make_policy
+
+    e = config.env
+    try:
+        env = make_env(e, 1, config.seed)
+    except ConfigError:
+        raise
+    except Exception as exc:
+        msg = _msg(exc)
+        if not msg.startswith("env."):
+            msg = f"env.name={e.name!r} (env.backend={e.backend}) cannot be built: {msg}"
+        raise ConfigError(msg) from None
+    try:
+        obs_dim = int(env.observation_spec["observation"].shape[-1])
+        act_dim = int(env.action_spec.shape[-1])
+        policy = make_policy(
+            config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
+            e.clip_observations,
+        )  # fmt: skip
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(_msg(exc)) from None
+    finally:
+        env.close()
+    try:
+        EventManager(config.events.train, "events.train")
+        EventManager(config.events.eval, "events.eval")
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(_msg(exc)) from None
+    if config.trainer.resume not in ("auto", "never", ""):
+        check_resume_checkpoint(config, policy)
+
+
+def check_resume_checkpoint(config: RootConfig, policy: Any) -> dict[str, Any]:
+    """Load ``trainer.resume`` and check it fits this run: an rlexp checkpoint of the same env whose
+    policy loads into this policy; returns it."""
+    from rlexp.checkpoint import check_checkpoint_fits, load_checkpoint
+
+    where = f"trainer.resume={config.trainer.resume!r}"
+    try:
+        ckpt = load_checkpoint(config.trainer.resume)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{where}: {_msg(exc)}") from None
+    try:
+        check_checkpoint_fits(ckpt, config, policy)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {_msg(exc)}") from None
+    return ckpt

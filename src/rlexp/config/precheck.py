@@ -1,0 +1,193 @@
+"""The command line, checked before Hydra creates a run dir: one line and exit 2 for a bad input.
+
+``python train.py`` composes ``conf/`` here first, with the same overrides Hydra will use: an
+unknown key ("did you mean"), a misspelled group option, a key that ``+`` would add past the typed
+schema, a value the validation refuses, or a config that cannot be built (unknown env, activation,
+event, a resume checkpoint that does not fit) fails now, before anything is written. In a sweep
+(``-m``) the keys and options of every override are checked; the values of sweep overrides are
+checked by each job, and a job that fails records it in its own dir (docs/faults.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import typing
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from rlexp.config.schema import RootConfig
+from rlexp.config.validate import ConfigError
+
+#: Hydra flags after which rlexp leaves the command line to Hydra alone (it prints, not runs, or it
+#: composes from another config dir).
+_HYDRA_ONLY = ("help", "hydra_help", "cfg", "info", "shell_completion", "config_path",
+               "config_name", "config_dir", "experimental_rerun")  # fmt: skip
+
+
+def _unwrap(tp: Any) -> Any:
+    """``X | None`` -> ``X``."""
+    args = [a for a in typing.get_args(tp) if a is not type(None)]
+    if typing.get_origin(tp) in (typing.Union, getattr(__import__("types"), "UnionType", None)):
+        return args[0] if len(args) == 1 else Any
+    return tp
+
+
+def check_key(key: str, add: bool = False) -> None:
+    """``key`` (dotted) must name a field of the typed schema; below a free dict anything goes."""
+    tp: Any = RootConfig
+    parts = key.split(".")
+    for i, part in enumerate(parts):
+        where = ".".join(parts[: i + 1])
+        tp = _unwrap(tp)
+        if dataclasses.is_dataclass(tp):
+            hints = typing.get_type_hints(tp)
+            if part not in hints:
+                section = ".".join(parts[:i]) or "the root"
+                close = difflib.get_close_matches(part, list(hints), n=1)
+                hint = f"; did you mean {'.'.join([*parts[:i], close[0]])}?" if close else ""
+                extra = " ('+' adds keys only below free dicts such as env.kwargs)" if add else ""
+                raise ConfigError(
+                    f"{where} is not a config key ({section} has {sorted(hints)}){hint}{extra}"
+                )
+            tp = hints[part]
+        elif typing.get_origin(tp) is dict:
+            tp = typing.get_args(tp)[1]  # a free name (an event, a kwarg): its value's type next
+        elif tp is Any or typing.get_origin(tp) is list:
+            return
+        else:
+            raise ConfigError(f"{'.'.join(parts[:i])} is a value, not a section: cannot set {key}")
+
+
+def _check_option(loader: Any, group: str, option: str) -> None:
+    options = [o for o in loader.get_group_options(group) if not o.endswith("_schema")]
+    if option in options:
+        return
+    close = difflib.get_close_matches(option, options, n=1)
+    raise ConfigError(
+        f"{group}={option} is not an option of {group}; choose from {options}"
+        + (f"; did you mean {group}={close[0]}?" if close else "")
+    )
+
+
+def check_overrides(overrides: Sequence[str], loader: Any) -> list[str]:
+    """Check every override's key (or group option); return the overrides to compose with (sweep
+    overrides replaced by their first value where Hydra can enumerate them, else left out)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    except HydraException as exc:
+        raise ConfigError(str(exc).strip().splitlines()[0]) from None
+    compose_with = []
+    for o in parsed:
+        key = o.key_or_group
+        if key.startswith("hydra") or o.package is not None:
+            compose_with.append(o.input_line)
+            continue
+        values: list[Any] = []
+        if o.is_sweep_override():
+            try:
+                values = list(o.sweep_string_iterator())
+            except HydraException:  # interval sweeps (Optuna): keys are checked, values by the jobs
+                values = []
+        elif not o.is_delete():
+            values = [o.value()]
+        if loader.repository.group_exists(key):
+            for value in values:
+                for option in value if isinstance(value, list) else [value]:
+                    _check_option(loader, key, str(option))
+        elif not o.is_delete():
+            check_key(key, add=o.is_add())
+        if o.is_sweep_override():
+            if values:
+                prefix = "+" if o.is_add() else ""
+                compose_with.append(f"{prefix}{key}={_quote(values[0])}")
+        else:
+            compose_with.append(o.input_line)
+    return compose_with
+
+
+def _quote(value: Any) -> str:
+    text = str(value)
+    return text if text.replace(".", "").replace("-", "").replace("_", "").isalnum() else repr(text)
+
+
+def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
+    """Check the command line of ``python train.py``; the validated config in a single run, None in
+    a sweep or when Hydra alone handles the command (``--cfg``, ``--help``, ``-cd``...)."""
+    from hydra import compose, initialize_config_dir
+    from hydra._internal.utils import get_args_parser
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf import open_dict
+    from omegaconf.errors import OmegaConfBaseException
+
+    from rlexp.config.schema import register_configs
+    from rlexp.config.validate import to_root_config
+
+    try:
+        args = get_args_parser().parse_args(list(argv))
+    except SystemExit:
+        return None  # argparse's own message; Hydra prints it again
+    if any(getattr(args, name, None) for name in _HYDRA_ONLY):
+        return None
+    register_configs()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
+            loader = GlobalHydra.instance().config_loader()
+            overrides = check_overrides(args.overrides, loader)
+            cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)
+        run_dir = _run_dir(cfg)
+        with open_dict(cfg):
+            del cfg["hydra"]
+        if args.multirun:
+            from omegaconf import OmegaConf
+
+            from rlexp.config.validate import check_known_keys
+
+            check_known_keys(OmegaConf.merge(OmegaConf.structured(RootConfig), cfg))
+            return None
+        config = to_root_config(cfg)
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(_first_line(exc)) from None
+    finally:
+        GlobalHydra.instance().clear()
+    from rlexp.config.checks import check_buildable
+
+    check_buildable(config)
+    if run_dir is not None and run_dir.is_dir():  # before Hydra writes .hydra/ and its log there
+        from rlexp.config.validate import to_dict
+        from rlexp.rundir import RunDirLock, check_same_experiment
+
+        RunDirLock(run_dir).check()
+        if config.trainer.resume == "auto":
+            check_same_experiment(run_dir, to_dict(config))
+    return config
+
+
+def _run_dir(cfg: Any) -> Path | None:
+    """``hydra.run.dir`` as this command would resolve it (None where it can't be resolved here)."""
+    from omegaconf import OmegaConf
+
+    try:
+        return Path(str(OmegaConf.select(cfg, "hydra.run.dir", throw_on_resolution_failure=True)))
+    except Exception:
+        return None
+
+
+def _first_line(exc: BaseException) -> str:
+    """Hydra's message, and the cause it wraps (``Error merging override X`` says not why)."""
+    parts = []
+    while exc is not None and len(parts) < 3:
+        lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
+        lines = [
+            ln for ln in lines if not ln.startswith(("full_key:", "object_type", "reference_type"))
+        ]
+        if lines and lines[0] not in parts:
+            parts.append(lines[0])
+        exc = exc.__cause__ or exc.__context__
+    return ": ".join(parts) if parts else "invalid config"

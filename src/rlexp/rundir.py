@@ -1,0 +1,207 @@
+"""A run dir: one run at a time (a lock), ``status.json``, and the checks before a run writes in it.
+
+A run takes an exclusive ``fcntl.flock`` on ``<run_dir>/.rlexp.lock`` for its whole life. The kernel
+drops the lock when the process dies (SIGKILL, a node crash on the same host, a SLURM requeue), so a
+lock file left behind never blocks a resume; a second live run on the same dir is refused with the
+holder's PID, host and start time. The lock file stays (removing it would race with a new holder).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import socket
+import time
+from pathlib import Path
+from typing import Any
+
+from rlexp.config.validate import ConfigError
+
+log = logging.getLogger(__name__)
+
+LOCK_NAME = ".rlexp.lock"
+#: Exit codes of ``python train.py`` (docs/faults.md).
+EXIT_FAILED = 1  # training started and failed (status.json: failed, with the reason)
+EXIT_CONFIG = 2  # bad config or command line, or a busy run dir: nothing was trained
+EXIT_NONFINITE = 3  # the NaN guard stopped the run (status.json: failed)
+#: Interrupted by a signal after saving a checkpoint: 128 + the signal number (130 SIGINT, 143
+#: SIGTERM, 129 SIGHUP), as a shell expects from a process that a signal ended.
+EXIT_SIGNAL_BASE = 128
+
+
+class RunDirBusy(ConfigError):
+    """Another live process holds the run dir's lock."""
+
+
+class RunDirLock:
+    """Exclusive lock on a run dir for the life of one run (``with RunDirLock(dir): ...``)."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.run_dir = Path(run_dir)
+        self.path = self.run_dir / LOCK_NAME
+        self._fd: int | None = None
+
+    def acquire(self) -> RunDirLock:
+        """Take the lock or raise ``RunDirBusy`` naming the holder; creates the dir if needed."""
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = _read_holder(fd)
+            os.close(fd)
+            raise RunDirBusy(
+                f"run dir {self.run_dir} is in use by another run ({holder}); wait for it to end, "
+                "or use another hydra.run.dir"
+            ) from None
+        info = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        }
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (json.dumps(info) + "\n").encode(), 0)
+        self._fd = fd
+        return self
+
+    def check(self) -> None:
+        """Raise ``RunDirBusy`` if a live run holds the lock now (takes and drops it at once)."""
+        if not self.path.is_file():
+            return
+        self.acquire()
+        self.release()
+
+    def release(self) -> None:
+        """Drop the lock (idempotent)."""
+        if self._fd is None:
+            return
+        try:
+            os.ftruncate(self._fd, 0)
+        except OSError:
+            pass
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
+        os.close(self._fd)
+        self._fd = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def __enter__(self) -> RunDirLock:
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def _read_holder(fd: int) -> str:
+    try:
+        info = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+        return f"PID {info['pid']} on host {info['host']}, since {info['started']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "holder unknown"
+
+
+def read_status(run_dir: Path) -> dict[str, Any]:
+    """``status.json`` of a run dir ({} when there is none or it is not a JSON object)."""
+    try:
+        status = json.loads((Path(run_dir) / "status.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return status if isinstance(status, dict) else {}
+
+
+def write_status(
+    run_dir: Path, state: str, global_step: int, final_eval: dict | None = None, **extra: Any
+) -> None:
+    """``status.json``: running | finished | interrupted | stopped | failed, the step and the last eval
+    (what sweeps and ``rlexp report`` read to tell finished jobs from unfinished ones). Rank 0 only."""
+    from rlexp.launch.distributed import info
+
+    if not info().is_main:
+        return
+    status = {
+        "state": state,
+        "global_step": global_step,
+        "final_eval": final_eval or {},
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "pid": os.getpid(),
+        "host": socket.gethostname(),
+        **extra,
+    }
+    run_dir = Path(run_dir)
+    tmp = run_dir / f".status.json.tmp-{os.getpid()}"
+    tmp.write_text(json.dumps(status, indent=2) + "\n")
+    os.replace(tmp, run_dir / "status.json")
+
+
+def clean_temp_files(run_dir: Path) -> list[Path]:
+    """Remove temporary files a killed write left (checkpoints, status); call with the lock held."""
+    run_dir = Path(run_dir)
+    removed = []
+    for pattern in (".*.tmp-*", "checkpoints/.*.tmp-*", ".status.json.tmp*"):
+        for path in run_dir.glob(pattern):
+            try:
+                path.unlink()
+                removed.append(path)
+            except FileNotFoundError:
+                pass
+    if removed:
+        log.info("removed %d temporary file(s) left by an interrupted write", len(removed))
+    return removed
+
+
+#: Keys a continuation may change: the budget (train longer), how to resume, the device, the console.
+RESUME_MAY_CHANGE = (
+    "trainer.total_frames",
+    "trainer.iterations",
+    "trainer.resume",
+    "trainer.device",
+    "trainer.progress",
+    "trainer.strict_device",
+    "algorithm.compile",  # how the loss runs, not what it computes
+)
+
+
+def config_differences(
+    a: dict[str, Any], b: dict[str, Any], ignore: tuple[str, ...] = (), prefix: str = ""
+) -> list[str]:
+    """Dotted keys whose values differ between two plain config dicts."""
+    out = []
+    for key in sorted(set(a) | set(b)):
+        path = f"{prefix}{key}"
+        if path in ignore:
+            continue
+        va, vb = a.get(key), b.get(key)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += config_differences(va, vb, ignore, path + ".")
+        elif va != vb:
+            out.append(path)
+    return out
+
+
+def check_same_experiment(run_dir: Path, config_dict: dict[str, Any]) -> None:
+    """A dir that holds a checkpoint holds an experiment: continuing there with another config would
+    mix two runs. A dir with a ``config.yaml`` but no checkpoint (a run that failed before training)
+    holds nothing yet and takes the corrected config."""
+    from omegaconf import OmegaConf
+
+    from rlexp.checkpoint import step_checkpoints
+
+    saved_path = Path(run_dir) / "config.yaml"
+    if not saved_path.is_file() or not step_checkpoints(Path(run_dir) / "checkpoints"):
+        return
+    try:
+        saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=False)
+    except Exception as exc:  # a damaged config.yaml: say so rather than guess
+        raise ConfigError(f"{saved_path} is unreadable ({exc}); move the run dir aside") from None
+    if not isinstance(saved, dict):
+        raise ConfigError(f"{saved_path} is not a config mapping; move the run dir aside")
+    diffs = config_differences(saved, config_dict, ignore=RESUME_MAY_CHANGE)
+    if diffs:
+        raise ConfigError(
+            f"run dir {run_dir} holds a different experiment (differs in {', '.join(diffs)}); "
+            "use a new hydra.run.dir / hydra.sweep.dir, or trainer.resume=never to start over there"
+        )
