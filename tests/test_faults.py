@@ -25,6 +25,7 @@ LONG = [
     "trainer.save_every=0",
     "trainer.eval_every=0",
     "algorithm.num_epochs=2",
+    "algorithm.compile=false",  # auto would compile for a budget this long
 ]
 
 
