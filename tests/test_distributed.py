@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from conftest import REPO, only_run_dir, run_train
@@ -115,3 +117,85 @@ def test_distributed_without_a_launcher_is_one_clear_error(tmp_path):
     )
     assert proc.returncode == 2 and "torchrun --nproc_per_node" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def _two_ranks(
+    args: list[str], rank1_args: list[str], cwd, timeout: float = 120
+) -> list[subprocess.CompletedProcess]:
+    """Ranks 0 and 1 as two plain processes (no torchrun, which would kill the second when the
+    first fails): each one's exit code is its own, and a rank left blocked shows as a timeout."""
+    import socket
+    import time
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    procs = []
+    for rank, extra in ((0, []), (1, rank1_args)):
+        env = {
+            **os.environ,
+            "PYTHONPATH": str(REPO / "src"),
+            "OMP_NUM_THREADS": "1",
+            "RANK": str(rank),
+            "LOCAL_RANK": str(rank),
+            "WORLD_SIZE": "2",
+            "MASTER_ADDR": "127.0.0.1",
+            "MASTER_PORT": str(port),
+        }
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, str(REPO / "train.py"), "--distributed", *args, *extra],
+                cwd=cwd,
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
+        )
+    deadline = time.monotonic() + timeout
+    done = []
+    try:
+        for rank, proc in enumerate(procs):
+            try:
+                out, _ = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                raise AssertionError(f"rank {rank} still running after {timeout} s") from None
+            done.append(subprocess.CompletedProcess(proc.args, proc.returncode, out, ""))
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    return done
+
+
+# Swimmer-v5's control-cost weight is a gymnasium.make kwarg, given to rank 1 only: 1e300 gives it an
+# infinite reward (caught in the rollout), -1e30 a finite one whose squared value error overflows
+# (caught in the PPO update). Rank 1's config differs from rank 0's, so no rank resumes a run dir.
+@pytest.mark.parametrize(
+    ("weight", "reason"),
+    [
+        ("1e300", "non-finite next/reward from the env on rank 1 at step 512"),
+        ("-1e30", "non-finite loss (loss_critic on rank 1) in PPO update (epoch 0, minibatch 0)"),
+    ],
+    ids=["rollout", "update"],
+)
+def test_nan_on_one_rank_stops_both_ranks_with_the_nan_guard_error(tmp_path, weight, reason):
+    run_dir = tmp_path / "run"
+    args = [
+        "env=swimmer",
+        "trainer.total_frames=1024",
+        "trainer.frames_per_batch=256",
+        "trainer.eval_every=0",
+        "trainer.save_every=0",
+        "algorithm.num_epochs=1",
+        "trainer.resume=never",
+        f"hydra.run.dir={run_dir}",
+    ]
+    ranks = _two_ranks(args, [f"+env.kwargs.ctrl_cost_weight={weight}"], cwd=tmp_path)
+    for rank, proc in enumerate(ranks):
+        assert proc.returncode == 3, f"rank {rank} exited {proc.returncode}:\n{proc.stdout[-3000:]}"
+        assert reason in proc.stdout, f"rank {rank}:\n{proc.stdout[-3000:]}"
+        assert "Traceback" not in proc.stdout, f"rank {rank}:\n{proc.stdout[-3000:]}"
+    status = json.loads((run_dir / "status.json").read_text())
+    assert status["state"] == "failed" and status["reason"].startswith(reason), status

@@ -94,7 +94,9 @@ class PPO:
             log_explained_variance=False,  # not logged: two variances per minibatch saved
         )
         self.loss.set_keys(sample_log_prob="action_log_prob")
-        self.params = [p for p in policy.parameters() if p.requires_grad]
+        named = [(n, p) for n, p in policy.named_parameters() if p.requires_grad]
+        self.param_names = [n for n, _ in named]  # for NaN-guard messages
+        self.params = [p for _, p in named]
         self.optimizer = make_optimizer(self.params, cfg)
         self.compile = parse_compile(cfg.compile)
         if self.compile == "true":  # fail at build time, naming the key, not at the first update
@@ -178,23 +180,29 @@ class PPO:
                     total = total + out["loss_entropy"]
                 self.optimizer.zero_grad(set_to_none=True)
                 total.backward()
+                loss_seen = total.detach()
                 if self.grad_sync is not None:
                     for p in self.params:
                         if p.grad is None:
                             p.grad = torch.zeros_like(p)
-                    self.grad_sync([p.grad for p in self.params])
-                if self.cfg.max_grad_norm > 0:
-                    grad_norm = torch.nn.utils.clip_grad_norm_(self.params, self.cfg.max_grad_norm)
-                else:
-                    grad_norm = torch.nn.utils.get_total_norm(
-                        [p.grad for p in self.params if p.grad is not None]
-                    )
-                # A non-finite loss gives a non-finite gradient norm: one check before the step.
-                if self.nan_guard and not torch.isfinite(grad_norm + total.detach()):
-                    bad = [k for k in LOSS_KEYS if k in out.keys() and not torch.isfinite(out[k])]
-                    what = f"loss ({', '.join(bad)})" if bad else "gradient norm"
+                    # The loss rides along in the gradients' all-reduce: a non-finite loss on any
+                    # rank makes it non-finite on all, so all ranks stop together (one rank raising
+                    # alone would leave the others blocked in their next collective).
+                    loss_seen = loss_seen.reshape(1).clone()
+                    self.grad_sync([*(p.grad for p in self.params), loss_seen])
+                grad_norm = torch.nn.utils.get_total_norm(
+                    [p.grad for p in self.params if p.grad is not None]
+                )
+                # A non-finite loss gives a non-finite gradient norm: one check before the step,
+                # before clipping by a NaN norm turns every gradient into NaN.
+                if self.nan_guard and not torch.isfinite(grad_norm + loss_seen).all():
                     raise NonFiniteError(
-                        f"non-finite {what} in PPO update (epoch {epoch}, minibatch {start // mb})"
+                        f"non-finite {self._what_was_non_finite(out, loss_seen)} in PPO update "
+                        f"(epoch {epoch}, minibatch {start // mb})"
+                    )
+                if self.cfg.max_grad_norm > 0:  # = clip_grad_norm_, with the norm taken above
+                    torch.nn.utils.clip_grads_with_norm_(
+                        self.params, self.cfg.max_grad_norm, grad_norm
                     )
                 self.optimizer.step()
                 rows.append(
@@ -215,6 +223,39 @@ class PPO:
             "loss/log_std": float(self.policy.actor_net.log_std.detach().mean()),
         }
         return out
+
+    def _what_was_non_finite(self, out: TensorDictBase, loss_seen: torch.Tensor) -> str:
+        """The loss terms (and, distributed, the ranks) or the parameters whose gradients were NaN/Inf.
+
+        Distributed, every rank gets here at the same minibatch (the decision is taken on all-reduced
+        values), so the ranks can gather what each of them saw."""
+        import torch.distributed as dist
+
+        mine = [k for k in LOSS_KEYS if k in out.keys() and not torch.isfinite(out[k]).all()]
+        if self.grad_sync is not None and dist.is_available() and dist.is_initialized():
+            from rlexp.launch.distributed import all_gather_object
+
+            seen = [
+                f"{', '.join(keys)} on rank {rank}"
+                for rank, keys in enumerate(all_gather_object(mine))
+                if keys
+            ]
+            if seen:
+                return f"loss ({'; '.join(seen)})"
+        elif mine:
+            return f"loss ({', '.join(mine)})"
+        names = [
+            name
+            for name, p in zip(self.param_names, self.params, strict=True)
+            if p.grad is not None and not torch.isfinite(p.grad).all()
+        ]
+        if names:
+            shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+            averaged = " after averaging over ranks" if self.grad_sync is not None else ""
+            return f"gradient ({shown}){averaged}"
+        if not torch.isfinite(loss_seen).all():  # not here, not gathered: another rank's loss
+            return "loss on another rank"
+        return "gradient norm (the gradients are finite, their norm overflows)"
 
     def _decide_compile(self, updates: int, mb: int) -> None:
         """Turn ``torch.compile`` of the loss on or off for this run (once, at the first update)."""
