@@ -1,26 +1,108 @@
 """``rlexp`` command: ``rlexp train [overrides]``, ``rlexp eval CHECKPOINT [--episodes N]``,
-``rlexp report SWEEP_DIR``."""
+``rlexp report SWEEP_DIR``.
+
+Bad input (an option out of range, a missing or unreadable checkpoint) is one line on stderr and
+exit 2; a checkpoint whose policy weights are NaN/Inf exits 3, like a run the NaN guard stopped.
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
+import warnings
 from pathlib import Path
+from typing import Any, NoReturn
 
 log = logging.getLogger("rlexp")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line (what is wrong, where the help is), exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        print(f"{self.prog}: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
+
+
+def _at_least_1(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _one_line(exc: BaseException) -> str:
+    """The first line of an error's message, without terminal colour codes (torch adds some)."""
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def load_for_eval(path: str | Path) -> dict[str, Any]:
+    """The checkpoint file at ``path``, or a run dir's newest step checkpoint that loads: corrupt
+    newer ones are reported and skipped, as ``trainer.resume=auto`` does."""
+    from rlexp.checkpoint import load_checkpoint, step_checkpoints
+
+    # torch warns about the pickle protocol of a file it is about to refuse: noise next to the error
+    warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
+    p = Path(path)
+    if not p.is_dir():
+        return load_checkpoint(p)
+    candidates = step_checkpoints(p)
+    if not candidates:
+        raise FileNotFoundError(
+            f"no rlexp checkpoint (*_step_N.pt) in {str(p)!r} or its checkpoints/"
+        )
+    for candidate in reversed(candidates):
+        try:
+            return load_checkpoint(candidate)
+        except ValueError as exc:
+            log.warning("rlexp eval: skipped %s", _one_line(exc))
+    raise ValueError(
+        f"none of the {len(candidates)} checkpoints in {str(p)!r} can be read (each skipped above)"
+    )
+
+
+def check_policy_finite(ckpt: dict[str, Any]) -> None:
+    """NonFiniteError naming the policy tensors (normaliser statistics included) holding NaN/Inf."""
+    import torch
+
+    bad = [
+        name
+        for name, value in ckpt["policy"].items()
+        if torch.is_tensor(value) and value.is_floating_point() and not torch.isfinite(value).all()
+    ]
+    if bad:
+        from rlexp.algorithms.ppo import NonFiniteError
+
+        shown = ", ".join(bad[:3]) + (f" and {len(bad) - 3} more" if len(bad) > 3 else "")
+        raise NonFiniteError(
+            f"checkpoint {ckpt['path']!r} holds non-finite policy weights ({shown}); there is "
+            "nothing to evaluate: use an earlier checkpoint of the run"
+        )
+
+
 def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) -> dict[str, float]:
-    """Rebuild the run's env and policy from a checkpoint and evaluate it deterministically."""
+    """Rebuild the run's env and policy from a checkpoint (a file, or a run dir: its newest good
+    one) and evaluate it deterministically."""
+    if episodes < 1:
+        raise ValueError(f"episodes={episodes}; evaluate at least 1 episode")
+    if num_envs is not None and num_envs < 1:
+        raise ValueError(f"num_envs={num_envs}; use at least 1 env (None: the run's num_eval_envs)")
+    ckpt = load_for_eval(checkpoint)  # before the heavy imports: a bad path fails fast
+    check_policy_finite(ckpt)
+
     from rlexp.app import seed_everything
-    from rlexp.checkpoint import load_checkpoint
+    from rlexp.checkpoint import check_checkpoint_fits
     from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
     from rlexp.evaluation import run_episodes
     from rlexp.policies.actor_critic import make_policy
 
-    ckpt = load_checkpoint(checkpoint)
     config = to_root_config(ckpt["config"])
     e = config.env
     seed_everything(seed)
@@ -35,7 +117,7 @@ def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) ->
         e.normalize_observations,
         e.clip_observations,
     )
-    policy.load_state_dict(ckpt["policy"])
+    check_checkpoint_fits(ckpt, config, policy)  # loads the weights; ValueError if they do not fit
     metrics = run_episodes(env, policy.sampling_policy(deterministic=True), episodes)
     env.close()
     return {
@@ -54,15 +136,19 @@ def main(argv: list[str] | None = None) -> None:
 
         train_main(argv[1:])
         return
-    parser = argparse.ArgumentParser(prog="rlexp", description="rlexp experiment tools")
+    parser = _Parser(prog="rlexp", description="rlexp experiment tools")
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("train", help="train (same as python train.py; Hydra overrides follow)")
     ev = sub.add_parser(
         "eval", help="evaluate a checkpoint: mean return over N deterministic episodes"
     )
-    ev.add_argument("checkpoint", help="a checkpoint file, or a run dir (its newest checkpoint)")
-    ev.add_argument("--episodes", type=int, default=10)
-    ev.add_argument("--num-envs", type=int, default=None)
+    ev.add_argument(
+        "checkpoint", help="a checkpoint file, or a run dir (its newest readable checkpoint)"
+    )
+    ev.add_argument("--episodes", type=_at_least_1, default=10, help="episodes to run (>= 1)")
+    ev.add_argument(
+        "--num-envs", type=_at_least_1, default=None, help="eval envs (default: the run's)"
+    )
     ev.add_argument("--seed", type=int, default=12345)
     rep = sub.add_parser(
         "report", help="a sweep's per-configuration statistics: report.md, report.csv, curves.png"
@@ -71,7 +157,8 @@ def main(argv: list[str] | None = None) -> None:
     rep.add_argument("--metric", default="eval/episode_return", help="score and curve metric")
     rep.add_argument("--no-plot", action="store_true", help="skip curves.png")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    log.setLevel(logging.INFO)  # rlexp's own progress; other libraries' INFO lines stay quiet
     if args.command == "report":
         from rlexp.report import report
 
@@ -85,8 +172,11 @@ def main(argv: list[str] | None = None) -> None:
         try:
             res = evaluate(args.checkpoint, args.episodes, args.num_envs, args.seed)
         except (FileNotFoundError, ValueError) as exc:
-            print(f"rlexp eval: {exc}", file=sys.stderr)
+            print(f"rlexp eval: {_one_line(exc)}", file=sys.stderr)
             sys.exit(2)
+        except FloatingPointError as exc:  # NonFiniteError: NaN/Inf weights (not imported: slow)
+            print(f"rlexp eval: {_one_line(exc)}", file=sys.stderr)
+            sys.exit(3)
         print(
             f"checkpoint {res['path']} (step {res['global_step']}): mean return "
             f"{res['mean_return']:.3f} +- {res['std_return']:.3f} over {res['episodes']} episodes"
