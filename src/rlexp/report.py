@@ -3,8 +3,12 @@
 A configuration is a job's overrides (``.hydra/overrides.yaml``) less the seed; its seeds are the
 jobs that share it. For each configuration: the final eval return over seeds (mean +- std, and the
 interquartile mean with a 95% bootstrap confidence interval, as rliable recommends for few seeds),
-steps and training time. Jobs whose ``status.json`` is missing or not ``finished`` are listed apart,
-never silently dropped. Writes ``report.md``, ``report.csv`` and ``curves.png`` into the sweep dir.
+steps and training time. The jobs the sweep was to run come from its ``multirun.yaml`` (the basic
+sweeper's grid, Optuna's ``n_trials``): jobs whose ``status.json`` is missing or not ``finished``,
+and jobs that never started, are listed apart, never silently dropped. A file of the wrong shape (a
+torn ``metrics.jsonl`` line, a ``status.json`` that is not an object) is read as far as it goes and
+named in the report. Writes ``report.md``, ``report.csv`` and ``curves.png`` into the sweep dir; a
+sweep dir that cannot be written gets one line saying so, and the report is still returned.
 """
 
 from __future__ import annotations
@@ -14,11 +18,13 @@ import io
 import json
 import logging
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger(__name__)
 
@@ -28,6 +34,8 @@ DEFAULT_METRIC = "eval/episode_return"
 SEED_KEYS = ("seed",)
 #: Time inside the training loop per iteration (summed: requeue waits and startup don't count).
 TIME_KEYS = ("perf/collect_time", "perf/update_time", "perf/eval_time")
+#: ``hydra.sweep.subdir`` that names each job dir after its job number (conf/config.yaml).
+JOB_NUM_SUBDIR = "${hydra.job.num}"
 
 
 @dataclass
@@ -37,11 +45,12 @@ class Job:
     path: Path
     overrides: list[str]
     seed: str | None
-    state: str  # finished | running | stopped | interrupted | failed | missing
+    state: str  # finished | running | stopped | interrupted | failed | missing | unreadable
     global_step: int
     reason: str = ""
     curve: list[tuple[int, float]] = field(default_factory=list)  # (step, metric), one per step
     time_s: float = 0.0
+    problems: list[str] = field(default_factory=list)  # what in its files could not be read
 
     @property
     def final(self) -> float | None:
@@ -51,6 +60,19 @@ class Job:
     @property
     def finished(self) -> bool:
         return self.state == "finished" and self.final is not None
+
+    @property
+    def why(self) -> str:
+        """Why the job did not finish, in a few words (its ``status.json`` reason when it has one)."""
+        if self.reason:
+            return self.reason
+        if self.state == "missing":
+            return "no status.json: the job ended before training or was killed"
+        if self.state == "running":
+            return "status.json still says running: the job was killed or its node died"
+        if self.state == "unreadable":
+            return next((p for p in self.problems if p.startswith("status.json")), "status.json")
+        return f"state {self.state}"
 
 
 @dataclass
@@ -73,65 +95,309 @@ class ConfigStats:
         return sum(not j.finished for j in self.jobs)
 
 
+@dataclass(frozen=True)
+class ExpectedJob:
+    """A job that the sweep's ``multirun.yaml`` says it launches."""
+
+    num: int  # hydra.job.num
+    overrides: tuple[str, ...] | None  # None where the sweeper picks them as it goes (Optuna)
+
+    @property
+    def label(self) -> str:
+        return " ".join(self.overrides) if self.overrides is not None else "(chosen by the sweeper)"
+
+
+@dataclass
+class Plan:
+    """The jobs a sweep was to launch (None: not known), and where that number comes from."""
+
+    jobs: list[ExpectedJob] | None
+    source: str
+    numbered_dirs: bool = True  # job dirs are named by job number (hydra.sweep.subdir)
+
+
+@dataclass
+class Sweep:
+    """A sweep dir's job dirs against its plan."""
+
+    jobs: list[Job]  # every job dir found
+    plan: Plan
+    never_started: list[ExpectedJob]  # planned, no job dir
+    extra: list[Job]  # job dirs the plan does not name (an earlier sweep into the same dir)
+
+    @property
+    def planned(self) -> list[Job]:
+        """The job dirs of this sweep (all of them when the plan is unknown)."""
+        extra = {id(j) for j in self.extra}
+        return [j for j in self.jobs if id(j) not in extra]
+
+
 def _split(override: str) -> tuple[str, str]:
     key, _, value = override.partition("=")
     return key.lstrip("+~"), value
 
 
-def read_metrics(path: Path, metric: str) -> tuple[list[tuple[int, float]], float]:
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _number(value: Any) -> float | None:
+    """A JSON number as float; None for anything else (a string, a list, true/false, null)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return float(value)
+
+
+def _json_type(value: Any) -> str:
+    """The JSON name of a parsed value's type (for messages about a file's shape)."""
+    names = {dict: "object", list: "array", str: "string", bool: "boolean", type(None): "null"}
+    return names.get(type(value), "number")
+
+
+def _step(value: Any) -> int | None:
+    """A step: a whole, non-negative JSON number."""
+    x = _number(value)
+    return int(x) if x is not None and math.isfinite(x) and x >= 0 and x == int(x) else None
+
+
+def _read_text(path: Path) -> str:
+    """A file's text; bytes that are not UTF-8 (a torn write) become U+FFFD, not an error."""
+    return path.read_bytes().decode("utf-8", errors="replace")
+
+
+def read_metrics(
+    path: Path, metric: str, problems: list[str] | None = None
+) -> tuple[list[tuple[int, float]], float]:
     """``metrics.jsonl`` -> the metric's history (last row per step wins: a resumed attempt may
-    re-log steps after its checkpoint) and the summed training-loop time."""
+    re-log steps after its checkpoint) and the summed training-loop time. Lines of the wrong shape
+    (not a JSON object, no whole ``step``, a metric that is not a number) are skipped and counted
+    into ``problems``."""
     values: dict[int, float] = {}
     times: dict[int, float] = {}
     try:
-        lines = path.read_text().splitlines()
-    except OSError:
+        lines = _read_text(path).splitlines()
+    except FileNotFoundError:
         return [], 0.0
-    for line in lines:
+    except OSError as exc:
+        if problems is not None:
+            problems.append(f"{path.name}: not readable ({exc.strerror or exc})")
+        return [], 0.0
+    bad: list[tuple[int, str]] = []
+    for num, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
         try:
             row = json.loads(line)
         except ValueError:
-            continue  # a line cut short by a kill
-        step = int(row.get("step", -1))
-        if metric in row and row[metric] is not None and math.isfinite(row[metric]):
-            values[step] = float(row[metric])
+            bad.append((num, "not JSON (a line cut short by a kill?)"))
+            continue
+        if not isinstance(row, dict):
+            bad.append((num, f"a JSON {_json_type(row)}, not an object"))
+            continue
+        step = _step(row.get("step"))
+        if step is None:
+            bad.append((num, f"step {row.get('step')!r} is not a whole number"))
+            continue
+        wrong = [
+            k for k in (metric, *TIME_KEYS) if row.get(k) is not None and _number(row[k]) is None
+        ]
+        if wrong:
+            bad.append((num, f"{wrong[0]} {row[wrong[0]]!r} is not a number"))
+        value = _number(row.get(metric))
+        if value is not None and math.isfinite(value):
+            values[step] = value
         if any(k in row for k in TIME_KEYS):
-            times[step] = sum(float(row.get(k, 0.0)) for k in TIME_KEYS)
+            parts = [_number(row.get(k)) for k in TIME_KEYS]
+            times[step] = sum(p for p in parts if p is not None and math.isfinite(p))
+    if bad and problems is not None:
+        num, why = bad[0]
+        problems.append(f"{path.name}: {len(bad)} line(s) skipped (first: line {num}, {why})")
     return sorted(values.items()), float(sum(times.values()))
 
 
-def find_jobs(sweep_dir: Path, metric: str = DEFAULT_METRIC) -> list[Job]:
+def read_status(path: Path, problems: list[str]) -> dict[str, Any] | None:
+    """A job's ``status.json``: {} when there is none, None (and a problem) when it is not a JSON
+    object."""
+    try:
+        status = json.loads(_read_text(path))
+    except FileNotFoundError:
+        return {}
+    except OSError as exc:
+        problems.append(f"status.json: not readable ({exc.strerror or exc})")
+        return None
+    except ValueError:
+        problems.append("status.json: not JSON")
+        return None
+    if not isinstance(status, dict):
+        problems.append(f"status.json: a JSON {_json_type(status)}, not an object")
+        return None
+    return status
+
+
+def read_overrides(path: Path, problems: list[str]) -> list[str]:
+    """A job's ``.hydra/overrides.yaml`` (a list of ``key=value``); [] and a problem otherwise."""
+    try:
+        data = OmegaConf.to_container(OmegaConf.load(path))
+    except (
+        Exception
+    ) as exc:  # a YAML or OmegaConf error, a torn file: the report goes on without it
+        problems.append(f".hydra/overrides.yaml: not readable ({_first_line(exc)})")
+        return []
+    if data is None:
+        return []
+    if not isinstance(data, list):
+        problems.append(f".hydra/overrides.yaml: a {type(data).__name__}, not a list")
+        return []
+    return [str(o) for o in data]
+
+
+def read_job(job_dir: Path, metric: str | None) -> Job:
+    """One job dir; ``metric`` None skips ``metrics.jsonl`` (the state alone is wanted)."""
+    problems: list[str] = []
+    overrides = read_overrides(job_dir / ".hydra" / "overrides.yaml", problems)
+    seed = next((v for k, v in map(_split, overrides) if k in SEED_KEYS), None)
+    status = read_status(job_dir / "status.json", problems)
+    curve, time_s = ([], 0.0)
+    if metric is not None:
+        curve, time_s = read_metrics(job_dir / "metrics.jsonl", metric, problems)
+    if status is None:
+        state, status = "unreadable", {}
+    elif not status:
+        state = "missing"
+    elif isinstance(status.get("state"), str):
+        state = status["state"]
+    else:
+        state = "unreadable"
+        problems.append(f"status.json: state {status.get('state')!r} is not a string")
+    step = _step(status.get("global_step"))
+    if step is None:
+        if "global_step" in status:
+            problems.append(f"status.json: global_step {status['global_step']!r} is not a number")
+        step = curve[-1][0] if curve else 0
+    reason = status.get("reason") or ""
+    return Job(
+        path=job_dir,
+        overrides=overrides,
+        seed=seed,
+        state=state,
+        global_step=step,
+        reason=reason if isinstance(reason, str) else json.dumps(reason),
+        curve=curve,
+        time_s=time_s,
+        problems=problems,
+    )
+
+
+def find_jobs(sweep_dir: Path, metric: str | None = DEFAULT_METRIC) -> list[Job]:
     """Every job dir under ``sweep_dir`` (one with ``.hydra/overrides.yaml``), in job-number order."""
     jobs = []
     for ov_file in sweep_dir.rglob(".hydra/overrides.yaml"):
         job_dir = ov_file.parent.parent
-        if ".submitit" in job_dir.parts:
+        if ".submitit" in job_dir.relative_to(sweep_dir).parts:
             continue
-        overrides = [str(o) for o in (OmegaConf.to_container(OmegaConf.load(ov_file)) or [])]
-        seed = next((v for k, v in map(_split, overrides) if k in SEED_KEYS), None)
-        try:
-            status = json.loads((job_dir / "status.json").read_text())
-        except (OSError, ValueError):
-            status = {}
-        curve, time_s = read_metrics(job_dir / "metrics.jsonl", metric)
-        jobs.append(
-            Job(
-                path=job_dir,
-                overrides=overrides,
-                seed=seed,
-                state=str(status.get("state", "missing")),
-                global_step=int(status.get("global_step", curve[-1][0] if curve else 0)),
-                reason=str(status.get("reason", "")),
-                curve=curve,
-                time_s=time_s,
-            )
-        )
+        jobs.append(read_job(job_dir, metric))
 
     def order(job: Job) -> tuple:
         rel = job.path.relative_to(sweep_dir).parts
         return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in rel)
 
     return sorted(jobs, key=order)
+
+
+def _plain(cfg: DictConfig, key: str) -> Any:
+    """``cfg[key]`` as plain Python, resolved where it can be (a ``${now:}`` in a saved config
+    cannot be: then as written)."""
+    node = OmegaConf.select(cfg, key, throw_on_resolution_failure=False)
+    if not OmegaConf.is_config(node):
+        return node
+    try:
+        return OmegaConf.to_container(node, resolve=True)
+    except Exception:  # an interpolation that only resolves inside the sweep
+        return OmegaConf.to_container(node, resolve=False)
+
+
+def plan_from_config(cfg: DictConfig, config_loader: Any = None) -> Plan:
+    """The jobs a sweep launches, from its config (``multirun.yaml``): the basic sweeper's grid,
+    expanded by Hydra's own ``BasicSweeper.split_arguments`` (job N = the N-th combination); Optuna:
+    ``n_trials`` jobs. ``config_loader`` expands ``glob(...)`` over config groups."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    sweep = OmegaConf.select(cfg, "hydra.sweep")
+    raw = OmegaConf.to_container(sweep, resolve=False) if isinstance(sweep, DictConfig) else {}
+    numbered = raw.get("subdir") == JOB_NUM_SUBDIR
+    target = str(_plain(cfg, "hydra.sweeper._target_") or "")
+    if target.endswith(".BasicSweeper"):
+        params = _plain(cfg, "hydra.sweeper.params") or {}
+        task = _plain(cfg, "hydra.overrides.task") or []
+        if not isinstance(params, dict) or not isinstance(task, list):
+            return Plan(None, "hydra.sweeper.params / hydra.overrides.task are of the wrong shape")
+        lines = [f"{k}={v}" for k, v in params.items()] + [str(o) for o in task]
+        try:
+            parsed = OverridesParser.create(config_loader=config_loader).parse_overrides(lines)
+            batches = BasicSweeper.split_arguments(parsed, None)[0]
+        except Exception as exc:  # Hydra's parser: a sweep it cannot expand without the configs
+            return Plan(None, f"the sweep's overrides could not be expanded ({_first_line(exc)})")
+        jobs = [ExpectedJob(i, tuple(o)) for i, o in enumerate(batches)]
+        return Plan(jobs, "the grid of the sweep's overrides", numbered)
+    if "optuna" in target.lower():
+        n = _plain(cfg, "hydra.sweeper.n_trials")
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            return Plan(None, f"hydra.sweeper.n_trials={n!r} is not a number of trials")
+        jobs = [ExpectedJob(i, None) for i in range(n)]
+        return Plan(jobs, "hydra.sweeper.n_trials", numbered)
+    return Plan(None, f"the sweeper {target or '(none)'} does not say how many jobs it launches")
+
+
+def read_plan(sweep_dir: Path) -> Plan:
+    """The plan of the sweep in ``sweep_dir``, from its ``multirun.yaml``."""
+    path = sweep_dir / "multirun.yaml"
+    try:
+        cfg = OmegaConf.load(path)
+    except FileNotFoundError:
+        return Plan(None, "no multirun.yaml in the sweep dir")
+    except Exception as exc:  # a YAML error, a torn file: the report goes on without a plan
+        return Plan(None, f"multirun.yaml is not readable ({_first_line(exc)})")
+    if not isinstance(cfg, DictConfig):
+        return Plan(None, "multirun.yaml is not a mapping")
+    return plan_from_config(cfg)
+
+
+def match_plan(sweep_dir: Path, jobs: list[Job], plan: Plan) -> Sweep:
+    """Which planned jobs have a dir: matched by overrides (a grid: Hydra writes each job's own
+    overrides into its ``.hydra/overrides.yaml``), else by job number (the dir name)."""
+    if plan.jobs is None:
+        return Sweep(jobs, plan, [], [])
+    by_overrides: dict[tuple[str, ...], list[Job]] = {}
+    for job in jobs:
+        by_overrides.setdefault(tuple(job.overrides), []).append(job)
+    by_name = {job.path.relative_to(sweep_dir).as_posix(): job for job in jobs}
+    in_order = iter(jobs)  # other dir names: trials start in job-number order
+    never: list[ExpectedJob] = []
+    claimed: set[int] = set()
+    for expected in plan.jobs:
+        if expected.overrides is not None:
+            same = by_overrides.get(expected.overrides)
+            found = same.pop(0) if same else None
+        elif plan.numbered_dirs:
+            found = by_name.get(str(expected.num))
+        else:
+            found = next(in_order, None)
+        if found is None:
+            never.append(expected)
+        else:
+            claimed.add(id(found))
+    extra = [j for j in jobs if id(j) not in claimed]
+    return Sweep(jobs, plan, never, extra)
+
+
+def read_sweep(
+    sweep_dir: Path, metric: str | None = DEFAULT_METRIC, plan: Plan | None = None
+) -> Sweep:
+    """The job dirs of ``sweep_dir`` against ``plan`` (default: from its ``multirun.yaml``)."""
+    jobs = find_jobs(sweep_dir, metric)
+    return match_plan(sweep_dir, jobs, plan if plan is not None else read_plan(sweep_dir))
 
 
 def config_key(job: Job) -> tuple[str, ...]:
@@ -208,6 +474,11 @@ def _fmt(x: float, digits: int = 2) -> str:
     return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
 
 
+def _cell(text: str) -> str:
+    """Text for one markdown table cell (a reason may hold ``|`` or a newline)."""
+    return " ".join(str(text).split()).replace("|", "\\|")
+
+
 CSV_FIELDS = [
     "configuration",
     "n_seeds",
@@ -251,15 +522,42 @@ def to_csv(stats: list[ConfigStats]) -> str:
     return buf.getvalue()
 
 
-def to_markdown(sweep_dir: Path, jobs: list[Job], stats: list[ConfigStats], metric: str) -> str:
-    """The human-readable report: one table of configurations, one of unfinished jobs."""
+def _counts(sweep: Sweep) -> str:
+    """The first line of the report: how many jobs were expected, started, finished, failed."""
+    jobs, plan = sweep.jobs, sweep.plan
     n_done = sum(j.finished for j in jobs)
+    n_bad = len(jobs) - n_done
+    if plan.jobs is None:
+        text = (
+            f"{len(jobs)} jobs (how many the sweep was to run is not known: {plan.source}), "
+            f"{n_done} finished, {n_bad} failed or unfinished."
+        )
+    else:
+        text = (
+            f"{len(plan.jobs)} jobs expected (multirun.yaml: {plan.source}), "
+            f"{len(jobs) - len(sweep.extra)} started, {n_done} finished, "
+            f"{n_bad} failed or unfinished, {len(sweep.never_started)} never started."
+        )
+    if sweep.extra:
+        text += (
+            f" {len(sweep.extra)} job dir(s) are not among the jobs multirun.yaml lists (an "
+            "earlier sweep into the same dir?); they are reported with the others."
+        )
+    return text
+
+
+def to_markdown(sweep_dir: Path, sweep: Sweep, stats: list[ConfigStats], metric: str) -> str:
+    """The human-readable report: configurations, failed or unfinished jobs, jobs that never
+    started, and the files that could only be read in part."""
+    jobs = sweep.jobs
     lines = [
         f"# Sweep report: `{sweep_dir}`",
         "",
-        f"{len(jobs)} jobs, {n_done} finished, {len(stats)} configuration(s). Score: the last "
-        f"`{metric}` of each finished job. IQM: interquartile mean; CI: 95% percentile bootstrap "
-        "over seeds. Time: seconds inside the training loop (collect + update + eval).",
+        _counts(sweep),
+        "",
+        f"{len(stats)} configuration(s). Score: the last `{metric}` of each finished job. IQM: "
+        "interquartile mean; CI: 95% percentile bootstrap over seeds. Time: seconds inside the "
+        "training loop (collect + update + eval).",
         "",
     ]
     common = common_overrides(jobs)
@@ -281,12 +579,31 @@ def to_markdown(sweep_dir: Path, jobs: list[Job], stats: list[ConfigStats], metr
         lines += ["| job | overrides | state | step | reason |", "|---|---|---|---|---|"]
         for j in bad:
             state = j.state if j.state != "finished" else f"finished, no `{metric}` logged"
+            reason = j.why if j.state != "finished" else ""
             lines.append(
                 f"| `{j.path.relative_to(sweep_dir)}` | `{' '.join(j.overrides)}` | {state} "
-                f"| {j.global_step} | {j.reason} |"
+                f"| {j.global_step} | {_cell(reason)} |"
             )
     else:
         lines.append("None.")
+    if sweep.plan.jobs is not None:
+        lines += ["", f"## Never started ({len(sweep.never_started)})", ""]
+        if sweep.never_started:
+            lines += [
+                "Expected from multirun.yaml, but no job dir: the sweep stopped before them.",
+                "",
+                "| job | overrides |",
+                "|---|---|",
+            ]
+            lines += [f"| #{e.num} | `{e.label}` |" for e in sweep.never_started]
+        else:
+            lines.append("None.")
+    damaged = [(j, p) for j in jobs for p in j.problems]
+    if damaged:
+        lines += ["", f"## Files read in part ({len(damaged)})", ""]
+        for j, problem in damaged:
+            name, _, what = problem.partition(": ")
+            lines.append(f"- `{j.path.relative_to(sweep_dir) / name}`: {what}")
     return "\n".join(lines) + "\n"
 
 
@@ -312,7 +629,9 @@ def plot_curves(stats: list[ConfigStats], path: Path, metric: str) -> None:
             ys[i, inside] = np.interp(steps[inside], cs, cv)
         n = np.sum(~np.isnan(ys), axis=0)
         mean = np.nanmean(ys, axis=0)
-        std = np.nanstd(ys, axis=0, ddof=1) if len(curves) > 1 else np.zeros_like(mean)
+        with warnings.catch_warnings():  # a step only one seed logged: no spread (the band is 0)
+            warnings.simplefilter("ignore", RuntimeWarning)
+            std = np.nanstd(ys, axis=0, ddof=1) if len(curves) > 1 else np.zeros_like(mean)
         half = np.where(n > 1, student_t.ppf(0.975, np.maximum(n - 1, 1)) * std / np.sqrt(n), 0.0)
         (line,) = ax.plot(steps, mean, label=f"{s.label} (n={len(curves)})")
         ax.fill_between(steps, mean - half, mean + half, alpha=0.2, color=line.get_color())
@@ -328,20 +647,33 @@ def plot_curves(stats: list[ConfigStats], path: Path, metric: str) -> None:
 
 
 def report(sweep_dir: Path, metric: str = DEFAULT_METRIC, plot: bool = True) -> str:
-    """Write report.md, report.csv (and curves.png) into ``sweep_dir``; return the markdown."""
+    """Write report.md, report.csv (and curves.png) into ``sweep_dir``; return the markdown. What
+    cannot be written (a read-only sweep dir) is said in one warning; the markdown is returned."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise FileNotFoundError(f"no sweep dir {sweep_dir}")
-    jobs = find_jobs(sweep_dir, metric)
-    if not jobs:
+    sweep = read_sweep(sweep_dir, metric)
+    if not sweep.jobs and sweep.plan.jobs is None:
         raise FileNotFoundError(
-            f"no jobs under {sweep_dir} (no */.hydra/overrides.yaml): is it a multirun dir?"
+            f"no jobs under {sweep_dir} (no */.hydra/overrides.yaml) and no multirun.yaml: "
+            "is it a multirun dir?"
         )
-    stats = summarize(jobs)
-    md = to_markdown(sweep_dir, jobs, stats, metric)
-    (sweep_dir / "report.md").write_text(md)
-    (sweep_dir / "report.csv").write_text(to_csv(stats))
+    stats = summarize(sweep.jobs)
+    md = to_markdown(sweep_dir, sweep, stats, metric)
+    outputs = {"report.md": lambda p: p.write_text(md)}
+    outputs["report.csv"] = lambda p: p.write_text(to_csv(stats))
     if plot:
-        plot_curves(stats, sweep_dir / "curves.png", metric)
-    log.info("wrote %s, report.csv%s", sweep_dir / "report.md", ", curves.png" if plot else "")
+        outputs["curves.png"] = lambda p: plot_curves(stats, p, metric)
+    written, failed = [], []
+    for name, write in outputs.items():
+        try:
+            write(sweep_dir / name)
+            written.append(name)
+        except OSError as exc:
+            failed.append((name, exc.strerror or _first_line(exc)))
+    if written:
+        log.info("wrote %s into %s", ", ".join(written), sweep_dir)
+    if failed:
+        names = ", ".join(name for name, _ in failed)
+        log.warning("rlexp report: could not write %s into %s (%s)", names, sweep_dir, failed[0][1])
     return md

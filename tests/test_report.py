@@ -1,0 +1,247 @@
+"""``rlexp report`` on sweep dirs it must survive: files of the wrong shape (a torn or foreign
+``metrics.jsonl`` line, a ``status.json`` that is not an object), jobs that never started, a sweep
+dir it cannot write into, and bad arguments. Real sweeps with failing jobs: tests/test_sweeps.py."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from conftest import REPO
+
+BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+
+
+def rlexp_report(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "rlexp.cli", "report", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(REPO / "src")},
+    )
+
+
+def multirun_yaml(sweep: Path, task: list[str], sweeper: dict | None = None) -> None:
+    """The parts of Hydra's ``multirun.yaml`` that say which jobs a sweep launches."""
+    cfg = {
+        "hydra": {
+            "sweep": {"dir": str(sweep), "subdir": "${hydra.job.num}"},
+            "sweeper": sweeper
+            or {"_target_": BASIC_SWEEPER, "max_batch_size": None, "params": None},
+            "overrides": {"task": task},
+        }
+    }
+    (sweep / "multirun.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(cfg)))
+
+
+def job(sweep: Path, num: int, overrides: list[str], status=None, metrics: str | None = None):
+    """A job dir as a sweep leaves it; ``status``/``metrics`` are written as given (any shape)."""
+    d = sweep / str(num)
+    (d / ".hydra").mkdir(parents=True)
+    (d / ".hydra/overrides.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(overrides)))
+    if status is not None:
+        (d / "status.json").write_text(status if isinstance(status, str) else json.dumps(status))
+    if metrics is not None:
+        (d / "metrics.jsonl").write_text(metrics)
+    return d
+
+
+def rows(*rows: dict) -> str:
+    return "".join(json.dumps(r) + "\n" for r in rows)
+
+
+def finished(step: int = 512) -> dict:
+    return {"state": "finished", "global_step": step, "final_eval": {}}
+
+
+def test_metrics_lines_of_the_wrong_shape_are_skipped_and_named(tmp_path):
+    from rlexp.report import find_jobs, report
+
+    metrics = (
+        rows(
+            {"step": 256, "eval/episode_return": 10.0, "perf/collect_time": 1.0},
+            [1, 2, 3],  # a JSON array, not an object
+            "just a string",
+            {"eval/episode_return": 99.0},  # no step
+            {"step": "512", "eval/episode_return": 98.0},  # a step that is a string
+            {"step": True, "eval/episode_return": 97.0},  # a step that is a boolean
+            {"step": 384, "eval/episode_return": "high"},  # a metric that is a string
+            {"step": 448, "eval/episode_return": [1.0]},  # a metric that is a list
+            {"step": 480, "perf/collect_time": "slow", "perf/update_time": 0.5},
+            {"step": 512, "eval/episode_return": 20.0},
+        )
+        + '{"step": 640, "eval/episode_re'
+    )  # torn by a kill
+    job(tmp_path, 0, ["seed=0"], finished(), metrics)
+    job(tmp_path, 1, ["seed=1"], finished(), rows({"step": 512, "eval/episode_return": 30.0}))
+    multirun_yaml(tmp_path, ["seed=0,1"])
+
+    (j0, j1) = find_jobs(tmp_path)
+    assert j0.curve == [(256, 10.0), (512, 20.0)] and j1.curve == [(512, 30.0)]
+    assert j0.time_s == pytest.approx(1.5)  # step 256: 1.0; step 480: the number, not "slow"
+    md = report(tmp_path, plot=True)
+    assert "2 jobs expected" in md and "2 finished" in md
+    assert "## Files read in part (1)" in md
+    assert (
+        "- `0/metrics.jsonl`: 9 line(s) skipped (first: line 2, a JSON array, not an object)" in md
+    )
+    assert (tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_status_json_of_the_wrong_shape_is_an_unfinished_job_with_the_reason(tmp_path):
+    from rlexp.report import report
+
+    good = rows({"step": 512, "eval/episode_return": 5.0})
+    job(tmp_path, 0, ["seed=0"], finished(), good)
+    job(tmp_path, 1, ["seed=1"], "[1, 2]", good)  # a list
+    job(tmp_path, 2, ["seed=2"], '"finished"', good)  # a string
+    job(tmp_path, 3, ["seed=3"], {"state": "finished", "global_step": "lots"}, good)
+    job(tmp_path, 4, ["seed=4"], {"state": 7, "global_step": 512}, good)
+    job(tmp_path, 5, ["seed=5"], '{"state": "runn', good)  # torn
+    job(tmp_path, 6, ["seed=6"], {"state": "failed", "reason": ["a", "list"]}, "")
+    multirun_yaml(tmp_path, ["seed=range(7)"])
+
+    md = report(tmp_path, plot=False)
+    assert "7 jobs expected" in md and "2 finished" in md and "5 failed or unfinished" in md
+    lines = md.splitlines()
+
+    def row(job_dir: str) -> str:
+        return next(ln for ln in lines if ln.startswith(f"| `{job_dir}` |"))
+
+    assert "| unreadable | 512 | status.json: a JSON array, not an object |" in row("1")
+    assert "| unreadable | 512 | status.json: a JSON string, not an object |" in row("2")
+    assert "| unreadable | 512 | status.json: state 7 is not a string |" in row("4")
+    assert "| unreadable | 512 | status.json: not JSON |" in row("5")
+    assert '| failed | 0 | ["a", "list"] |' in row("6")
+    # global_step "lots": the job counts as finished at its last logged step, and the file is named.
+    assert not any(ln.startswith("| `3` |") for ln in lines)
+    assert "- `3/status.json`: global_step 'lots' is not a number" in md
+
+
+def test_other_files_of_the_wrong_shape(tmp_path):
+    from rlexp.report import report
+
+    d = job(tmp_path, 0, ["seed=0"], finished())
+    (d / "metrics.jsonl").write_bytes(b"\xff\xfe\x00garbage\n")  # not UTF-8 at all
+    d = job(tmp_path, 1, ["seed=1"], finished(), rows({"step": 512, "eval/episode_return": 1.0}))
+    (d / ".hydra/overrides.yaml").write_text("seed: [unclosed\n")
+    (tmp_path / "multirun.yaml").write_text("- not\n- a mapping\n")
+
+    md = report(tmp_path, plot=False)
+    assert (
+        "2 jobs (how many the sweep was to run is not known: multirun.yaml is not a mapping)" in md
+    )
+    assert "- `1/.hydra/overrides.yaml`: not readable" in md
+    assert "- `0/metrics.jsonl`: 1 line(s) skipped (first: line 1, not JSON" in md
+
+
+def test_jobs_expected_from_multirun_yaml_but_never_started_are_listed(tmp_path):
+    from rlexp.report import report
+
+    # The grid as Hydra expands it: a sweeper preset's params, then the command line (which wins).
+    sweeper = {
+        "_target_": BASIC_SWEEPER,
+        "max_batch_size": None,
+        "params": {"seed": "0,1", "algorithm.lr": "1,2"},
+    }
+    multirun_yaml(tmp_path, ["algorithm.lr=3,4,5", "env=hopper"], sweeper)
+    good = rows({"step": 512, "eval/episode_return": 1.0})
+    job(tmp_path, 0, ["seed=0", "algorithm.lr=3", "env=hopper"], finished(), good)
+    job(tmp_path, 4, ["seed=1", "algorithm.lr=4", "env=hopper"], finished(), good)
+    job(tmp_path, 9, ["seed=0", "algorithm.lr=9", "env=hopper"], finished(), good)  # an older sweep
+
+    md = report(tmp_path, plot=False)
+    assert "6 jobs expected (multirun.yaml: the grid of the sweep's overrides), 2 started" in md
+    assert (
+        "4 never started" in md and "1 job dir(s) are not among the jobs multirun.yaml lists" in md
+    )
+    assert "## Never started (4)" in md
+    for num, seed, lr in [(1, 0, 4), (2, 0, 5), (3, 1, 3), (5, 1, 5)]:
+        assert f"| #{num} | `seed={seed} algorithm.lr={lr} env=hopper` |" in md
+    assert "| #0 |" not in md and "| #4 |" not in md
+
+
+def test_optuna_trials_that_never_started(tmp_path):
+    from rlexp.report import report
+
+    sweeper = {"_target_": "hydra_plugins.hydra_optuna_sweeper.optuna_sweeper.OptunaSweeper"}
+    multirun_yaml(tmp_path, ["env=hopper"], {**sweeper, "n_trials": 3})
+    job(tmp_path, 0, ["algorithm.lr=0.1", "env=hopper"], finished(), "")
+    md = report(tmp_path, plot=False)
+    assert "3 jobs expected (multirun.yaml: hydra.sweeper.n_trials), 1 started" in md
+    assert "| #1 | `(chosen by the sweeper)` |" in md and "| #2 |" in md
+
+
+def test_a_sweep_that_started_no_job_is_reported_from_multirun_yaml(tmp_path):
+    multirun_yaml(tmp_path, ["seed=0,1"])
+    proc = rlexp_report(str(tmp_path), "--no-plot")
+    assert proc.returncode == 0, proc.stderr
+    assert "2 jobs expected" in proc.stdout and "## Never started (2)" in proc.stdout
+
+
+def _make_read_only(path: Path) -> bool:
+    """chmod a-w; as root (which chmod does not stop) also chattr +i. True if writes now fail."""
+    path.chmod(0o555)
+    if os.geteuid() == 0 and shutil.which("chattr"):
+        subprocess.run(["chattr", "+i", str(path)], capture_output=True)
+    try:
+        (path / ".probe").write_text("x")
+    except OSError:
+        return True
+    (path / ".probe").unlink()
+    return False
+
+
+def _make_writable(path: Path) -> None:
+    if os.geteuid() == 0 and shutil.which("chattr"):
+        subprocess.run(["chattr", "-i", str(path)], capture_output=True)
+    path.chmod(0o755)
+
+
+def test_a_read_only_sweep_dir_prints_the_report_and_says_what_was_not_written(tmp_path):
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    job(sweep, 0, ["seed=0"], finished(), rows({"step": 512, "eval/episode_return": 3.0}))
+    multirun_yaml(sweep, ["seed=0"])
+    if not _make_read_only(sweep):
+        _make_writable(sweep)
+        pytest.skip("cannot make a dir read-only here (root without chattr)")
+    try:
+        proc = rlexp_report(str(sweep))
+    finally:
+        _make_writable(sweep)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith(f"# Sweep report: `{sweep}`") and "1 finished" in proc.stdout
+    problems = [ln for ln in proc.stderr.splitlines() if "could not" in ln]
+    expected = f"rlexp report: could not write report.md, report.csv, curves.png into {sweep} ("
+    assert len(problems) == 1 and problems[0].startswith(expected), proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not any((sweep / n).exists() for n in ("report.md", "report.csv", "curves.png"))
+
+
+@pytest.mark.parametrize("what", ["missing", "a file", "no jobs", "no metric", "no dir"])
+def test_bad_arguments_are_one_line_and_exit_2(tmp_path, what):
+    target = tmp_path / "x"
+    args = [str(target)]
+    if what == "a file":
+        target.write_text("hello")
+    elif what == "no jobs":
+        target.mkdir()
+    elif what == "no metric":
+        args = [str(tmp_path), "--metric"]
+    elif what == "no dir":
+        args = []
+    proc = rlexp_report(*args)
+    assert proc.returncode == 2
+    assert proc.stdout == "" and len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert proc.stderr.startswith("rlexp report: ")
+    if what in ("missing", "a file", "no jobs"):
+        assert str(target) in proc.stderr
