@@ -262,3 +262,195 @@ def test_sweep_and_launcher_configs_compose(override):
         assert cfg.hydra.sweeper.params
     else:
         assert cfg.hydra.launcher._target_.startswith("hydra_plugins.")
+
+
+# -- a sweep with failing jobs: the others run, the failures are recorded, the sweep exits 1 --------
+
+#: Jobs 0 and 2 (clip_epsilon=inf) fail their config check; jobs 1 and 3 train.
+FAILING_GRID = ["seed=0,1", "algorithm.clip_epsilon=inf,0.2"]
+CLIP_INF = "config error: algorithm.clip_epsilon=inf must be a finite number"
+
+
+def report_cli(sweep: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "rlexp.cli", "report", str(sweep), "--no-plot"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(REPO / "src")},
+    )
+
+
+@pytest.fixture(scope="module", params=["basic", "joblib"])
+def failing_sweep(request, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    """``-m seed=0,1 algorithm.clip_epsilon=inf,0.2`` with Hydra's basic launcher (one process) or
+    ``hydra/launcher=local`` (joblib worker processes)."""
+    root = tmp_path_factory.mktemp(f"failing_{request.param}")
+    sweep = root / "sweep"
+    launcher = ["hydra/launcher=local"] if request.param == "joblib" else []
+    args = ["-m", *launcher, *FAILING_GRID, *SWEEP_TINY, f"hydra.sweep.dir={sweep}"]
+    return sweep, run_train(args, cwd=root, check=False)
+
+
+def test_a_failing_job_does_not_stop_the_sweep_and_the_sweep_exits_1(failing_sweep):
+    from rlexp.launch.sweep import EXIT_JOBS_FAILED
+
+    sweep, proc = failing_sweep
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == EXIT_JOBS_FAILED == 1, out[-3000:]
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == ["0", "1", "2", "3"]
+    for n in ("0", "2"):
+        status = json.loads((sweep / n / "status.json").read_text())
+        assert status["state"] == "failed" and status["reason"] == CLIP_INF, status
+        assert status["exit_code"] == 2
+        assert not (sweep / n / "checkpoints").exists()
+    for n in ("1", "3"):
+        status = json.loads((sweep / n / "status.json").read_text())
+        assert status["state"] == "finished" and status["global_step"] == 512
+    summary = (
+        f"sweep {sweep}: 2 of 4 jobs finished; 2 failed: {sweep / '0'} ({CLIP_INF}), "
+        f"{sweep / '2'} ({CLIP_INF}) (rlexp report {sweep})"
+    )
+    assert summary in out
+    assert "Traceback" not in out
+
+
+def test_report_counts_the_expected_jobs_and_lists_failed_and_never_started_ones(
+    failing_sweep, tmp_path
+):
+    from rlexp.launch.sweep import summarize_sweep
+
+    sweep, _ = failing_sweep
+    proc = report_cli(sweep)
+    assert proc.returncode == 0, proc.stderr
+    md = proc.stdout
+    assert "4 jobs expected (multirun.yaml: the grid of the sweep's overrides), 4 started" in md
+    assert "2 finished, 2 failed or unfinished, 0 never started" in md
+    assert "## Unfinished or failed jobs (2)" in md and "## Never started (0)" in md
+    for n, seed in (("0", 0), ("2", 1)):
+        assert f"| `{n}` | `seed={seed} algorithm.clip_epsilon=inf env=inverted_pendulum" in md
+    assert md.count(f"| failed | 0 | {CLIP_INF} |") == 2
+
+    # Job 3's dir gone (a sweep stopped before it): expected from multirun.yaml, never started.
+    copy = tmp_path / "sweep"
+    shutil.copytree(sweep, copy)
+    shutil.rmtree(copy / "3")
+    md = report_cli(copy).stdout
+    assert "4 jobs expected" in md and "3 started, 1 finished" in md and "1 never started" in md
+    assert "## Never started (1)" in md
+    assert f"| #3 | `seed=1 algorithm.clip_epsilon=0.2 {' '.join(SWEEP_TINY)}` |" in md
+    line, ok = summarize_sweep(copy, OmegaConf.load(copy / "multirun.yaml"))
+    assert not ok and line.startswith(f"sweep {copy}: 1 of 4 jobs finished; 2 failed: ")
+    assert "; 1 never started: #3 (seed=1 algorithm.clip_epsilon=0.2 " in line
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="rlexp.app._task returns NaN for a failed sweep job: optuna 2.10's study.tell refuses "
+    "NaN, and hydra-optuna-sweeper then tells FAIL with the values and crashes; returning None "
+    "makes it a failed trial (remove this mark when app.py returns None)",
+)
+def test_optuna_goes_on_after_a_failed_trial(tmp_path):
+    sweep = tmp_path / "sweep"
+    proc = run_train(
+        [
+            "-m",
+            "+sweep=ppo_optuna",
+            "hydra.sweeper.n_trials=4",
+            "algorithm.clip_epsilon=choice(inf,0.2)",
+            *SWEEP_TINY,
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=tmp_path,
+        check=False,
+    )
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 1, out[-3000:]
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
+    assert [p.name for p in jobs] == ["0", "1", "2", "3"]
+    states = {p.name: json.loads((p / "status.json").read_text()) for p in jobs}
+    failed = [n for n, s in states.items() if s["state"] == "failed"]
+    done = [n for n, s in states.items() if s["state"] == "finished"]
+    assert failed and done and len(failed) + len(done) == 4, states
+    assert all(states[n]["reason"] == CLIP_INF for n in failed)
+    results = OmegaConf.load(sweep / "optimization_results.yaml")
+    assert results.best_value == pytest.approx(max(final_eval(sweep / n) for n in done))
+    assert f"sweep {sweep}: {len(done)} of 4 jobs finished; {len(failed)} failed: " in out
+    md = report_cli(sweep).stdout
+    assert "4 jobs expected (multirun.yaml: hydra.sweeper.n_trials), 4 started" in md
+
+
+def test_slurm_launcher_collects_every_job_when_one_died_without_a_result(tmp_path, monkeypatch):
+    """A job killed by SLURM (here: out of memory) makes submitit's ``results()`` raise; the
+    launcher still returns every job, records the dead one as failed, and says so in one line."""
+    import logging
+
+    import submitit
+    from hydra.core.utils import JobReturn, JobStatus
+    from submitit.core.utils import UncompletedJobError
+
+    from hydra_plugins.rlexp_launcher.slurm_launcher import RlexpSlurmLauncher
+
+    class Job:
+        def __init__(self, job_id: str, value=None, error: Exception | None = None) -> None:
+            self.job_id, self.value, self.error = job_id, value, error
+            self.paths = type("P", (), {"stderr": tmp_path / f"{job_id}_0_log.err"})()
+
+        def results(self):
+            if self.error is not None:
+                raise self.error
+            ret = JobReturn(status=JobStatus.COMPLETED)
+            ret.return_value = self.value
+            return [ret]
+
+    oom = UncompletedJobError(
+        "Job 7_1 (task: 0) with path /x/7_1_0_result.pkl\nhas not produced any output "
+        "(state: OUT_OF_MEMORY)\nError stream produced:\n----------\nKilled"
+    )
+    jobs = [Job("7_0", 1.5), Job("7_1", error=oom), Job("7_2", error=oom), Job("7_3", 2.5)]
+
+    class Executor:
+        def __init__(self, **kwargs) -> None: ...
+
+        def update_parameters(self, **kwargs) -> None: ...
+
+        def map_array(self, fn, *args):
+            return jobs
+
+    class Loader:  # the job's config, as load_sweep_config composes it
+        def load_sweep_config(self, config, overrides):
+            return OmegaConf.create(
+                {"hydra": {"sweep": {"dir": str(sweep), "subdir": "${hydra.job.num}"}, "job": {}}}
+            )
+
+    sweep = tmp_path / "sweep"
+    (sweep / "1").mkdir(parents=True)  # job 1 was training when it was killed
+    (sweep / "1/status.json").write_text(json.dumps({"state": "running", "global_step": 256}))
+    (sweep / "2").mkdir()  # job 2 had already recorded its own end: that stays
+    (sweep / "2/status.json").write_text(json.dumps({"state": "stopped", "global_step": 128}))
+    monkeypatch.setattr(submitit, "AutoExecutor", Executor)
+    launcher = RlexpSlurmLauncher(submitit_folder=str(sweep / ".submitit/%j"), max_num_timeout=1)
+    launcher.config = OmegaConf.create({"hydra": {"sweep": {"dir": str(sweep)}}})
+    launcher.hydra_context = type("C", (), {"config_loader": Loader()})()
+    records = []
+    handler = logging.Handler(logging.ERROR)
+    handler.emit = records.append
+    logging.getLogger("hydra_plugins.rlexp_launcher.slurm_launcher").addHandler(handler)
+    try:
+        returns = launcher.launch([["seed=0"], ["seed=1"], ["seed=2"], ["seed=3"]], 0)
+    finally:
+        logging.getLogger("hydra_plugins.rlexp_launcher.slurm_launcher").removeHandler(handler)
+
+    assert [r.return_value for r in returns] == [1.5, None, None, 2.5]  # none raises
+    status = json.loads((sweep / "1/status.json").read_text())
+    reason = (
+        "SLURM job 7_1 ended without a result: Job 7_1 (task: 0) with path "
+        "/x/7_1_0_result.pkl has not produced any output (state: OUT_OF_MEMORY)"
+    )
+    assert status["state"] == "failed" and status["global_step"] == 256
+    assert status["reason"] == reason
+    assert json.loads((sweep / "2/status.json").read_text())["state"] == "stopped"
+    assert [r.getMessage() for r in records][0] == (
+        f"job #1: {reason}; its output: {tmp_path / '7_1_0_log.err'}"
+    )
+    assert len(records) == 2
