@@ -228,7 +228,7 @@ BASE = ["env=inverted_pendulum", "trainer.total_frames=256", "trainer.frames_per
         ("seed=4294967296", "seed=4294967296 must be in"),
         ("algorithm.lr=nan", "algorithm.lr=nan must be a finite number"),
         ("algorithm.clip_epsilon=inf", "algorithm.clip_epsilon=inf must be a finite number"),
-        ("trainer.device=cudafoo", "trainer.device='cudafoo'; choose auto, cpu, cuda or cuda:N"),
+        ("trainer.device=cudafoo", "trainer.device='cudafoo' must be auto, cpu, cuda or cuda:N"),
         ("trainer.exp_name=../../x", "trainer.exp_name='../../x' is not a safe file name"),
         ("trainer.exp_name=/tmp/abs", "trainer.exp_name='/tmp/abs' is not a safe file name"),
         ("trainer.exp_name=team/exp1", "trainer.exp_name='team/exp1' is not a safe file name"),

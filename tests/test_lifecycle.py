@@ -69,7 +69,13 @@ def test_wandb_offline_writes_files_and_a_resumed_run_keeps_its_id(tmp_path, mon
     monkeypatch.delenv("WANDB_API_KEY", raising=False)
     monkeypatch.setenv("HOME", str(tmp_path))  # no ~/.netrc key
     run_dir = tmp_path / "run"
-    args = [*BASE, "logger=[tensorboard,wandb]", f"hydra.run.dir={run_dir}"]
+    # eval_every=0 would mean no evaluation: these runs evaluate, so eval rows reach W&B too.
+    args = [
+        *BASE,
+        "trainer.eval_every=256",
+        "logger=[tensorboard,wandb]",
+        f"hydra.run.dir={run_dir}",
+    ]
     first = run_train(
         [*args, "trainer.total_frames=512"], cwd=tmp_path, env_extra={"WANDB_MODE": None}
     )

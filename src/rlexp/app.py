@@ -30,7 +30,7 @@ from rlexp.rundir import (
     EXIT_SIGNAL_BASE,
     RESUME_MAY_CHANGE,
     RunDirLock,
-    check_same_experiment,
+    check_run_dir,
     clean_temp_files,
     config_differences,
     read_status,
@@ -163,9 +163,9 @@ def _train_locked(
     t.device = device  # the saved config records the device actually used
     config_dict = to_dict(config)
     ckpt = None
+    check_run_dir(run_dir, config_dict, t.resume)  # a continuation, or another run's dir?
     if t.resume == "auto":
-        check_same_experiment(run_dir, config_dict)  # a continuation, or a different experiment?
-        ckpt = latest_good_checkpoint(run_dir / "checkpoints")
+        ckpt = latest_good_checkpoint(run_dir / "checkpoints", move_aside=dist.is_main)
 
     # -- build: a failure here is a config error (one line, exit 2, no config.yaml) ---------------
     try:
@@ -247,13 +247,44 @@ def _run(
         reason = f"{exc.strerror or exc}{where}; {last_good()}"
         _try_write_status(run_dir, trainer, reason)
         raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
-    except Exception as exc:
-        _try_write_status(run_dir, trainer, f"{type(exc).__name__}: {_first_line(exc)}")
-        raise
+    except Exception as exc:  # a bug or a library failure mid-run: keep what can be kept
+        saved = _save_at_safe_point(trainer)
+        trace = _write_traceback(run_dir)
+        reason = f"{type(exc).__name__}: {_first_line(exc)} (traceback in {trace}); {last_good()}"
+        if saved:
+            reason += " (written at the end of the last complete update)"
+        _try_write_status(run_dir, trainer, reason)
+        raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
     finally:
         trainer.close()
     log.info("done: %d env steps; checkpoint %s", trainer.global_step, trainer.last_checkpoint)
     return trainer.last_eval
+
+
+def _save_at_safe_point(trainer: Any) -> bool:
+    """After a failure between an update and the end of its iteration (eval, an event, logging),
+    the policy and optimiser are consistent: save them so the work of that update is not lost."""
+    if not trainer.safe_point or not trainer.dist.is_main:
+        return False
+    try:
+        trainer.save_checkpoint()
+        return True
+    except Exception as exc:
+        log.error("could not save a checkpoint after the failure: %s", _first_line(exc))
+        return False
+
+
+def _write_traceback(run_dir: Path) -> Path:
+    """The full traceback of the exception being handled, into ``<run_dir>/error.log``."""
+    import traceback
+
+    path = run_dir / "error.log"
+    try:
+        with open(path, "a") as f:
+            f.write(traceback.format_exc())
+    except OSError:
+        pass
+    return path
 
 
 def _check_writable(directory: Path) -> None:

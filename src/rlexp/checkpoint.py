@@ -82,12 +82,32 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> Path:
     """Write ``state`` to ``path`` atomically (temp file in the same dir, fsync, rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as f:
-        torch.save(to_storable({"format": FORMAT, **state}), f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(to_storable({"format": FORMAT, **state}), f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as exc:  # a full disk, a signal: no half file left, the old one intact
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, RuntimeError) and not isinstance(exc, OSError):
+            # torch.save reports a failed write (e.g. ENOSPC) as a RuntimeError from its writer
+            raise OSError(f"writing {path} failed: {_write_failure(path, exc)}") from None
+        raise
     return path
+
+
+def _write_failure(path: Path, exc: BaseException) -> str:
+    """torch's writer hides the errno (``file write failed``): name a full disk when it is one."""
+    import shutil
+
+    try:
+        free = shutil.disk_usage(path.parent).free
+    except OSError:
+        return str(exc).splitlines()[0]
+    if free < 1 << 20:
+        return f"No space left on device ({free // 1024} kB free)"
+    return f"{str(exc).splitlines()[0]} ({free // (1 << 20)} MB free)"
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -128,7 +148,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
 def check_checkpoint_fits(ckpt: dict[str, Any], config: Any, policy: torch.nn.Module) -> None:
     """``ValueError`` naming the part that differs when ``ckpt`` cannot continue ``config``: another
-    env (name, backend, native task) or policy shapes that do not match (``policy`` is loaded)."""
+    env (name, backend, native task, number of envs), policy shapes (``policy`` is loaded with the
+    checkpoint's weights), optimiser state shapes or counters."""
     saved_env = ckpt["config"].get("env") or {}
     env = config.env
     mine = {"env.name": env.name, "env.backend": env.backend}
@@ -141,6 +162,12 @@ def check_checkpoint_fits(ckpt: dict[str, Any], config: Any, policy: torch.nn.Mo
             raise ValueError(
                 f"the checkpoint is of {key}={theirs[key]!r}, this run has {key}={value!r}"
             )
+    saved_n = (ckpt["config"].get("env") or {}).get("num_envs")
+    if saved_n is not None and "train" in (ckpt.get("envs") or {}) and saved_n != env.num_envs:
+        raise ValueError(
+            f"the checkpoint holds the state of env.num_envs={saved_n} training envs, this run "
+            f"has env.num_envs={env.num_envs}"
+        )
     try:
         policy.load_state_dict(ckpt["policy"])
     except (RuntimeError, KeyError, TypeError) as exc:
@@ -152,6 +179,7 @@ def check_checkpoint_fits(ckpt: dict[str, Any], config: Any, policy: torch.nn.Mo
         raise ValueError(
             f"the checkpoint's policy does not fit this config's policy ({detail})"
         ) from None
+    _check_optimizer_state(ckpt.get("algorithm") or {}, policy)
 
 
 def checkpoint_path(ckpt_dir: Path, exp_name: str, global_step: int) -> Path:
@@ -175,22 +203,76 @@ def latest_checkpoint(directory: Path) -> Path:
     return stepped[-1]
 
 
-def latest_good_checkpoint(directory: Path) -> dict[str, Any] | None:
-    """The newest checkpoint in ``directory`` that loads; corrupt ones are reported and skipped."""
+#: Where ``latest_good_checkpoint(move_aside=True)`` puts checkpoints that do not load.
+CORRUPT_DIR = "corrupt"
+
+
+def latest_good_checkpoint(directory: Path, move_aside: bool = False) -> dict[str, Any] | None:
+    """The newest checkpoint in ``directory`` that loads; corrupt ones are reported and skipped, and
+    with ``move_aside`` (a run resuming) moved into ``corrupt/``, where pruning never counts them
+    and no later resume trips over them again."""
     for path in reversed(step_checkpoints(directory)):
         try:
             return load_checkpoint(path)
         except ValueError as exc:
-            log.warning("%s; falling back to the previous checkpoint", exc)
+            if move_aside:
+                dest = _move_aside(path)
+                log.warning("%s; moved to %s; falling back to the previous checkpoint", exc, dest)
+            else:
+                log.warning("%s; falling back to the previous checkpoint", exc)
     return None
 
 
-def prune_checkpoints(directory: Path, keep_last: int) -> None:
-    """Delete all but the newest ``keep_last`` step checkpoints (``keep_last <= 0``: keep all)."""
+def _move_aside(path: Path) -> Path:
+    dest_dir = path.parent / CORRUPT_DIR
+    dest_dir.mkdir(exist_ok=True)
+    dest, n = dest_dir / path.name, 1
+    while dest.exists():
+        dest, n = dest_dir / f"{path.name}.{n}", n + 1
+    os.replace(path, dest)
+    return dest
+
+
+def prune_checkpoints(directory: Path, keep_last: int, newest: Path | None = None) -> list[Path]:
+    """Delete step checkpoints beyond ``keep_last`` (``<= 0``: keep all) and temporary files that a
+    killed write left; returns the deleted checkpoints. ``newest`` (the checkpoint just written) is
+    always kept and counted first, whatever other files' steps say."""
     for tmp in directory.glob(".*.tmp-*"):  # left by a write that a kill interrupted
         if not tmp.name.endswith(f"-{os.getpid()}"):
             tmp.unlink(missing_ok=True)
     if keep_last <= 0:
-        return
-    for path in step_checkpoints(directory)[:-keep_last]:
+        return []
+    others = [p for p in reversed(step_checkpoints(directory)) if p != newest]
+    ranked = ([newest] if newest is not None else []) + others
+    doomed = ranked[keep_last:]
+    for path in doomed:
         path.unlink(missing_ok=True)
+    return doomed
+
+
+def _check_optimizer_state(algorithm: dict[str, Any], policy: torch.nn.Module) -> None:
+    """The optimiser state must have one entry of the right shape per trainable parameter (torch's
+    own ``load_state_dict`` checks the count, not the shapes, and would carry a wrong-shaped state
+    into every later checkpoint)."""
+    iteration = algorithm.get("iteration")
+    if not isinstance(iteration, int) or isinstance(iteration, bool) or iteration < 0:
+        raise ValueError(
+            f"the checkpoint has algorithm.iteration={iteration!r}; expected an int >= 0"
+        )
+    opt = algorithm.get("optimizer")
+    if not isinstance(opt, dict) or not isinstance(opt.get("param_groups"), list):
+        raise ValueError("the checkpoint has no optimiser state")
+    named = [(n, p) for n, p in policy.named_parameters() if p.requires_grad]
+    ids = [i for group in opt["param_groups"] for i in group.get("params", [])]
+    if len(ids) != len(named):
+        raise ValueError(
+            f"the checkpoint's optimiser holds {len(ids)} parameters, this policy has {len(named)}"
+        )
+    state = opt.get("state") or {}
+    for i, (name, param) in zip(ids, named, strict=True):
+        for key, value in (state.get(i) or {}).items():
+            if key != "step" and isinstance(value, torch.Tensor) and value.shape != param.shape:
+                raise ValueError(
+                    f"the checkpoint's optimiser state {key} of {name} has shape "
+                    f"{tuple(value.shape)}, the parameter has {tuple(param.shape)}"
+                )

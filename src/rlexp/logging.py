@@ -44,20 +44,45 @@ class TensorBoardBackend:
 
 
 class JsonlBackend:
-    """``<run_dir>/metrics.jsonl``: one JSON object per logged step, flushed at once."""
+    """``<run_dir>/metrics.jsonl``: one JSON object per logged step, written whole or not at all."""
 
     def __init__(self, run_dir: Path) -> None:
         self.path = run_dir / "metrics.jsonl"
-        self.file = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 - closed in close()
+        self.fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        self._cut_torn_last_line()
+
+    def _cut_torn_last_line(self) -> None:
+        """A crash mid-write in an older version (or a full disk) may have left half a line."""
+        size = os.lseek(self.fd, 0, os.SEEK_END)
+        if size == 0:
+            return
+        with open(self.path, "rb") as f:
+            f.seek(max(0, size - 1))
+            if f.read(1) == b"\n":
+                return
+            f.seek(0)
+            data = f.read()
+        os.ftruncate(self.fd, data.rfind(b"\n") + 1)
 
     def log(self, metrics: dict[str, float], step: int) -> None:
         row = {"step": step, "time": round(time.time(), 3)}
         row.update({k: (v if math.isfinite(v) else None) for k, v in metrics.items()})
-        self.file.write(json.dumps(row) + "\n")
-        self.file.flush()
+        data = (json.dumps(row) + "\n").encode()
+        end = os.lseek(self.fd, 0, os.SEEK_END)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(self.fd, view) :]
+        except OSError:
+            # A full disk: never leave half a line that breaks readers; cut back to the last row.
+            try:
+                os.ftruncate(self.fd, end)
+            except OSError:
+                pass
+            raise
 
     def close(self) -> None:
-        self.file.close()
+        os.close(self.fd)
 
 
 def _wandb_mode(requested: str) -> str:
@@ -120,10 +145,29 @@ class MetricLogger:
     def __init__(self, backends: list[Backend]) -> None:
         self.backends = backends
         self.closed = False
+        self.failing: dict[str, str] = {}  # backend -> the write error, while writes fail
 
     def log(self, metrics: dict[str, float], step: int) -> None:
+        """Write to every backend. A backend whose write fails (a full disk) is reported once and
+        tried again at the next step; training goes on, since checkpoints are what a run must not
+        lose (a checkpoint that cannot be written stops the run with status ``failed``)."""
         for backend in self.backends:
-            backend.log(metrics, step)
+            name = type(backend).__name__
+            try:
+                backend.log(metrics, step)
+            except OSError as exc:
+                if name not in self.failing:
+                    log.warning(
+                        "%s: writing metrics at step %d failed (%s); training goes on, these "
+                        "metrics are lost until writes succeed again",
+                        name,
+                        step,
+                        exc,
+                    )
+                self.failing[name] = str(exc)
+            else:
+                if self.failing.pop(name, None) is not None:
+                    log.warning("%s: writing metrics works again from step %d", name, step)
 
     def close(self) -> None:
         if self.closed:

@@ -182,6 +182,34 @@ def config_differences(
     return out
 
 
+def check_run_dir(run_dir: Path, config_dict: dict[str, Any], resume: str) -> None:
+    """What ``trainer.resume`` may do with what the dir holds: ``auto`` continues the same
+    experiment only; ``never`` refuses a dir that holds a run (starting over there would mix the
+    old run's checkpoints and metrics with the new one's)."""
+    if resume == "auto":
+        check_same_experiment(run_dir, config_dict)
+    elif resume in ("never", ""):
+        held = holds_a_run(Path(run_dir))
+        if held:
+            raise ConfigError(
+                f"trainer.resume=never but run dir {run_dir} holds a run ({held}); starting over "
+                "there would mix two runs: use a new hydra.run.dir, or move that dir aside"
+            )
+
+
+def holds_a_run(run_dir: Path) -> str:
+    """What in ``run_dir`` belongs to a run that trained ("" when nothing does)."""
+    from rlexp.checkpoint import step_checkpoints
+
+    ckpts = step_checkpoints(run_dir / "checkpoints")
+    if ckpts:
+        return f"{len(ckpts)} checkpoint(s), newest {ckpts[-1].name}"
+    metrics = run_dir / "metrics.jsonl"
+    if metrics.is_file() and metrics.stat().st_size > 0:
+        return "metrics.jsonl"
+    return ""
+
+
 def check_same_experiment(run_dir: Path, config_dict: dict[str, Any]) -> None:
     """A dir that holds a checkpoint holds an experiment: continuing there with another config would
     mix two runs. A dir with a ``config.yaml`` but no checkpoint (a run that failed before training)
@@ -203,5 +231,5 @@ def check_same_experiment(run_dir: Path, config_dict: dict[str, Any]) -> None:
     if diffs:
         raise ConfigError(
             f"run dir {run_dir} holds a different experiment (differs in {', '.join(diffs)}); "
-            "use a new hydra.run.dir / hydra.sweep.dir, or trainer.resume=never to start over there"
+            "use a new hydra.run.dir / hydra.sweep.dir, or move that dir aside"
         )

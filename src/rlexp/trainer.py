@@ -136,6 +136,7 @@ class Trainer:
             self._event_transform = EventTransform(event_manager, run_dir)
             self.env = TransformedEnv(env, self._event_transform)
         self.progress: Progress | None = None
+        self.safe_point = True  # False from the start of a rollout until its update is applied
 
     # -- the loop ----------------------------------------------------------------------------------
     def train(self, total_timesteps: int) -> None:
@@ -152,8 +153,10 @@ class Trainer:
         with self.progress:
             while self.global_step < total_timesteps:
                 before = self.global_step
+                self.safe_point = False
                 batch = self.collect_rollout()
                 losses = self.update(batch)
+                self.safe_point = True  # the update is complete: a checkpoint now is consistent
                 self.log_train(losses)
                 self.event_manager.fire("interval", self._ctx(batch=batch))
                 if crossed(before, self.global_step, self.cfg.eval_every):
@@ -297,7 +300,7 @@ class Trainer:
             return path
         save_checkpoint(path, self.state_dict())
         self.last_checkpoint = path
-        prune_checkpoints(self.ckpt_dir, self.cfg.keep_last)
+        prune_checkpoints(self.ckpt_dir, self.cfg.keep_last, newest=path)
         log.info("[ckpt] saved %s", path)
         self.event_manager.fire("trigger", self._ctx(), signal="checkpoint")
         return path

@@ -161,11 +161,10 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
     check_buildable(config)
     if run_dir is not None and run_dir.is_dir():  # before Hydra writes .hydra/ and its log there
         from rlexp.config.validate import to_dict
-        from rlexp.rundir import RunDirLock, check_same_experiment
+        from rlexp.rundir import RunDirLock, check_run_dir
 
         RunDirLock(run_dir).check()
-        if config.trainer.resume == "auto":
-            check_same_experiment(run_dir, to_dict(config))
+        check_run_dir(run_dir, to_dict(config), config.trainer.resume)
     return config
 
 

@@ -1,4 +1,4 @@
-"""Convert the composed DictConfig into typed dataclasses once, and check cross-field rules.
+"""Convert the composed DictConfig into typed dataclasses once, and check every value.
 
 Below the entry point no code reads a DictConfig: it gets a ``RootConfig`` and its parts.
 """
@@ -8,11 +8,12 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
-import re
+import os
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from rlexp.config.rules import ACTIVATIONS, FIELD_RULES, MAX_NAME, SAFE_NAME, available_cpus, get
 from rlexp.config.schema import RootConfig
 
 
@@ -48,15 +49,6 @@ def total_frames(config: RootConfig, world_size: int = 1) -> int:
     )
 
 
-#: Every name a run writes into a file name: a single safe path component (no "/", no "..").
-SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._=+-]*")
-MAX_NAME = 128  # checkpoint names add ~20 characters; file systems allow 255
-#: Seeds are used with numpy's legacy seeding and added to per-rank / eval offsets.
-MAX_SEED = 2**31 - 1
-DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")
-#: Activation names the MLP builder accepts (rlexp.policies.actor_critic.ACTIVATIONS; a test keeps
-#: the two in step). Here so that a typo fails before torch is imported.
-ACTIVATIONS = ("elu", "gelu", "relu", "silu", "swish", "tanh")
 #: Typed float fields that may be infinite (every other float must be finite).
 INFINITE_OK: tuple[str, ...] = ()
 
@@ -110,69 +102,68 @@ def check_name(key: str, value: str) -> None:
 
 
 def validate(config: RootConfig) -> None:
-    """Cross-field rules that a schema alone cannot express."""
-    t, e, a = config.trainer, config.env, config.algorithm
+    """Every field against its rule (``rlexp.config.rules``), then the rules between fields."""
+    t, e, a, p = config.trainer, config.env, config.algorithm, config.policy
     _check_floats(config, "", True)
     check_name("trainer.exp_name", t.exp_name)
-    if not 0 <= config.seed <= MAX_SEED:
-        raise ConfigError(f"seed={config.seed} must be in [0, {MAX_SEED}]")
     for part in ("actor", "critic"):
-        act = getattr(config.policy, part).activation
+        act = getattr(p, part).activation
         if act not in ACTIVATIONS:
-            close = difflib.get_close_matches(act, ACTIVATIONS, n=1)
+            close = difflib.get_close_matches(str(act), ACTIVATIONS, n=1)
             raise ConfigError(
                 f"policy.{part}.activation={act!r}; choose from {list(ACTIVATIONS)}"
                 + (f"; did you mean {close[0]!r}?" if close else "")
             )
-    if e.num_envs < 1:
-        raise ConfigError(f"env.num_envs={e.num_envs} must be >= 1")
-    if e.num_eval_envs < 0:
-        raise ConfigError(f"env.num_eval_envs={e.num_eval_envs} must be >= 0")
-    if t.frames_per_batch < e.num_envs or t.frames_per_batch % e.num_envs:
+    for key, rule in FIELD_RULES.items():
+        value = get(config, key)
+        if not rule.check(value):
+            if key == "trainer.torch_threads":
+                raise ConfigError(
+                    f"trainer.torch_threads={value} must be in [1, {available_cpus()}]: this "
+                    "process may use that many CPUs (more threads only slow it down, and very "
+                    "many crash torch)"
+                )
+            raise ConfigError(f"{key}={value!r} must be {rule.text}")
+    # -- between fields --
+    if t.frames_per_batch % e.num_envs:
         raise ConfigError(
             f"trainer.frames_per_batch={t.frames_per_batch} must be a positive multiple of "
             f"env.num_envs={e.num_envs} (each env contributes frames_per_batch / num_envs steps)"
         )
-    if t.iterations is not None and t.iterations < 1:
+    if a.mini_batch_size > t.frames_per_batch:
         raise ConfigError(
-            f"trainer.iterations={t.iterations} must be >= 1 (or null to use total_frames)"
+            f"algorithm.mini_batch_size={a.mini_batch_size} must be in "
+            f"[1, trainer.frames_per_batch={t.frames_per_batch}]"
         )
-    if total_frames(config) < 1:
-        raise ConfigError(f"trainer.total_frames={t.total_frames} must be >= 1")
-    if a.mini_batch_size < 1 or a.mini_batch_size > t.frames_per_batch:
+    if not p.min_log_std < p.max_log_std:
         raise ConfigError(
-            f"algorithm.mini_batch_size={a.mini_batch_size} must be in [1, trainer.frames_per_batch={t.frames_per_batch}]"
+            f"policy.min_log_std={p.min_log_std} must be below policy.max_log_std={p.max_log_std}"
         )
-    if a.num_epochs < 1:
-        raise ConfigError(f"algorithm.num_epochs={a.num_epochs} must be >= 1")
-    if not 0.0 <= a.gamma <= 1.0 or not 0.0 <= a.lmbda <= 1.0:
+    if not p.min_log_std <= p.init_log_std <= p.max_log_std:
         raise ConfigError(
-            f"algorithm.gamma={a.gamma} and algorithm.lmbda={a.lmbda} must be in [0, 1]"
+            f"policy.init_log_std={p.init_log_std} must be in [policy.min_log_std={p.min_log_std}, "
+            f"policy.max_log_std={p.max_log_std}]"
         )
-    if a.clip_epsilon <= 0:
-        raise ConfigError(f"algorithm.clip_epsilon={a.clip_epsilon} must be > 0")
-    if a.lr <= 0:
-        raise ConfigError(f"algorithm.lr={a.lr} must be > 0")
-    if str(a.compile).strip().lower() not in ("auto", "true", "false"):
-        raise ConfigError(f"algorithm.compile={a.compile!r}; choose auto, true or false")
-    if not DEVICE.fullmatch(t.device):
-        raise ConfigError(f"trainer.device={t.device!r}; choose auto, cpu, cuda or cuda:N")
-    if t.torch_threads < 1:
-        raise ConfigError(f"trainer.torch_threads={t.torch_threads} must be >= 1")
-    for key in ("eval_every", "save_every", "eval_episodes"):
-        if getattr(t, key) < 0:
-            raise ConfigError(f"trainer.{key}={getattr(t, key)} must be >= 0 (0: off)")
-    if t.log_every < 1:
-        raise ConfigError(f"trainer.log_every={t.log_every} must be >= 1 (iterations)")
-    _check_events(config)
-    from rlexp.envs.factory import BACKENDS
-
-    if e.backend not in BACKENDS:
-        raise ConfigError(f"env.backend={e.backend!r}; choose from {list(BACKENDS)}")
     if e.backend == "native" and e.native is None:
         raise ConfigError(
-            f"env.backend=native needs env.native (env.name={e.name!r}); use env=push_cube or env=cart_pole"
+            f"env.backend=native needs env.native (env.name={e.name!r}); use env=push_cube or "
+            "env=cart_pole"
         )
+    _check_render_mode(e.kwargs)
+    _check_events(config)
+
+
+def _check_render_mode(kwargs: dict[str, Any]) -> None:
+    mode = kwargs.get("render_mode")
+    if mode in (None, "rgb_array", "depth_array", "rgbd_tuple"):
+        return
+    if mode == "human" and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        return
+    raise ConfigError(
+        f"env.kwargs.render_mode={mode!r} cannot work here"
+        + (" (no display: DISPLAY is not set)" if mode == "human" else "")
+        + "; rlexp renders offscreen: use render_mode=rgb_array, or events=eval_video for videos"
+    )
 
 
 def _check_events(config: RootConfig) -> None:

@@ -6,11 +6,10 @@ import logging
 
 from torchrl.envs import EnvBase
 
+from rlexp.config.rules import BACKENDS
 from rlexp.config.schema import EnvConfig
 
 log = logging.getLogger(__name__)
-
-BACKENDS = ("gymnasium", "native", "torchrl_gym")
 
 
 def make_env(cfg: EnvConfig, num_envs: int, seed: int, device: str = "cpu") -> EnvBase:

@@ -1,0 +1,220 @@
+"""One rule for every config field: the range, choices or shape a value must have.
+
+``validate`` checks each rule and reports ``key=value must be <rule>``; the table in
+docs/config_rules.md is :func:`rules_markdown` (a test keeps the two equal, and another checks that
+every field of the schema has a rule). Types are the schema's job (Hydra refuses a string for an
+int); these rules say which values of the right type make sense. Sections whose contents depend on
+another choice (``env.kwargs``, ``env.native``, ``events.*``) are checked by building them once
+before the run writes anything (``rlexp.config.checks``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+#: Every name a run writes into a file name: a single safe path component (no "/", no "..").
+SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._=+-]*")
+MAX_NAME = 128  # checkpoint names add ~20 characters; file systems allow 255
+#: Seeds are used with numpy's legacy seeding and added to per-rank / eval offsets.
+MAX_SEED = 2**31 - 1
+DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")
+#: Activation names the MLP builder accepts (rlexp.policies.actor_critic.ACTIVATIONS; a test keeps
+#: the two in step). Here so that a typo fails before torch is imported.
+ACTIVATIONS = ("elu", "gelu", "relu", "silu", "swish", "tanh")
+#: Env backends (rlexp.envs.factory builds them).
+BACKENDS = ("gymnasium", "native", "torchrl_gym")
+#: The metrics an evaluation round logs: what ``trainer.best_metric`` may follow.
+EVAL_METRICS = (
+    "eval/episode_return",
+    "eval/episode_return_std",
+    "eval/episode_length",
+    "eval/success_rate",
+)
+MAX_ENVS = 65_536  # per process; far above what fits in memory for MuJoCo tasks here
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask: SLURM's cpus_per_task, taskset)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+@dataclass(frozen=True)
+class Rule:
+    """``check(value)`` is True for a good value; ``text`` completes "must be ..."."""
+
+    check: Callable[[Any], bool]
+    text: str
+
+
+def _num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def at_least(low: float, note: str = "") -> Rule:
+    return Rule(lambda v: _num(v) and v >= low, f">= {low}{note}")
+
+
+def above(low: float, note: str = "") -> Rule:
+    return Rule(lambda v: _num(v) and v > low, f"> {low}{note}")
+
+
+def between(low: float, high: float, note: str = "") -> Rule:
+    return Rule(lambda v: _num(v) and low <= v <= high, f"in [{low}, {high}]{note}")
+
+
+def one_of(*choices: str) -> Rule:
+    return Rule(lambda v: v in choices, f"one of {list(choices)}")
+
+
+def optional(rule: Rule, meaning: str) -> Rule:
+    return Rule(lambda v: v is None or rule.check(v), f"null ({meaning}) or {rule.text}")
+
+
+FLAG = Rule(lambda v: isinstance(v, bool), "true or false")
+FINITE = Rule(_num, "a finite number")
+
+
+def _safe_name(v: Any) -> bool:
+    return (
+        isinstance(v, str) and bool(SAFE_NAME.fullmatch(v)) and ".." not in v and len(v) <= MAX_NAME
+    )
+
+
+def _widths(v: Any) -> bool:
+    return isinstance(v, list) and all(isinstance(w, int) and 1 <= w <= 65_536 for w in v)
+
+
+def _tags(v: Any) -> bool:
+    return isinstance(v, list) and all(isinstance(t, str) and 0 < len(t) <= 64 for t in v)
+
+
+SAFE = Rule(
+    _safe_name,
+    f"a safe file name: letters, digits and . _ = + - (starting with a letter or digit, no '/' "
+    f"or '..', at most {MAX_NAME} characters)",
+)
+BUILT = Rule(lambda v: True, "checked by building it once before the run starts")
+
+#: dotted key -> rule. Every leaf field of the schema has an entry (tests/test_config_rules.py).
+FIELD_RULES: dict[str, Rule] = {
+    "seed": Rule(lambda v: isinstance(v, int) and 0 <= v <= MAX_SEED, f"in [0, {MAX_SEED}]"),
+    # trainer
+    "trainer.exp_name": SAFE,
+    "trainer.total_frames": at_least(1),
+    "trainer.iterations": optional(at_least(1), "use total_frames"),
+    "trainer.frames_per_batch": at_least(1, ", a multiple of env.num_envs"),
+    "trainer.device": Rule(
+        lambda v: isinstance(v, str) and bool(DEVICE.fullmatch(v)), "auto, cpu, cuda or cuda:N"
+    ),
+    "trainer.strict_device": FLAG,
+    "trainer.eval_every": at_least(0, " (0: no evaluation)"),
+    "trainer.eval_episodes": at_least(0, " (0: no evaluation)"),
+    "trainer.save_every": at_least(0, " (0: checkpoints only at the end and on a stop)"),
+    "trainer.keep_last": Rule(lambda v: isinstance(v, int), "an integer (<= 0: keep all)"),
+    "trainer.resume": Rule(
+        lambda v: isinstance(v, str),
+        "auto, never, or the path of a checkpoint of this env and policy (read before training)",
+    ),
+    "trainer.best_metric": one_of(*EVAL_METRICS),
+    "trainer.nan_guard": FLAG,
+    "trainer.log_every": at_least(1, " (iterations)"),
+    "trainer.progress": FLAG,
+    "trainer.torch_threads": Rule(
+        lambda v: isinstance(v, int) and 1 <= v <= available_cpus(),
+        "in [1, the CPUs this process may use] (more threads than CPUs only slow it down)",
+    ),
+    # policy
+    "policy.name": one_of("actor_critic"),
+    "policy.actor.hidden_sizes": Rule(_widths, "a list of widths in [1, 65536] ([]: linear)"),
+    "policy.actor.activation": one_of(*ACTIVATIONS),
+    "policy.critic.hidden_sizes": Rule(_widths, "a list of widths in [1, 65536] ([]: linear)"),
+    "policy.critic.activation": one_of(*ACTIVATIONS),
+    "policy.init_log_std": Rule(_num, "a finite number in [min_log_std, max_log_std]"),
+    "policy.min_log_std": between(-20.0, 20.0, ", below max_log_std"),
+    "policy.max_log_std": between(-20.0, 20.0),
+    "policy.ortho_init": FLAG,
+    # algorithm
+    "algorithm.name": one_of("ppo"),
+    "algorithm.gamma": between(0.0, 1.0),
+    "algorithm.lmbda": between(0.0, 1.0),
+    "algorithm.clip_epsilon": above(0.0),
+    "algorithm.entropy_coeff": at_least(0.0),
+    "algorithm.critic_coeff": at_least(0.0),
+    "algorithm.loss_critic_type": one_of("l1", "l2", "smooth_l1"),
+    "algorithm.normalize_advantage": FLAG,
+    "algorithm.clip_value": optional(above(0.0), "no value clipping"),
+    "algorithm.lr": above(0.0),
+    "algorithm.adam_eps": above(0.0),
+    "algorithm.anneal_lr": FLAG,
+    "algorithm.max_grad_norm": Rule(_num, "a finite number (<= 0: no clipping)"),
+    "algorithm.num_epochs": at_least(1),
+    "algorithm.mini_batch_size": at_least(1, ", at most trainer.frames_per_batch"),
+    "algorithm.compile": Rule(
+        lambda v: str(v).strip().lower() in ("auto", "true", "false"), "auto, true or false"
+    ),
+    # env
+    "env.name": Rule(
+        lambda v: isinstance(v, str) and bool(v.strip()),
+        "a registered Gymnasium id or a native task (checked by building one env)",
+    ),
+    "env.backend": one_of(*BACKENDS),
+    "env.num_envs": between(1, MAX_ENVS),
+    "env.num_eval_envs": between(0, MAX_ENVS, " (0: no evaluation)"),
+    "env.max_episode_steps": optional(at_least(1), "the task's own limit"),
+    "env.normalize_observations": FLAG,
+    "env.clip_observations": above(0.0),
+    "env.vectorization": one_of("sync", "async"),
+    "env.kwargs": Rule(
+        lambda v: isinstance(v, dict),
+        "keyword arguments the env accepts (checked by building one env; render_mode=human "
+        "only where a display exists)",
+    ),
+    "env.native": Rule(
+        lambda v: True,
+        "the native task's terms (docs/native_tasks.md), checked by building one env",
+    ),
+    # events
+    "events.train": Rule(
+        lambda v: isinstance(v, dict),
+        "events whose func is registered (or allowlisted), mode one of startup/reset/interval/"
+        "step/trigger, interval_step >= 1, params as docs/events.md says",
+    ),
+    "events.eval": Rule(lambda v: isinstance(v, dict), "as events.train"),
+    # logger
+    "logger.tensorboard.enabled": FLAG,
+    "logger.wandb.enabled": FLAG,
+    "logger.wandb.project": Rule(
+        lambda v: isinstance(v, str) and 0 < len(v) <= 128 and not set(v) & set("/\\#?%:"),
+        "a non-empty W&B project name (at most 128 characters, none of / \\ # ? % :)",
+    ),
+    "logger.wandb.entity": optional(
+        Rule(lambda v: isinstance(v, str) and bool(v.strip()), "a non-empty name"), "your default"
+    ),
+    "logger.wandb.mode": one_of("auto", "online", "offline", "disabled"),
+    "logger.wandb.tags": Rule(_tags, "a list of tags of 1 to 64 characters"),
+    "logger.jsonl": FLAG,
+    "logger.console": FLAG,
+}
+
+
+def get(config: Any, key: str) -> Any:
+    """The value at dotted ``key`` of a config dataclass."""
+    value = config
+    for part in key.split("."):
+        value = getattr(value, part)
+    return value
+
+
+def rules_markdown() -> str:
+    """The table of docs/config_rules.md."""
+    rows = ["| key | rule |", "|---|---|"]
+    rows += [f"| `{key}` | {rule.text} |" for key, rule in FIELD_RULES.items()]
+    return "\n".join(rows) + "\n"
