@@ -199,11 +199,23 @@ class Trainer:
         if self._event_transform is not None:
             self._event_transform.global_step = self.global_step
         if self.cfg.nan_guard:
-            for key in (("next", "observation"), ("next", "reward")):
-                if not torch.isfinite(batch[key]).all():
-                    raise NonFiniteError(
-                        f"non-finite {'/'.join(key)} from the env at step {self.global_step}"
-                    )
+            keys = (("next", "observation"), ("next", "reward"))
+            bad = [(self.dist.rank, k) for k in keys if not torch.isfinite(batch[k]).all()]
+            if self.dist.enabled:  # all ranks raise together: one alone would block the others
+                device = next(self.policy.parameters()).device  # where the backend reduces
+                flags = torch.zeros(self.dist.world_size, len(keys), device=device)
+                for rank, k in bad:
+                    flags[rank, keys.index(k)] = 1.0
+                bad = [(r, keys[i]) for r, i in all_reduce_sum(flags).nonzero().tolist()]
+            if bad:
+                key = bad[0][1]
+                where = ""
+                if self.dist.enabled:
+                    ranks = [str(r) for r, k in bad if k == key]
+                    where = f" on rank{'s' if len(ranks) > 1 else ''} {', '.join(ranks)}"
+                raise NonFiniteError(
+                    f"non-finite {'/'.join(key)} from the env{where} at step {self.global_step}"
+                )
         self._track_episodes(batch)
         return batch
 
