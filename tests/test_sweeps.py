@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
+from test_slurm import SLURM, cluster  # noqa: F401 (the fixture: a cluster that answers)
 
 from conftest import CONF_DIR, REPO, run_train
 
@@ -454,3 +455,28 @@ def test_slurm_launcher_collects_every_job_when_one_died_without_a_result(tmp_pa
         f"job #1: {reason}; its output: {tmp_path / '7_1_0_log.err'}"
     )
     assert len(records) == 2
+
+
+@pytest.mark.slurm
+@pytest.mark.usefixtures("cluster")  # skips when no SLURM cluster answers
+def test_slurm_sweep_runs_the_other_jobs_past_a_failing_one_and_exits_1(tmp_path):
+    sweep = tmp_path / "sweep"
+    proc = run_train(
+        [
+            "-m",
+            *SLURM,
+            "seed=0",
+            "algorithm.clip_epsilon=inf,0.2",
+            *SWEEP_TINY,
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=tmp_path,
+        check=False,
+        timeout=300,
+    )
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 1, out[-3000:]
+    failed = json.loads((sweep / "0/status.json").read_text())
+    assert failed["state"] == "failed" and failed["reason"] == CLIP_INF
+    assert json.loads((sweep / "1/status.json").read_text())["state"] == "finished"
+    assert f"sweep {sweep}: 1 of 2 jobs finished; 1 failed: {sweep / '0'} ({CLIP_INF})" in out
