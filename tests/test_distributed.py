@@ -193,9 +193,11 @@ def test_nan_on_one_rank_stops_both_ranks_with_the_nan_guard_error(tmp_path, wei
         f"hydra.run.dir={run_dir}",
     ]
     ranks = _two_ranks(args, [f"+env.kwargs.ctrl_cost_weight={weight}"], cwd=tmp_path)
-    for rank, proc in enumerate(ranks):
-        assert proc.returncode == 3, f"rank {rank} exited {proc.returncode}:\n{proc.stdout[-3000:]}"
-        assert reason in proc.stdout, f"rank {rank}:\n{proc.stdout[-3000:]}"
-        assert "Traceback" not in proc.stdout, f"rank {rank}:\n{proc.stdout[-3000:]}"
+    outputs = "\n".join(
+        f"--- rank {r}, exit {p.returncode}:\n{p.stdout[-3000:]}" for r, p in enumerate(ranks)
+    )
+    for proc in ranks:
+        assert proc.returncode == 3, outputs
+        assert reason in proc.stdout and "Traceback" not in proc.stdout, outputs
     status = json.loads((run_dir / "status.json").read_text())
     assert status["state"] == "failed" and status["reason"].startswith(reason), status
