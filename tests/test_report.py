@@ -169,6 +169,16 @@ def test_jobs_expected_from_multirun_yaml_but_never_started_are_listed(tmp_path)
     assert "| #0 |" not in md and "| #4 |" not in md
 
 
+def test_a_glob_over_a_config_group_is_expanded_with_rlexp_configs(tmp_path):
+    from rlexp.report import report
+
+    multirun_yaml(tmp_path, ["env=glob(inverted_*)", "seed=0"])
+    job(tmp_path, 0, ["env=inverted_double_pendulum", "seed=0"], finished(), "")
+    md = report(tmp_path, plot=False)
+    assert "2 jobs expected (multirun.yaml: the grid of the sweep's overrides), 1 started" in md
+    assert "| #1 | `env=inverted_pendulum seed=0` |" in md
+
+
 def test_optuna_trials_that_never_started(tmp_path):
     from rlexp.report import report
 

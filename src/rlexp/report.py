@@ -34,6 +34,8 @@ DEFAULT_METRIC = "eval/episode_return"
 SEED_KEYS = ("seed",)
 #: Time inside the training loop per iteration (summed: requeue waits and startup don't count).
 TIME_KEYS = ("perf/collect_time", "perf/update_time", "perf/eval_time")
+#: A plan's source when Hydra's parser could not expand the sweep's overrides.
+UNEXPANDED = "the sweep's overrides could not be expanded"
 #: ``hydra.sweep.subdir`` that names each job dir after its job number (conf/config.yaml).
 JOB_NUM_SUBDIR = "${hydra.job.num}"
 
@@ -338,7 +340,7 @@ def plan_from_config(cfg: DictConfig, config_loader: Any = None) -> Plan:
             parsed = OverridesParser.create(config_loader=config_loader).parse_overrides(lines)
             batches = BasicSweeper.split_arguments(parsed, None)[0]
         except Exception as exc:  # Hydra's parser: a sweep it cannot expand without the configs
-            return Plan(None, f"the sweep's overrides could not be expanded ({_first_line(exc)})")
+            return Plan(None, f"{UNEXPANDED} ({_first_line(exc)})")
         jobs = [ExpectedJob(i, tuple(o)) for i, o in enumerate(batches)]
         return Plan(jobs, "the grid of the sweep's overrides", numbered)
     if "optuna" in target.lower():
@@ -361,7 +363,31 @@ def read_plan(sweep_dir: Path) -> Plan:
         return Plan(None, f"multirun.yaml is not readable ({_first_line(exc)})")
     if not isinstance(cfg, DictConfig):
         return Plan(None, "multirun.yaml is not a mapping")
-    return plan_from_config(cfg)
+    plan = plan_from_config(cfg)
+    if plan.jobs is None and plan.source.startswith(UNEXPANDED):
+        plan = _plan_with_rlexp_configs(cfg) or plan
+    return plan
+
+
+def _plan_with_rlexp_configs(cfg: DictConfig) -> Plan | None:
+    """The plan with rlexp's ``conf/`` at hand: a ``glob(...)`` over a config group lists the
+    group's options (as the sweep did). None where Hydra is already set up in this process."""
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from rlexp.app import CONF_DIR
+    from rlexp.config.schema import register_configs
+
+    if GlobalHydra.instance().is_initialized():
+        return None
+    register_configs()  # the schemas are group options too, as in the sweep
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return plan_from_config(cfg, GlobalHydra.instance().config_loader())
+    except Exception:  # Hydra's own errors: the plan stays unknown, with the first reason
+        return None
+    finally:
+        GlobalHydra.instance().clear()
 
 
 def match_plan(sweep_dir: Path, jobs: list[Job], plan: Plan) -> Sweep:
