@@ -123,7 +123,9 @@ def _agree(failed: bool) -> None:
     import torch
 
     _AGREED[id(dist)] = True
-    if distributed.all_reduce_sum(torch.tensor([float(failed)])).item() > 0 and not failed:
+    device = f"cuda:{dist.local_rank}" if dist.backend == "nccl" else "cpu"  # nccl: GPU tensors only
+    flag = torch.tensor([float(failed)], device=device)
+    if distributed.all_reduce_sum(flag).item() > 0 and not failed:
         raise ConfigError("another rank failed before training (see rank 0's log)")
 
 

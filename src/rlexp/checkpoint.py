@@ -97,6 +97,22 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> Path:
     return path
 
 
+def _load_failure(path: Path, exc: BaseException) -> str:
+    """Why a file does not load, in words that do not tell users to turn the safe loader off."""
+    text = str(exc)
+    if path.stat().st_size == 0:
+        return "an empty file"
+    if "Weights only load failed" in text:
+        return (
+            "not an rlexp checkpoint: loading it would run code from the file, which rlexp never "
+            "does (weights_only)"
+        )
+    if "central directory" in text or isinstance(exc, EOFError):
+        return "truncated or corrupt: the write that made it did not finish"
+    first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
+    return f"corrupt: {first[:200]}"
+
+
 def _write_failure(path: Path, exc: BaseException) -> str:
     """torch's writer hides the errno (``file write failed``): name a full disk when it is one."""
     import shutil
@@ -125,13 +141,13 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
             f"checkpoint {str(p)!r} cannot be read: {exc.strerror or exc}"
         ) from None
     try:
-        ckpt = torch.load(p, map_location="cpu", weights_only=True)
+        import warnings
+
+        with warnings.catch_warnings():  # "Detected pickle protocol N": not for users
+            warnings.simplefilter("ignore", UserWarning)
+            ckpt = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(
-            f"checkpoint {str(p)!r} is unreadable (truncated, corrupt or not a weights-only "
-            f"checkpoint): {first}"
-        ) from None
+        raise ValueError(f"checkpoint {str(p)!r} is unreadable ({_load_failure(p, exc)})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ValueError(f"{str(p)!r} is not an rlexp checkpoint (format {FORMAT!r})")
     step = ckpt.get("global_step")

@@ -175,7 +175,8 @@ class Trainer:
         self.save_checkpoint()
 
     def _agree_on_stop(self) -> None:
-        requested = torch.tensor([float(self.stop_reason is not None)])
+        device = next(self.policy.parameters()).device  # nccl reduces GPU tensors only
+        requested = torch.tensor([float(self.stop_reason is not None)], device=device)
         if all_reduce_sum(requested).item() > 0 and self.stop_reason is None:
             self.stop_reason = "stop requested on another rank"
 

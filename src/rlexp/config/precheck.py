@@ -159,7 +159,11 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
     from rlexp.config.checks import check_buildable
 
     check_buildable(config)
-    if run_dir is not None and run_dir.is_dir():  # before Hydra writes .hydra/ and its log there
+    from rlexp.launch import distributed
+
+    # Before Hydra writes .hydra/ and its log there; rank 0 alone (it takes the lock right after,
+    # and another rank would find that lock).
+    if run_dir is not None and run_dir.is_dir() and distributed.info().is_main:
         from rlexp.config.validate import to_dict
         from rlexp.rundir import RunDirLock, check_run_dir
 
