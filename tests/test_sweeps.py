@@ -345,12 +345,6 @@ def test_report_counts_the_expected_jobs_and_lists_failed_and_never_started_ones
     assert "; 1 never started: #3 (seed=1 algorithm.clip_epsilon=0.2 " in line
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="rlexp.app._task returns NaN for a failed sweep job: optuna 2.10's study.tell refuses "
-    "NaN, and hydra-optuna-sweeper then tells FAIL with the values and crashes; returning None "
-    "makes it a failed trial (remove this mark when app.py returns None)",
-)
 def test_optuna_goes_on_after_a_failed_trial(tmp_path):
     sweep = tmp_path / "sweep"
     proc = run_train(

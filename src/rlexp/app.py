@@ -10,7 +10,6 @@ docs/faults.md.
 from __future__ import annotations
 
 import logging
-import math
 import os
 import sys
 from dataclasses import dataclass
@@ -404,8 +403,9 @@ def _task(cfg: DictConfig) -> float | None:
     """Hydra's task function: typed config in, final eval return out (for sweepers).
 
     A single run exits with the code of how it ended (docs/faults.md). In a sweep, a job that fails
-    records the reason in its own dir and returns NaN, so the launcher goes on with the other jobs;
-    the sweep's end (``rlexp.launch.sweep``) reports the failed ones and sets the exit code.
+    records the reason in its own dir and returns None (Optuna records a failed trial; NaN would
+    crash its sweeper), so the launcher goes on with the other jobs; the sweep's end
+    (``rlexp.launch.sweep``) reports the failed ones and sets the exit code.
     """
     hc = HydraConfig.get()
     multirun = hc.mode is not None and hc.mode.name == "MULTIRUN"
@@ -430,8 +430,12 @@ def _task(cfg: DictConfig) -> float | None:
     except KeyboardInterrupt:  # Ctrl-C twice while the run was being built: nothing to save
         log.error("interrupted before training started")
         sys.exit(EXIT_SIGNAL_BASE + 2)
-    value = metrics.get("eval/episode_return")
-    return value if value is not None or not multirun else math.nan
+    except Exception as exc:
+        if not multirun:
+            raise
+        log.exception("job failed")  # the traceback goes to the job's log; the sweep goes on
+        return _failed(run_dir, f"{type(exc).__name__}: {_first_line(exc)}", EXIT_FAILED, True, exc)
+    return metrics.get("eval/episode_return")
 
 
 def _join_distributed() -> None:
@@ -444,8 +448,8 @@ def _join_distributed() -> None:
             raise ConfigError(str(exc)) from None
 
 
-def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Exception) -> float:
-    """One line; a single run exits with ``code``, a sweep job records it and returns NaN."""
+def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Exception) -> None:
+    """One line; a single run exits with ``code``, a sweep job records it and returns None."""
     from rlexp.rundir import RunDirBusy
 
     log.error("%s", message)
@@ -457,7 +461,7 @@ def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Excepti
             write_status(run_dir, "failed", 0, reason=message, exit_code=code)
         except OSError as err:
             log.error("could not record the failure in %s: %s", run_dir, err)
-    return math.nan
+    return None
 
 
 def main() -> None:
