@@ -164,8 +164,9 @@ SHORT = [
 
 def test_a_failed_start_holds_no_experiment_and_temp_files_are_cleaned(tmp_path):
     run_dir = tmp_path / "run"
-    # NaN from the first rollout on: exit 3 before any checkpoint; config.yaml was written.
-    bad = [*SHORT, "events=noise", "events.train.observation_noise.params.std=inf"]
+    # Inf (noise of std 1e300 overflows float32) from the first rollout on: exit 3 before any
+    # checkpoint; config.yaml was written.
+    bad = [*SHORT, "events=noise", "events.train.observation_noise.params.std=1e300"]
     proc = run_train([*bad, f"hydra.run.dir={run_dir}"], cwd=tmp_path, check=False)
     assert proc.returncode == 3, proc.stdout + proc.stderr
     assert (run_dir / "config.yaml").is_file() and not step_checkpoints(run_dir / "checkpoints")

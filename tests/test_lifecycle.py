@@ -32,7 +32,7 @@ def test_non_finite_observation_stops_the_run_and_keeps_the_last_good_checkpoint
             "trainer.total_frames=1024",
             f"hydra.run.dir={run_dir}",
             "events=noise",
-            "events.train.observation_noise.params.std=inf",
+            "events.train.observation_noise.params.std=1e300",
             f"trainer.resume={last}",
         ],
         cwd=tmp_path,

@@ -218,3 +218,36 @@ def test_checkpoints_that_do_not_fit_are_refused_naming_the_part(tmp_path):
     with pytest.raises(ConfigError, match=f"env.num_envs={n} training envs, this run has"):
         precheck(["env=inverted_pendulum", "env.num_envs=2", "trainer.frames_per_batch=256",
                   f"trainer.resume={good['path']}"], CONF_DIR)  # fmt: skip
+
+
+# -- a refused run rewrites nothing ----------------------------------------------------------------------
+def _snapshot(root: Path) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+def test_a_run_refused_for_another_experiment_leaves_the_dir_untouched(tmp_path):
+    run_dir = tmp_path / "run"
+    run_train([*SHORT, f"hydra.run.dir={run_dir}"], cwd=tmp_path)
+    before = _snapshot(run_dir)
+    proc = run_train(
+        [*SHORT, "algorithm.clip_epsilon=0.3", f"hydra.run.dir={run_dir}"],
+        cwd=tmp_path,
+        check=False,
+    )
+    assert proc.returncode == 2 and "holds a different experiment" in proc.stderr
+    assert _snapshot(run_dir) == before, ".hydra/, train.log or status changed"
+
+
+def test_a_sweep_dir_holding_another_sweep_is_refused_before_anything_is_written(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    args = [*SHORT, "trainer.total_frames=256", f"hydra.sweep.dir={sweep_dir}"]
+    run_train(["-m", *args, "seed=0,1"], cwd=tmp_path)
+    assert (sweep_dir / "0" / ".hydra" / "overrides.yaml").is_file()
+    before = _snapshot(sweep_dir)
+    proc = run_train(["-m", *args, "seed=2,3"], cwd=tmp_path, check=False)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert f"sweep dir {sweep_dir} holds another sweep" in proc.stdout + proc.stderr
+    assert _snapshot(sweep_dir) == before
+    # The same sweep again is a re-run: its finished jobs are skipped.
+    proc = run_train(["-m", *args, "seed=0,1"], cwd=tmp_path)
+    assert proc.stdout.count("already finished") == 2

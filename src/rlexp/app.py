@@ -313,9 +313,28 @@ def _write_run_files(config: RootConfig, config_dict: dict, run_dir: Path, devic
     from rlexp.config.json_format import write_json_experiment
     from rlexp.provenance import write_provenance
 
+    _write_hydra_files(run_dir)
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(config_dict)))
     write_json_experiment(config, run_dir)
     write_provenance(run_dir, device)
+
+
+#: The job's Hydra config, set by ``_task``: ``.hydra/`` is written by rlexp once the checks have
+#: passed (``hydra.output_subdir: null`` in conf/config.yaml), so that a refused run never rewrites
+#: the files of the run that owns the dir.
+_HYDRA_JOB: dict[str, Any] = {}
+
+
+def _write_hydra_files(run_dir: Path) -> None:
+    """``.hydra/config.yaml``, ``hydra.yaml`` and ``overrides.yaml``, as Hydra itself writes them."""
+    cfg, hydra_cfg = _HYDRA_JOB.get("cfg"), _HYDRA_JOB.get("hydra")
+    if cfg is None or hydra_cfg is None:
+        return  # not under Hydra (train() called from Python)
+    out = run_dir / ".hydra"
+    out.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, out / "config.yaml")
+    OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), out / "hydra.yaml")
+    OmegaConf.save(hydra_cfg.overrides.task, out / "overrides.yaml")
 
 
 #: The eval envs' seed is the run's seed plus this (far from the per-rank training seeds).
@@ -408,6 +427,7 @@ def _task(cfg: DictConfig) -> float | None:
     (``rlexp.launch.sweep``) reports the failed ones and sets the exit code.
     """
     hc = HydraConfig.get()
+    _HYDRA_JOB.update(cfg=cfg, hydra=hc)
     multirun = hc.mode is not None and hc.mode.name == "MULTIRUN"
     run_dir = Path(hc.runtime.output_dir)
     sweep_group = Path(hc.sweep.dir).name if multirun else None
@@ -458,6 +478,7 @@ def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Excepti
     state = read_status(run_dir).get("state")
     if not isinstance(exc, RunDirBusy) and state in (None, "failed"):  # never another run's status
         try:
+            _write_hydra_files(run_dir)  # the job's overrides, for rlexp report
             write_status(run_dir, "failed", 0, reason=message, exit_code=code)
         except OSError as err:
             log.error("could not record the failure in %s: %s", run_dir, err)

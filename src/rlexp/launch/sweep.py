@@ -60,14 +60,40 @@ def summarize_sweep(sweep_dir: Path, config: DictConfig) -> tuple[str, bool]:
     return line, ok
 
 
+def check_same_sweep(sweep_dir: Path, config: DictConfig) -> None:
+    """A sweep dir that holds another sweep (other overrides) is refused before anything is written:
+    its ``multirun.yaml`` would be replaced and ``rlexp report`` would then expect jobs that never
+    ran. Re-running the same sweep (to finish or skip its jobs) is fine."""
+    path = sweep_dir / "multirun.yaml"
+    if not path.is_file():
+        return
+    try:
+        old = list(OmegaConf.load(path).hydra.overrides.task)
+    except Exception:
+        return  # unreadable: nothing to compare with (rlexp report names it)
+    new = list(config.hydra.overrides.task)
+    if sorted(old) != sorted(new):
+        gone = sorted(set(old) - set(new))
+        added = sorted(set(new) - set(old))
+        log.error(
+            "sweep dir %s holds another sweep (its overrides differ: %s%s); use a new "
+            "hydra.sweep.dir, or re-run that sweep with its own overrides",
+            sweep_dir,
+            f"there {gone}" if gone else "",
+            f"{'; ' if gone else ''}here {added}" if added else "",
+        )
+        sys.exit(2)
+
+
 class SweepSummary(Callback):
     """``hydra.callbacks``: the sweep's ``multirun.yaml`` at its start, its summary at its end."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Save the sweep's config as ``multirun.yaml``, as Hydra's basic sweeper does (the Optuna
         sweeper does not): ``rlexp report`` reads from it how many jobs the sweep was to run."""
+        sweep_dir = Path(str(config.hydra.sweep.dir))
+        check_same_sweep(sweep_dir, config)
         try:
-            sweep_dir = Path(str(config.hydra.sweep.dir))
             sweep_dir.mkdir(parents=True, exist_ok=True)
             OmegaConf.save(config, sweep_dir / "multirun.yaml")
         except OSError as exc:
