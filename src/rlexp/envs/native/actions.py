@@ -6,6 +6,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from rlexp.config.native_task import Number, OrNull, Part
 from rlexp.envs.native.registry import Registry
 
 if TYPE_CHECKING:
@@ -14,7 +15,12 @@ if TYPE_CHECKING:
 ACTIONS: Registry = Registry("action term")
 
 
-@ACTIONS.register()
+@ACTIONS.register(
+    params={
+        "scale": Number(gt=0, note=" (rad per unit action)"),
+        "part_name": OrNull(Part(), "every actuator"),
+    }
+)
 class DeltaQposTerm:
     """Joint position targets ``qpos + scale * action`` for the actuated joints of ``part_name``.
 

@@ -27,7 +27,15 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from rlexp.config.native_task import NativeTaskConfig
+from rlexp.config.native_task import (
+    NativeTaskConfig,
+    Number,
+    ParamRule,
+    Unchecked,
+    Vector,
+    check_params,
+    plain,
+)
 from rlexp.envs.native.actions import ACTIONS
 from rlexp.envs.native.events import EVENTS
 from rlexp.envs.native.kinematics import SerialChainFK
@@ -51,29 +59,49 @@ def _as_dict(cfg: Any) -> dict[str, Any]:
     return dict(cfg)
 
 
-def _plain(value: Any) -> Any:
-    """Params with nested mappings / sequences as plain dicts and lists (OmegaConf containers too)."""
-    if hasattr(value, "items"):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)) or type(value).__name__ == "ListConfig":
-        return [_plain(v) for v in value]
-    return value
-
-
-def _check_params(func: Any, params: dict[str, Any], where: str, skip: int) -> None:
-    """Fail at build time, naming the config key, if ``params`` does not fit ``func``'s signature."""
-    sig = inspect.signature(func)
+def _check_params(
+    func: Any, params: dict[str, Any], where: str, skip: int, env: Any = None
+) -> None:
+    """Fail at build time, naming the config key, if ``params`` do not fit ``func``: its rules
+    (``PARAMS``, set by the registries: types, lengths, ranges, and with ``env`` the names and joint
+    indices they refer to), else at least its signature."""
+    target = func.__init__ if isinstance(func, type) else func
+    sig = inspect.signature(target)
     names = list(sig.parameters)[skip:]
-    unknown = sorted(set(params) - set(names))
-    if unknown:
-        raise TypeError(
-            f"{where}.params: unknown parameter(s) {unknown} for {func.__name__}; it accepts {names}"
+    required = [n for n in names if sig.parameters[n].default is inspect.Parameter.empty]
+    rules = getattr(func, "PARAMS", None)
+    if rules is None:
+        rules = {n: Unchecked() for n in names}
+    check_params(func.__name__, params, rules, f"{where}.params", required, env)
+
+
+def _friction_ok(value: Any, where: str) -> None:
+    values = value if isinstance(value, (list, tuple)) else [value]
+    if not 1 <= len(values) <= 3:
+        raise ValueError(
+            f"{where}={value!r} must be 1 to 3 numbers >= 0 (sliding, torsional, rolling)"
         )
-    missing = [
-        n for n in names if sig.parameters[n].default is inspect.Parameter.empty and n not in params
-    ]
-    if missing:
-        raise TypeError(f"{where}.params: {func.__name__} needs parameter(s) {missing}")
+    for i, v in enumerate(values):
+        Number(ge=0).check(v, f"{where}[{i}]" if isinstance(value, (list, tuple)) else where)
+
+
+#: Rules of the scene overrides of a rigid object ``<uid>_<attr>`` (init_qpos: in _setup_indices).
+SCENE_RULES: dict[str, ParamRule] = {
+    "init_pos": Vector(note="m, world frame"),
+    "size": Vector(gt=0, note="m, full edge lengths"),
+    "mass": Number(gt=0, note=" (kg)"),
+}
+
+
+_TERM_ERRORS = (KeyError, ValueError, TypeError)
+
+
+def _named(exc: Exception, where: str) -> Exception:
+    """A term's KeyError / ValueError / TypeError with its config key in front of the message
+    (``raise _named(exc, where) from exc`` in an ``except _TERM_ERRORS``: free when nothing fails)."""
+    msg = str(exc.args[0] if exc.args else exc)
+    kind = next(k for k in _TERM_ERRORS if isinstance(exc, k))
+    return kind(msg if msg.startswith(where) else f"{where}: {msg}")
 
 
 def _choose(value: str, choices: tuple[str, ...], where: str) -> str:
@@ -100,6 +128,10 @@ def load_model(task: TaskSpec, scene: dict[str, Any]) -> tuple[mujoco.MjModel, d
         if key == "init_qpos":
             rest[key] = value
         elif uid in task.objects and attr in ("init_pos", "size", "mass", "friction"):
+            if attr == "friction":
+                _friction_ok(value, f"env.native.scene.{key}")
+            else:
+                SCENE_RULES[attr].check(value, f"env.native.scene.{key}")
             body = spec.body(task.objects[uid])
             geom = body.first_geom()
             if attr == "init_pos":
@@ -157,31 +189,29 @@ class NativeEnv(EnvBase):
         self.max_episode_steps = int(max_episode_steps or self.task_spec.max_episode_steps)
         self.extensions: dict[str, Any] = {
             **self.task_spec.extensions,
-            **_plain(cfg.extensions or {}),
+            **plain(cfg.extensions or {}),
         }
+        for key, rule in self.task_spec.extension_rules.items():
+            rule.check(self.extensions[key], f"env.native.extensions.{key}")
 
-        self.model, scene = load_model(self.task_spec, _plain(cfg.scene or {}))
+        self.model, scene = load_model(self.task_spec, plain(cfg.scene or {}))
         self._setup_indices(scene)
         self._setup_physics(num_threads)
         self._setup_terms(cfg)
 
         # Build-time pass with a throwaway generator: gives every env a valid state and the targets
         # the observation terms read, and fixes the observation layout. set_seed()/reset() follow.
+        # Every startup / reset event, observation and reward runs once here, so a parameter that
+        # only fails when used (a target no event stores) fails now, naming the term.
         self.rng = np.random.default_rng(0)
         self._fire(self._startup_events, np.arange(num_envs))
         self._reset_envs(np.arange(num_envs))
         obs = self._observation_dict()
-        for (
-            key,
-            func,
-            _,
-            _,
-            params,
-        ) in self._reward_terms:  # surface bad params now, naming the term
+        for key, func, _, _, params in self._reward_terms:
             try:
                 func(self, **params)
-            except (KeyError, ValueError) as exc:
-                raise type(exc)(f"rewards.{key}: {exc.args[0] if exc.args else exc}") from exc
+            except _TERM_ERRORS as exc:
+                raise _named(exc, f"rewards.{key}") from exc
         self.observation_layout = self._layout(obs)
         self.obs_dim = self.observation_layout[-1][2] if self.observation_layout else 0
         self._v.current_obs = self._flatten(obs)
@@ -203,11 +233,21 @@ class NativeEnv(EnvBase):
         self.robot_joint_limits = np.where(
             limited[:, None], m.jnt_range[self.robot_joint_ids], [-np.inf, np.inf]
         )
-        init_qpos = np.asarray(scene.get("init_qpos", task.init_qpos), float)
-        if init_qpos.shape != (self.num_robot_joints,):
+        raw = scene.get("init_qpos", task.init_qpos)
+        if isinstance(raw, (list, tuple)) and len(raw) != self.num_robot_joints:
             raise ValueError(
-                f"env.native.scene.init_qpos has {init_qpos.size} values; {task.name} has "
+                f"env.native.scene.init_qpos has {len(raw)} values; {task.name} has "
                 f"{self.num_robot_joints} robot joints {list(task.robot_joints)}"
+            )
+        Vector(names=tuple(task.robot_joints)).check(list(raw), "env.native.scene.init_qpos")
+        init_qpos = np.asarray(raw, float)
+        low, high = self.robot_joint_limits[:, 0], self.robot_joint_limits[:, 1]
+        outside = np.flatnonzero((init_qpos < low) | (init_qpos > high))
+        if outside.size:
+            j = int(outside[0])
+            raise ValueError(
+                f"env.native.scene.init_qpos={init_qpos.tolist()}: {task.robot_joints[j]}="
+                f"{init_qpos[j]:g} is outside the joint's range [{low[j]:g}, {high[j]:g}]"
             )
         self.robot_init_qpos = init_qpos
         # actuators: joint transmission only, fixed gain, affine or no bias (position servos, motors)
@@ -314,9 +354,12 @@ class NativeEnv(EnvBase):
         for key, term in cfg.actions.items():
             t = _as_dict(term)
             cls = ACTIONS.get(t["func"], f"actions.{key}")
-            params = _plain(t.get("params") or {})
-            _check_params(cls.__init__, params, f"actions.{key}", skip=2)
-            inst = cls(self, **params)
+            params = plain(t.get("params") or {})
+            _check_params(cls, params, f"actions.{key}", skip=2, env=self)
+            try:
+                inst = cls(self, **params)
+            except _TERM_ERRORS as exc:
+                raise _named(exc, f"actions.{key}") from exc
             self._action_terms.append((slice(dim, dim + inst.action_dim), inst))
             dim += inst.action_dim
         self.action_dim = dim
@@ -328,9 +371,11 @@ class NativeEnv(EnvBase):
             t = _as_dict(term)
             func = EVENTS.get(t["func"], f"events.{key}")
             mode = _choose(t.get("mode", "reset"), EVENT_MODES, f"events.{key}.mode")
-            params = _plain(t.get("params") or {})
-            _check_params(func, params, f"events.{key}", skip=2)
-            entry = (func, params, int(t.get("interval_step", 1) or 1))
+            params = plain(t.get("params") or {})
+            _check_params(func, params, f"events.{key}", skip=2, env=self)
+            every = t.get("interval_step", 1)
+            Number(ge=1, integer=True).check(every, f"events.{key}.interval_step")
+            entry = (key, func, params, int(every))
             {
                 "startup": self._startup_events,
                 "reset": self._reset_events,
@@ -345,8 +390,9 @@ class NativeEnv(EnvBase):
             name = t.get("name")
             if not name or name == "???" or name.strip("/") != name or "//" in name:
                 raise ValueError(f"observations.{key}.name must be 'group/key', got {name!r}")
-            params = _plain(t.get("params") or {})
-            _check_params(func, params, f"observations.{key}", skip=2 if mode == "modify" else 1)
+            params = plain(t.get("params") or {})
+            skip = 2 if mode == "modify" else 1
+            _check_params(func, params, f"observations.{key}", skip=skip, env=self)
             self._observation_terms.append((key, func, mode, name, params))
         # rewards
         self._reward_terms = []
@@ -354,9 +400,11 @@ class NativeEnv(EnvBase):
             t = _as_dict(term)
             func = REWARDS.get(t["func"], f"rewards.{key}")
             mode = _choose(t.get("mode", "add"), REWARD_MODES, f"rewards.{key}.mode")
-            params = _plain(t.get("params") or {})
-            _check_params(func, params, f"rewards.{key}", skip=1)
-            self._reward_terms.append((key, func, mode, float(t.get("weight", 1.0)), params))
+            params = plain(t.get("params") or {})
+            _check_params(func, params, f"rewards.{key}", skip=1, env=self)
+            weight = t.get("weight", 1.0)
+            Number().check(weight, f"rewards.{key}.weight")
+            self._reward_terms.append((key, func, mode, float(weight), params))
         self.reward_names = [k for k, *_ in self._reward_terms]
 
     def _make_specs(self) -> None:
@@ -491,8 +539,11 @@ class NativeEnv(EnvBase):
     # ------------------------------------------------------------------ the MDP
 
     def _fire(self, events: list, env_ids: np.ndarray) -> None:
-        for func, params, _ in events:
-            func(self, env_ids, **params)
+        for key, func, params, _ in events:
+            try:
+                func(self, env_ids, **params)
+            except _TERM_ERRORS as exc:
+                raise _named(exc, f"events.{key}") from exc
 
     def _reset_envs(self, env_ids: np.ndarray) -> None:
         """Put envs ``env_ids`` back to their initial state and fire the reset events (batched)."""
@@ -516,13 +567,19 @@ class NativeEnv(EnvBase):
                     raise KeyError(
                         f"observations.{key}: mode 'modify' needs an existing entry {name!r}; have {sorted(obs)}"
                     )
-                obs[name] = func(self, obs[name], **params)
+                try:
+                    obs[name] = func(self, obs[name], **params)
+                except _TERM_ERRORS as exc:
+                    raise _named(exc, f"observations.{key}") from exc
             else:
                 if name in obs:
                     raise KeyError(
                         f"observations.{key}: mode 'add' but {name!r} already exists; use mode 'modify'"
                     )
-                obs[name] = func(self, **params)
+                try:
+                    obs[name] = func(self, **params)
+                except _TERM_ERRORS as exc:
+                    raise _named(exc, f"observations.{key}") from exc
         return obs
 
     def _layout(self, obs: dict[str, np.ndarray]) -> list[tuple[str, int, int, tuple[int, ...]]]:
@@ -561,9 +618,12 @@ class NativeEnv(EnvBase):
         np.clip(action.detach().numpy(), -1.0, 1.0, out=self.action)
         if self._interval_events:
             self._v.interval_count += 1
-            for func, params, every in self._interval_events:
+            for key, func, params, every in self._interval_events:
                 if self._v.interval_count % every == 0:
-                    func(self, np.arange(n), **params)
+                    try:
+                        func(self, np.arange(n), **params)
+                    except _TERM_ERRORS as exc:
+                        raise _named(exc, f"events.{key}") from exc
         for sl, term in self._action_terms:
             term(self, self.action[:, sl], self._ctrl)
 

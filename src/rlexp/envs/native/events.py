@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from rlexp.config.native_task import Box, Entity, Flag, Interval, JointIds, OrNull, Text
 from rlexp.envs.native.registry import Registry
 
 if TYPE_CHECKING:
@@ -23,12 +24,25 @@ EVENTS: Registry = Registry("event func")
 
 def _uniform(env: NativeEnv, n: int, position_range: Sequence[Sequence[float]]) -> np.ndarray:
     low, high = np.asarray(position_range[0], float), np.asarray(position_range[1], float)
-    if low.shape != (3,) or high.shape != (3,):
-        raise ValueError(f"position_range must be [[x, y, z], [x, y, z]], got {position_range!r}")
     return env.rng.uniform(low, high, size=(n, 3))
 
 
-@EVENTS.register()
+#: Rules of the pose events' parameters (the built-in events randomize_object_pose /
+#: randomize_goal_pose take the same ones).
+OBJECT_POSE_PARAMS = {
+    "entity_cfg": Entity(),
+    "position_range": Box(),
+    "relative_position": Flag(),
+    "rotation_range": OrNull(Box(), "keep the initial orientation"),
+}
+TARGET_POSE_PARAMS = {
+    "position_range": Box(),
+    "relative_position": Flag(),
+    "store_key": Text(),
+}
+
+
+@EVENTS.register(params=OBJECT_POSE_PARAMS)
 def randomize_rigid_object_pose(
     env: NativeEnv,
     env_ids: np.ndarray,
@@ -54,7 +68,7 @@ def randomize_rigid_object_pose(
     env.set_object_pose(uid, env_ids, pos, quat)
 
 
-@EVENTS.register()
+@EVENTS.register(params=TARGET_POSE_PARAMS)
 def randomize_target_pose(
     env: NativeEnv,
     env_ids: np.ndarray,
@@ -69,7 +83,13 @@ def randomize_target_pose(
     env.set_target(store_key, env_ids, pos)
 
 
-@EVENTS.register()
+@EVENTS.register(
+    params={
+        "position_range": Interval(),
+        "joint_ids": OrNull(JointIds(), "all robot joints"),
+        "velocity_range": OrNull(Interval(), "velocities stay 0"),
+    }
+)
 def randomize_joint_positions(
     env: NativeEnv,
     env_ids: np.ndarray,

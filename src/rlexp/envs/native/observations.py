@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from rlexp.config.native_task import Entity, Flag, Interval, JointIds, OrNull, Part, Text
 from rlexp.envs.native.kinematics import quat_to_mat
 from rlexp.envs.native.registry import Registry
 
@@ -35,7 +36,13 @@ def _pose(pos: np.ndarray, rot: np.ndarray, to_matrix: bool) -> np.ndarray:
     return out
 
 
-@OBSERVATIONS.register()
+@OBSERVATIONS.register(
+    params={
+        "joint_ids": OrNull(JointIds(), "all robot joints; each must have finite limits"),
+        "limit": Text(choices=("qpos_limits",)),
+        "range": Interval(strict=True),
+    }
+)
 def normalize_robot_joint_data(
     env: NativeEnv,
     data: np.ndarray,
@@ -50,12 +57,24 @@ def normalize_robot_joint_data(
         )
     ids = slice(None) if joint_ids is None else list(joint_ids)
     low, high = env.robot_joint_limits[ids, 0], env.robot_joint_limits[ids, 1]
+    if not (np.isfinite(low).all() and np.isfinite(high).all()):
+        names = np.asarray(env.task_spec.robot_joints)[ids][~(np.isfinite(low) & np.isfinite(high))]
+        raise ValueError(
+            f"params.joint_ids: joint(s) {names.tolist()} have no limits to normalise by; "
+            "leave them out of joint_ids"
+        )
     out = np.array(data, dtype=np.float64, copy=True)
     out[:, ids] = (out[:, ids] - low) / (high - low) * (range[1] - range[0]) + range[0]
     return out
 
 
-@OBSERVATIONS.register()
+@OBSERVATIONS.register(
+    params={
+        "part_name": OrNull(Part(), "the task's end effector"),
+        "position_only": Flag(),
+        "to_matrix": Flag(),
+    }
+)
 def get_robot_eef_pose(
     env: NativeEnv,
     part_name: str | None = None,
@@ -68,7 +87,7 @@ def get_robot_eef_pose(
     return pos.copy() if position_only else _pose(pos, rot, to_matrix)
 
 
-@OBSERVATIONS.register()
+@OBSERVATIONS.register(params={"entity_cfg": Entity(), "to_matrix": Flag()})
 def get_rigid_object_pose(
     env: NativeEnv, entity_cfg: dict[str, Any], to_matrix: bool = True
 ) -> np.ndarray:
@@ -79,13 +98,13 @@ def get_rigid_object_pose(
     return _pose(pos, quat_to_mat(quat), True)
 
 
-@OBSERVATIONS.register()
+@OBSERVATIONS.register(params={"target_pose_key": Text()})
 def target_position(env: NativeEnv, target_pose_key: str = "goal_pose") -> np.ndarray:
     """A target position [N, 3] stored by a ``randomize_target_pose`` event."""
     return env.target(target_pose_key).copy()
 
 
-@OBSERVATIONS.register()
+@OBSERVATIONS.register(params={"joint_ids": OrNull(JointIds(), "all robot joints")})
 def get_robot_joint_velocity(env: NativeEnv, joint_ids: Sequence[int] | None = None) -> np.ndarray:
     """Robot joint velocities [N, k] (all robot joints by default)."""
     qvel = env.robot_qvel()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import difflib
 from collections.abc import Callable, Iterator
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 T = TypeVar("T")
 
@@ -16,13 +16,21 @@ class Registry(Generic[T]):
         self.kind = kind  # e.g. "reward func", used in error messages
         self._entries: dict[str, T] = {}
 
-    def register(self, name: str | None = None) -> Callable[[T], T]:
-        """Decorator: add the function or class under ``name`` (default: its ``__name__``)."""
+    def register(
+        self, name: str | None = None, params: dict[str, Any] | None = None
+    ) -> Callable[[T], T]:
+        """Decorator: add the function or class under ``name`` (default: its ``__name__``).
+
+        ``params``: a ``ParamRule`` (rlexp.config.native_task) per parameter, stored as ``PARAMS``;
+        the env checks a term's params against them when it is built (a term without rules is
+        checked against its signature only)."""
 
         def add(obj: T) -> T:
             key = name or obj.__name__  # type: ignore[attr-defined]
             if key in self._entries:
                 raise ValueError(f"{self.kind} {key!r} is registered twice")
+            if params is not None:
+                obj.PARAMS = dict(params)  # type: ignore[attr-defined]
             self._entries[key] = obj
             return obj
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 import ctypes.util
 import math
 import os
+import platform
+import sys
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -31,6 +33,46 @@ def choose_gl_backend() -> str | None:
             if backend == "osmesa":
                 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
             return backend
+    return None
+
+
+#: MUJOCO_GL values (as MuJoCo reads them: lower case, stripped) that turn rendering off, and those
+#: that render through a window system (GLFW, GLX: they need a display); egl and osmesa need none.
+GL_OFF = ("disable", "disabled", "off", "false", "0")
+GL_WINDOWED = ("", "enable", "enabled", "on", "true", "1", "glfw", "glx")
+GL_HEADLESS = ("egl", "osmesa")
+GL_FIX = "use MUJOCO_GL=egl (Debian: libegl1 libegl-mesa0) or MUJOCO_GL=osmesa (libosmesa6)"
+
+
+def effective_gl_backend() -> str:
+    """The MUJOCO_GL value MuJoCo renders with: the one it read when it was imported, else the one
+    it will read (chosen by ``choose_gl_backend`` if unset)."""
+    gl_context = sys.modules.get("mujoco.rendering.classic.gl_context")
+    if gl_context is not None and isinstance(getattr(gl_context, "_MUJOCO_GL", None), str):
+        return gl_context._MUJOCO_GL
+    choose_gl_backend()
+    return os.environ.get("MUJOCO_GL", "").lower().strip()
+
+
+def gl_problem(rendering: bool = True) -> str | None:
+    """Why offscreen rendering cannot work in this process (None: it may; rendering one frame tells
+    for sure). ``rendering=False``: only what makes ``import mujoco`` itself fail (a MUJOCO_GL value
+    MuJoCo does not know), which breaks every MuJoCo env. Reads the environment; imports nothing."""
+    if platform.system() != "Linux":
+        return None
+    value = effective_gl_backend()
+    shown = f"MUJOCO_GL={value!r}" if value else "MUJOCO_GL unset (GLFW)"
+    if value not in GL_OFF + GL_WINDOWED + GL_HEADLESS:
+        return (
+            f"{shown} is not a MuJoCo GL backend (MuJoCo accepts {list(GL_HEADLESS)} or glfw/glx)"
+        )
+    if not rendering:
+        return None
+    if value in GL_OFF:
+        return f"{shown} turns rendering off"
+    display = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    if value in GL_WINDOWED and not display:
+        return f"{shown} renders through a window system and DISPLAY is not set"
     return None
 
 

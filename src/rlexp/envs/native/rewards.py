@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from rlexp.config.native_task import Entity, Flag, JointIds, Number, OrNull, Part, Text
 from rlexp.envs.native.registry import Registry
 
 if TYPE_CHECKING:
@@ -20,7 +21,16 @@ if TYPE_CHECKING:
 REWARDS: Registry = Registry("reward func")
 
 
-@REWARDS.register()
+@REWARDS.register(
+    params={
+        "object_cfg": Entity(),
+        "target_pose_key": Text(),
+        "behind_offset": Number(ge=0, note=" (m behind the object, away from the target)"),
+        "height_offset": Number(note=" (m above the object's centre)"),
+        "distance_scale": Number(gt=0, note=" (1/m)"),
+        "part_name": OrNull(Part(), "the task's end effector"),
+    }
+)
 def reaching_behind_object(
     env: NativeEnv,
     object_cfg: dict[str, Any],
@@ -41,7 +51,15 @@ def reaching_behind_object(
     return 1.0 - np.tanh(distance_scale * np.linalg.norm(ee_pos - behind, axis=-1))
 
 
-@REWARDS.register()
+@REWARDS.register(
+    params={
+        "source_entity_cfg": Entity(),
+        "target_pose_key": Text(),
+        "exponential": Flag(),
+        "sigma": Number(gt=0, note=" (m)"),
+        "use_xy_only": Flag(),
+    }
+)
 def distance_to_target(
     env: NativeEnv,
     source_entity_cfg: dict[str, Any],
@@ -59,7 +77,7 @@ def distance_to_target(
     return np.exp(-d2 / (2.0 * sigma**2)) if exponential else -np.sqrt(d2)
 
 
-@REWARDS.register()
+@REWARDS.register(params={})
 def action_smoothness_penalty(env: NativeEnv) -> np.ndarray:
     """-|a_t - a_{t-1}| (L2 norm of the clipped actions); 0 on the first step of an episode."""
     delta = env.action - env.prev_action
@@ -68,13 +86,19 @@ def action_smoothness_penalty(env: NativeEnv) -> np.ndarray:
     return penalty
 
 
-@REWARDS.register()
+@REWARDS.register(params={})
 def success_reward(env: NativeEnv) -> np.ndarray:
     """1 where the task reports success this step, else 0."""
     return env.success.astype(np.float64)
 
 
-@REWARDS.register()
+@REWARDS.register(
+    params={
+        "robot_uid": OrNull(Text(), "the task's robot; a task has one robot, so it is not used"),
+        "joint_ids": OrNull(JointIds(), "the part's joints, else all robot joints"),
+        "part_name": OrNull(Part(), "all robot joints"),
+    }
+)
 def joint_velocity_penalty(
     env: NativeEnv,
     robot_uid: str | None = None,
@@ -90,7 +114,7 @@ def joint_velocity_penalty(
     return -np.sqrt(np.einsum("ij,ij->i", qvel, qvel))
 
 
-@REWARDS.register()
+@REWARDS.register(params={"joint_ids": JointIds()})
 def upright_reward(env: NativeEnv, joint_ids: Sequence[int] = (1,)) -> np.ndarray:
     """cos of the hinge angle(s) (mean over ``joint_ids``): 1 with the pole upright, 0 when horizontal.
 
@@ -100,7 +124,7 @@ def upright_reward(env: NativeEnv, joint_ids: Sequence[int] = (1,)) -> np.ndarra
     return np.cos(env.robot_qpos()[:, list(joint_ids)]).mean(axis=-1)
 
 
-@REWARDS.register()
+@REWARDS.register(params={})
 def alive_bonus(env: NativeEnv) -> np.ndarray:
     """1 for every step that does not end the episode by termination."""
     return (~env.terminated).astype(np.float64)

@@ -17,7 +17,9 @@ from rlexp.config.native_task import (
     ActionTermConfig,
     EventTermConfig,
     NativeTaskConfig,
+    Number,
     ObservationTermConfig,
+    ParamRule,
     RewardTermConfig,
 )
 from rlexp.envs.native.registry import Registry
@@ -46,6 +48,8 @@ class TaskSpec:
     terminated: Callable[[NativeEnv], np.ndarray] | None = None
     truncated: Callable[[NativeEnv], np.ndarray] | None = None
     extensions: dict[str, Any] = field(default_factory=dict)  # defaults for env.extensions
+    # rules of the extensions the task reads (other keys of env.extensions are free values)
+    extension_rules: dict[str, ParamRule] = field(default_factory=dict)
     camera: dict[str, tuple[float, float, float]] = field(
         default_factory=dict
     )  # default render eye/target
@@ -98,6 +102,10 @@ PUSH_CUBE = TaskSpec(
     terminated=_push_cube_success,
     truncated=_push_cube_fell,
     extensions={"success_threshold": 0.1, "cube_min_z": -0.1},
+    extension_rules={
+        "success_threshold": Number(gt=0, note=" (m, cube-goal distance in xy)"),
+        "cube_min_z": Number(note=" (m; below it the episode is truncated)"),
+    },
     camera={"eye": (0.6, -1.9, 1.4), "target": (-0.3, -0.2, 0.1)},
     markers={"goal": "goal_pose"},
 )
@@ -131,6 +139,10 @@ CART_POLE = TaskSpec(
     success=_cart_pole_success,
     terminated=_cart_pole_failed,
     extensions={"pole_angle_limit": 0.4, "track_limit": 1.8},
+    extension_rules={
+        "pole_angle_limit": Number(gt=0, note=" (rad)"),
+        "track_limit": Number(gt=0, note=" (m)"),
+    },
     camera={"eye": (0.0, -4.0, 1.5), "target": (0.0, 0.0, 0.8)},
 )
 TASKS.register("cart_pole")(CART_POLE)
