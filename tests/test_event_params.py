@@ -339,12 +339,15 @@ def test_a_mujoco_gl_mujoco_cannot_import_with_is_a_config_error(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_gymnasium_env_without_render_mode_cannot_record_video():
+def test_a_gymnasium_env_needs_render_mode_to_record_video(caplog):
     env = make_env(to_root_config(compose(TINY[:1])).env, 1, seed=0)
     with pytest.raises(ValueError) as err:
         _video().check_env(env)
     assert str(err.value).startswith("events.eval.record_video: cannot render 640x480 offscreen: ")
     assert "render_mode=rgb_array" in str(err.value)
+    config = to_root_config(compose([TINY[0], "+env.kwargs.render_mode=rgb_array"]))
+    _video().check_env(make_env(config.env, 1, seed=0), num_envs=1)  # its own size: a warning
+    assert "renders 480x480 frames with its own camera" in caplog.text
 
 
 def test_env_checks_of_the_randomisation_events():

@@ -479,8 +479,9 @@ class RecordVideo:
 
     @classmethod
     def check_env(cls, env: Any, where: str, num_envs: int | None = None, **params: Any) -> None:
-        """Render one frame from ``env`` (a built copy of the eval env) with these params, and find
-        the mp4 encoder: what would otherwise fail at the end of the first evaluation round."""
+        """Render one frame from ``env`` (a throwaway built copy of the eval env: it is reset, as an
+        evaluation round does first) with these params, and find the mp4 encoder: what would
+        otherwise fail at the end of the first evaluation round."""
         from rlexp.envs.native.render import GL_FIX, gl_problem
 
         p = {**cls.DEFAULTS, **params}
@@ -499,6 +500,7 @@ class RecordVideo:
         if not hasattr(base, "render"):
             raise TypeError(f"{where}: {type(base).__name__} cannot render frames")
         try:
+            base.reset()
             frame = base.render(
                 env_id=0,
                 width=width,

@@ -247,8 +247,8 @@ class EventManager:
     def check_env(self, env: Any, num_envs: int | None = None) -> None:
         """Check every event against a built env of the kind it will run on (e.g. record_video renders
         one frame at its resolution): ValueError / KeyError / TypeError, one line naming the event's
-        key and the cause. ``num_envs``: how many copies the real env will have (``env`` may be a
-        one-copy build of it)."""
+        key and the cause. ``env``: a throwaway build of that env (events may reset it);
+        ``num_envs``: how many copies the real env will have (``env`` may have one)."""
         for name, ev, func in self.events:
             hook = getattr(func, "check_env", None)
             if hook is not None:
