@@ -241,6 +241,7 @@ BASE = ["env=inverted_pendulum", "trainer.total_frames=256", "trainer.frames_per
         ("+logger._target_=os.system", "logger._target_ is not a config key"),
         ("env=hoper", "env=hoper is not an option of env"),
         ("trainer.resume=/no/such/file.pt", "checkpoint '/no/such/file.pt' does not exist"),
+        ("+env.kwargs.foo=1", "env.kwargs.foo is not an argument of InvertedPendulum-v5"),
     ],
 )
 def test_config_errors_name_the_key(override, message):
@@ -248,6 +249,11 @@ def test_config_errors_name_the_key(override, message):
         _precheck([*BASE, override])
     assert message in str(err.value)
     assert "\n" not in str(err.value)
+
+
+def test_env_kwargs_on_a_native_task_are_refused_not_ignored():
+    with pytest.raises(ConfigError, match=r"env.kwargs=\{'foo': 1\} is for Gymnasium envs"):
+        _precheck(["env=cart_pole", "+env.kwargs.foo=1"])
 
 
 def test_a_misspelled_group_option_does_not_offer_the_schemas():

@@ -6,6 +6,7 @@ written (``python train.py``: before Hydra creates the run dir; in a sweep: befo
 from __future__ import annotations
 
 import logging
+import re
 from typing import Any
 
 from rlexp.config.schema import RootConfig
@@ -32,7 +33,13 @@ def check_buildable(config: RootConfig) -> None:
         raise
     except Exception as exc:
         msg = _msg(exc)
-        if not msg.startswith("env."):
+        bad_kwarg = re.search(r"unexpected keyword argument '([^']+)'", msg)
+        if bad_kwarg and bad_kwarg.group(1) in e.kwargs:
+            msg = (
+                f"env.kwargs.{bad_kwarg.group(1)} is not an argument of {e.name} "
+                f"(gymnasium.make({e.name!r}, ...) refused it)"
+            )
+        elif not msg.startswith("env."):
             msg = f"env.name={e.name!r} (env.backend={e.backend}) cannot be built: {msg}"
         raise ConfigError(msg) from None
     try:

@@ -149,6 +149,12 @@ def validate(config: RootConfig) -> None:
             f"env.backend=native needs env.native (env.name={e.name!r}); use env=push_cube or "
             "env=cart_pole"
         )
+    if e.kwargs and e.backend == "native":
+        raise ConfigError(
+            f"env.kwargs={dict(e.kwargs)} is for Gymnasium envs (gymnasium.make's keyword "
+            f"arguments); the native task {e.name!r} takes its settings under env.native "
+            "(docs/native_tasks.md)"
+        )
     _check_render_mode(e.kwargs)
     _check_events(config)
 
