@@ -152,3 +152,17 @@ def test_nan_policy_weights_say_so_instead_of_a_return(run_dir, tmp_path):
         f"rlexp eval: checkpoint {str(path)!r} holds non-finite policy weights ({name}); there is "
         "nothing to evaluate: use an earlier checkpoint of the run"
     )
+
+
+def test_a_checkpoint_from_another_machine_or_older_event_params_still_evaluates(run_dir, tmp_path):
+    """Evaluation rebuilds env and policy only: the run's events and thread count don't matter."""
+    ckpt = load_checkpoint(step_checkpoints(run_dir / "checkpoints")[-1])
+    ckpt.pop("path")
+    ckpt["config"]["trainer"]["torch_threads"] = 4096  # a big node's setting
+    ckpt["config"]["events"]["train"] = {
+        "old": {"func": "record_rollouts", "mode": "interval", "params": {"every": 3}}
+    }
+    path = save_checkpoint(tmp_path / "other_step_000000512.pt", ckpt)
+    proc = _eval(path, "--episodes", "2")
+    assert proc.returncode == 0, proc.stderr
+    assert "mean return" in proc.stdout

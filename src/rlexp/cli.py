@@ -103,7 +103,7 @@ def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) ->
     from rlexp.evaluation import run_episodes
     from rlexp.policies.actor_critic import make_policy
 
-    config = to_root_config(ckpt["config"])
+    config = to_root_config(eval_config(ckpt["config"]))
     e = config.env
     seed_everything(seed)
     n = num_envs or max(1, e.num_eval_envs)
@@ -127,6 +127,15 @@ def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) ->
         "std_return": metrics["eval/episode_return_std"],
         "episodes": int(metrics["eval/episodes"]),
     }
+
+
+def eval_config(saved: dict) -> dict:
+    """The checkpoint's config, less what evaluation does not use and what may be checked
+    differently here: its events (an older rlexp accepted other event params) and its thread count
+    (the machine that trained may have had more CPUs)."""
+    config = {**saved, "events": {"train": {}, "eval": {}}}
+    config["trainer"] = {**(saved.get("trainer") or {}), "torch_threads": 1}
+    return config
 
 
 def main(argv: list[str] | None = None) -> None:

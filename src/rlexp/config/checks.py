@@ -42,6 +42,7 @@ def check_buildable(config: RootConfig) -> None:
         elif not msg.startswith("env."):
             msg = f"env.name={e.name!r} (env.backend={e.backend}) cannot be built: {msg}"
         raise ConfigError(msg) from None
+    t = config.trainer
     try:
         obs_dim = int(env.observation_spec["observation"].shape[-1])
         act_dim = int(env.action_spec.shape[-1])
@@ -49,15 +50,16 @@ def check_buildable(config: RootConfig) -> None:
             config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
             e.clip_observations,
         )  # fmt: skip
+        train_events = EventManager(config.events.train, "events.train")
+        eval_events = EventManager(config.events.eval, "events.eval")
+        # Each event checks itself on the env (record_video renders one frame at its resolution).
+        train_events.check_env(env, num_envs=e.num_envs)
+        if e.num_eval_envs > 0 and t.eval_every > 0 and t.eval_episodes > 0:
+            eval_events.check_env(env, num_envs=e.num_eval_envs)
     except (ValueError, KeyError, TypeError) as exc:
         raise ConfigError(_msg(exc)) from None
     finally:
         env.close()
-    try:
-        EventManager(config.events.train, "events.train")
-        EventManager(config.events.eval, "events.eval")
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ConfigError(_msg(exc)) from None
     if config.trainer.resume not in ("auto", "never", ""):
         check_resume_checkpoint(config, policy)
 

@@ -127,7 +127,11 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
 
     from rlexp.config.schema import register_configs
     from rlexp.config.validate import to_root_config
+    from rlexp.envs.native.render import GL_FIX, gl_problem
 
+    problem = gl_problem(rendering=False)  # before anything imports MuJoCo, which would abort
+    if problem:
+        raise ConfigError(f"{problem}; {GL_FIX}")
     try:
         args = get_args_parser().parse_args(list(argv))
     except SystemExit:
