@@ -82,6 +82,17 @@ TINY = [
 ]
 
 
+#: Two iterations, a checkpoint after each, no evaluation: for tests about what a run dir holds.
+SHORT = [
+    "env=inverted_pendulum",
+    "trainer.total_frames=512",
+    "trainer.frames_per_batch=256",
+    "trainer.save_every=256",
+    "trainer.eval_every=0",
+    "algorithm.num_epochs=1",
+]
+
+
 @pytest.fixture
 def tiny_overrides() -> list[str]:
     return list(TINY)

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import CONF_DIR, REPO, run_train
+from conftest import CONF_DIR, REPO, SHORT, run_train
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint, step_checkpoints
 from rlexp.config.validate import ConfigError
 
@@ -152,16 +152,6 @@ def test_ctrl_c_mid_update_and_resume_is_bit_identical_and_evaluates_the_same(tm
 
 
 # -- what a dir holds ---------------------------------------------------------------------------------
-SHORT = [
-    "env=inverted_pendulum",
-    "trainer.total_frames=512",
-    "trainer.frames_per_batch=256",
-    "trainer.save_every=256",
-    "trainer.eval_every=0",
-    "algorithm.num_epochs=1",
-]
-
-
 def test_a_failed_start_holds_no_experiment_and_temp_files_are_cleaned(tmp_path):
     run_dir = tmp_path / "run"
     # Inf (noise of std 1e300 overflows float32) from the first rollout on: exit 3 before any

@@ -12,18 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import compose, run_train
+from conftest import SHORT, compose, run_train
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint, step_checkpoints
 from rlexp.config.validate import ConfigError, to_root_config
-
-SHORT = [
-    "env=inverted_pendulum",
-    "trainer.total_frames=512",
-    "trainer.frames_per_batch=256",
-    "trainer.save_every=256",
-    "trainer.eval_every=0",
-    "algorithm.num_epochs=1",
-]
 
 
 def _status(run_dir: Path) -> dict:

@@ -12,13 +12,12 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
@@ -27,12 +26,15 @@ from rlexp.rundir import (
     EXIT_FAILED,
     EXIT_NONFINITE,
     EXIT_SIGNAL_BASE,
+    HYDRA_JOB,
     RESUME_MAY_CHANGE,
     RunDirLock,
     check_run_dir,
     clean_temp_files,
     config_differences,
     read_status,
+    write_hydra_files,
+    write_run_files,
     write_status,
 )
 
@@ -122,7 +124,9 @@ def _agree(failed: bool) -> None:
     import torch
 
     _AGREED[id(dist)] = True
-    device = f"cuda:{dist.local_rank}" if dist.backend == "nccl" else "cpu"  # nccl: GPU tensors only
+    device = (
+        f"cuda:{dist.local_rank}" if dist.backend == "nccl" else "cpu"
+    )  # nccl: GPU tensors only
     flag = torch.tensor([float(failed)], device=device)
     if distributed.all_reduce_sum(flag).item() > 0 and not failed:
         raise ConfigError("another rank failed before training (see rank 0's log)")
@@ -169,6 +173,8 @@ def _train_locked(
         ckpt = latest_good_checkpoint(run_dir / "checkpoints", move_aside=dist.is_main)
 
     # -- build: a failure here is a config error (one line, exit 2, no config.yaml) ---------------
+    from rlexp.build import build
+
     try:
         objects = build(config, run_dir, device, total)
         if ckpt is not None:
@@ -185,7 +191,7 @@ def _train_locked(
 
     # -- from here on the run dir is written -------------------------------------------------------
     if dist.is_main:
-        _write_run_files(config, config_dict, run_dir, device)
+        write_run_files(config, config_dict, run_dir, device)
     log.info("run dir: %s (device %s, seed %d)", run_dir, device, config.seed)
     if dist.is_main:
         logger = make_logger(config.logger, run_dir, t.exp_name, config_dict, group=sweep_group)
@@ -308,111 +314,6 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def _write_run_files(config: RootConfig, config_dict: dict, run_dir: Path, device: str) -> None:
-    """``config.yaml``, the same config as JSON (train_config.json + gym_config.json), provenance."""
-    from rlexp.config.json_format import write_json_experiment
-    from rlexp.provenance import write_provenance
-
-    _write_hydra_files(run_dir)
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(config_dict)))
-    write_json_experiment(config, run_dir)
-    write_provenance(run_dir, device)
-
-
-#: The job's Hydra config, set by ``_task``: ``.hydra/`` is written by rlexp once the checks have
-#: passed (``hydra.output_subdir: null`` in conf/config.yaml), so that a refused run never rewrites
-#: the files of the run that owns the dir.
-_HYDRA_JOB: dict[str, Any] = {}
-
-
-def _write_hydra_files(run_dir: Path) -> None:
-    """``.hydra/config.yaml``, ``hydra.yaml`` and ``overrides.yaml``, as Hydra itself writes them."""
-    cfg, hydra_cfg = _HYDRA_JOB.get("cfg"), _HYDRA_JOB.get("hydra")
-    if cfg is None or hydra_cfg is None:
-        return  # not under Hydra (train() called from Python)
-    out = run_dir / ".hydra"
-    out.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(cfg, out / "config.yaml")
-    OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), out / "hydra.yaml")
-    OmegaConf.save(hydra_cfg.overrides.task, out / "overrides.yaml")
-
-
-#: The eval envs' seed is the run's seed plus this (far from the per-rank training seeds).
-EVAL_SEED_OFFSET = 1_000_000
-
-
-@dataclass
-class Built:
-    """The run's objects before the Trainer exists (building them writes nothing)."""
-
-    config: RootConfig
-    run_dir: Path
-    env: Any
-    eval_env: Any
-    policy: Any
-    algorithm: Any
-    events: Any
-    eval_events: Any
-
-    def trainer(self, logger: Any, config_dict: dict, versions: dict) -> Any:
-        from rlexp.launch import distributed
-        from rlexp.trainer import Trainer
-
-        return Trainer(
-            cfg=self.config.trainer,
-            policy=self.policy,
-            algorithm=self.algorithm,
-            env=self.env,
-            eval_env=self.eval_env,
-            logger=logger,
-            event_manager=self.events,
-            eval_event_manager=self.eval_events,
-            run_dir=self.run_dir,
-            config_dict=config_dict,
-            versions=versions,
-            dist=distributed.info(),
-            eval_seed=self.config.seed + EVAL_SEED_OFFSET,
-        )
-
-
-def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
-    """Envs, policy, algorithm and event managers, in that order (nothing is written)."""
-    from rlexp.algorithms.ppo import make_algorithm
-    from rlexp.envs.factory import make_env
-    from rlexp.events import EventManager
-    from rlexp.launch import distributed
-    from rlexp.policies.actor_critic import make_policy
-
-    t, e = config.trainer, config.env
-    dist = distributed.info()
-    env = make_env(e, e.num_envs, config.seed + dist.rank)  # each rank its own envs: seed + rank
-    eval_env = None  # rank 0 alone evaluates; eval_every=0 or eval_episodes=0: no evaluation at all
-    if e.num_eval_envs > 0 and dist.is_main and t.eval_every > 0 and t.eval_episodes > 0:
-        eval_env = make_env(e, e.num_eval_envs, config.seed + EVAL_SEED_OFFSET)
-    obs_dim = env.observation_spec["observation"].shape[-1]
-    act_dim = env.action_spec.shape[-1]
-    log.info("env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, act_dim)
-    policy = make_policy(
-        config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
-        e.clip_observations,
-    ).to(device)  # fmt: skip
-    if dist.enabled:  # same initial parameters everywhere
-        distributed.broadcast_([*policy.parameters(), *policy.buffers()])
-    iterations = -(-total // (t.frames_per_batch * dist.world_size))
-    grad_sync = distributed.all_reduce_mean_ if dist.enabled else None
-    algorithm = make_algorithm(config.algorithm, policy, iterations, t.nan_guard, grad_sync)
-    return Built(
-        config=config,
-        run_dir=run_dir,
-        env=env,
-        eval_env=eval_env,
-        policy=policy,
-        algorithm=algorithm,
-        events=EventManager(config.events.train, "events.train", seed=config.seed + 2),
-        eval_events=EventManager(config.events.eval, "events.eval", seed=config.seed + 3),
-    )
-
-
 #: Set by ``main`` once the command line passed ``precheck`` (a single run): the job need not build
 #: the config a second time.
 _PRECHECKED: dict[str, Any] = {}
@@ -427,7 +328,7 @@ def _task(cfg: DictConfig) -> float | None:
     (``rlexp.launch.sweep``) reports the failed ones and sets the exit code.
     """
     hc = HydraConfig.get()
-    _HYDRA_JOB.update(cfg=cfg, hydra=hc)
+    HYDRA_JOB.update(cfg=cfg, hydra=hc)
     multirun = hc.mode is not None and hc.mode.name == "MULTIRUN"
     run_dir = Path(hc.runtime.output_dir)
     sweep_group = Path(hc.sweep.dir).name if multirun else None
@@ -478,7 +379,7 @@ def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Excepti
     state = read_status(run_dir).get("state")
     if not isinstance(exc, RunDirBusy) and state in (None, "failed"):  # never another run's status
         try:
-            _write_hydra_files(run_dir)  # the job's overrides, for rlexp report
+            write_hydra_files(run_dir)  # the job's overrides, for rlexp report
             write_status(run_dir, "failed", 0, reason=message, exit_code=code)
         except OSError as err:
             log.error("could not record the failure in %s: %s", run_dir, err)

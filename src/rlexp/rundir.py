@@ -233,3 +233,36 @@ def check_same_experiment(run_dir: Path, config_dict: dict[str, Any]) -> None:
             f"run dir {run_dir} holds a different experiment (differs in {', '.join(diffs)}); "
             "use a new hydra.run.dir / hydra.sweep.dir, or move that dir aside"
         )
+
+
+def write_run_files(config: Any, config_dict: dict, run_dir: Path, device: str) -> None:
+    """``config.yaml``, the same config as JSON (train_config.json + gym_config.json), provenance."""
+    from omegaconf import OmegaConf
+
+    from rlexp.config.json_format import write_json_experiment
+    from rlexp.provenance import write_provenance
+
+    write_hydra_files(run_dir)
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(config_dict)))
+    write_json_experiment(config, run_dir)
+    write_provenance(run_dir, device)
+
+
+#: The job's Hydra config, set by ``rlexp.app._task``: ``.hydra/`` is written by rlexp once the checks have
+#: passed (``hydra.output_subdir: null`` in conf/config.yaml), so that a refused run never rewrites
+#: the files of the run that owns the dir.
+HYDRA_JOB: dict[str, Any] = {}
+
+
+def write_hydra_files(run_dir: Path) -> None:
+    """``.hydra/config.yaml``, ``hydra.yaml`` and ``overrides.yaml``, as Hydra itself writes them."""
+    from omegaconf import OmegaConf
+
+    cfg, hydra_cfg = HYDRA_JOB.get("cfg"), HYDRA_JOB.get("hydra")
+    if cfg is None or hydra_cfg is None:
+        return  # not under Hydra (train() called from Python)
+    out = run_dir / ".hydra"
+    out.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, out / "config.yaml")
+    OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), out / "hydra.yaml")
+    OmegaConf.save(hydra_cfg.overrides.task, out / "overrides.yaml")

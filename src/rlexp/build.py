@@ -1,0 +1,89 @@
+"""The run's objects, built from the typed config in order: envs, policy, algorithm, event managers,
+and then the Trainer. Building writes nothing; the Trainer is made once the run dir may be written."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rlexp.config.schema import RootConfig
+
+log = logging.getLogger(__name__)
+
+
+#: The eval envs' seed is the run's seed plus this (far from the per-rank training seeds).
+EVAL_SEED_OFFSET = 1_000_000
+
+
+@dataclass
+class Built:
+    """The run's objects before the Trainer exists (building them writes nothing)."""
+
+    config: RootConfig
+    run_dir: Path
+    env: Any
+    eval_env: Any
+    policy: Any
+    algorithm: Any
+    events: Any
+    eval_events: Any
+
+    def trainer(self, logger: Any, config_dict: dict, versions: dict) -> Any:
+        from rlexp.launch import distributed
+        from rlexp.trainer import Trainer
+
+        return Trainer(
+            cfg=self.config.trainer,
+            policy=self.policy,
+            algorithm=self.algorithm,
+            env=self.env,
+            eval_env=self.eval_env,
+            logger=logger,
+            event_manager=self.events,
+            eval_event_manager=self.eval_events,
+            run_dir=self.run_dir,
+            config_dict=config_dict,
+            versions=versions,
+            dist=distributed.info(),
+            eval_seed=self.config.seed + EVAL_SEED_OFFSET,
+        )
+
+
+def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
+    """Envs, policy, algorithm and event managers, in that order (nothing is written)."""
+    from rlexp.algorithms.ppo import make_algorithm
+    from rlexp.envs.factory import make_env
+    from rlexp.events import EventManager
+    from rlexp.launch import distributed
+    from rlexp.policies.actor_critic import make_policy
+
+    t, e = config.trainer, config.env
+    dist = distributed.info()
+    env = make_env(e, e.num_envs, config.seed + dist.rank)  # each rank its own envs: seed + rank
+    eval_env = None  # rank 0 alone evaluates; eval_every=0 or eval_episodes=0: no evaluation at all
+    if e.num_eval_envs > 0 and dist.is_main and t.eval_every > 0 and t.eval_episodes > 0:
+        eval_env = make_env(e, e.num_eval_envs, config.seed + EVAL_SEED_OFFSET)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim = env.action_spec.shape[-1]
+    log.info("env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, act_dim)
+    policy = make_policy(
+        config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
+        e.clip_observations,
+    ).to(device)  # fmt: skip
+    if dist.enabled:  # same initial parameters everywhere
+        distributed.broadcast_([*policy.parameters(), *policy.buffers()])
+    iterations = -(-total // (t.frames_per_batch * dist.world_size))
+    grad_sync = distributed.all_reduce_mean_ if dist.enabled else None
+    algorithm = make_algorithm(config.algorithm, policy, iterations, t.nan_guard, grad_sync)
+    return Built(
+        config=config,
+        run_dir=run_dir,
+        env=env,
+        eval_env=eval_env,
+        policy=policy,
+        algorithm=algorithm,
+        events=EventManager(config.events.train, "events.train", seed=config.seed + 2),
+        eval_events=EventManager(config.events.eval, "events.eval", seed=config.seed + 3),
+    )
