@@ -331,8 +331,9 @@ def test_record_video_without_a_gl_backend_is_one_line(monkeypatch):
 def test_a_mujoco_gl_mujoco_cannot_import_with_is_a_config_error(tmp_path):
     proc = run_train([*TINY, "events=eval_video"], cwd=tmp_path, check=False, env_extra={"MUJOCO_GL": "foo"})  # fmt: skip
     assert proc.returncode == 2, proc.stderr[-2000:]
+    # Caught before MuJoCo loads (it would abort every MuJoCo env, not only the video).
     assert proc.stderr.strip().splitlines()[-1] == (
-        "config error: events.eval.record_video: cannot render 640x480 offscreen: MUJOCO_GL='foo' "
+        "config error: MUJOCO_GL='foo' "
         "is not a MuJoCo GL backend (MuJoCo accepts ['egl', 'osmesa'] or glfw/glx); use "
         "MUJOCO_GL=egl (Debian: libegl1 libegl-mesa0) or MUJOCO_GL=osmesa (libosmesa6)"
     )
