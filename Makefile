@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 ARGS ?=
 export MUJOCO_GL ?= egl
 
-.PHONY: install train test test-slow test-slurm lint format bench clean
+.PHONY: install train test test-slow test-slurm test-package lint format bench clean
 
 $(VENV)/.created:
 	$(PYTHON) -m venv $(VENV)
@@ -17,8 +17,9 @@ $(VENV)/.torch: $(VENV)/.created
 	$(PY) -m pip install --disable-pip-version-check torch==2.13.0
 	touch $@
 
-$(VENV)/.installed: $(VENV)/.torch pyproject.toml
-	$(PY) -m pip install --disable-pip-version-check -e ".[dev]"
+# Every extra (W&B, SLURM, Optuna, video, report) and the dev tools: the tests use them all.
+$(VENV)/.installed: $(VENV)/.torch pyproject.toml setup.py
+	$(PY) -m pip install --disable-pip-version-check -e ".[all,dev]"
 	touch $@
 
 install: $(VENV)/.installed
@@ -35,6 +36,10 @@ test: install
 test-slow: install
 	$(PY) -m pytest -q -m slow $(ARGS)
 
+## rlexp as users get it: its wheel and examples/user_project's in a fresh virtualenv (also in `test`).
+test-package: install
+	$(PY) -m pytest -q -m package $(ARGS)
+
 ## Sweeps on a real SLURM cluster (tests marked `slurm`): starts a local single-node cluster first
 ## (scripts/local-slurm.sh; root, installs slurm-wlm + munge with apt-get when missing).
 test-slurm: install
@@ -42,12 +47,12 @@ test-slurm: install
 	$(PY) -m pytest -q -m slurm $(ARGS)
 
 lint: install
-	$(VENV)/bin/ruff check src tests train.py
-	$(VENV)/bin/ruff format --check src tests train.py
+	$(VENV)/bin/ruff check src tests train.py setup.py examples/user_project
+	$(VENV)/bin/ruff format --check src tests train.py setup.py examples/user_project
 
 format: install
-	$(VENV)/bin/ruff format src tests train.py
-	$(VENV)/bin/ruff check --fix src tests train.py
+	$(VENV)/bin/ruff format src tests train.py setup.py examples/user_project
+	$(VENV)/bin/ruff check --fix src tests train.py setup.py examples/user_project
 
 ## PPO env-steps/s: rlexp vs Stable-Baselines3, CleanRL-style PyTorch and the floors, plus start-up
 ## (docs/performance.md); writes benchmarks/results.md. ARGS="--quick" for a smoke run (< 2 min).

@@ -21,6 +21,8 @@ from omegaconf import DictConfig
 
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
+from rlexp.paths import CONF_DIR, with_user_config_dir  # CONF_DIR: the package's or the checkout's
+from rlexp.plugins import load_plugins
 from rlexp.rundir import (
     EXIT_CONFIG,
     EXIT_FAILED,
@@ -39,9 +41,6 @@ from rlexp.rundir import (
 )
 
 log = logging.getLogger(__name__)
-
-#: The repository's ``conf/`` (the package is installed in editable mode from the repository).
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
 def resolve_device(device: str, strict: bool = False) -> str:
@@ -333,6 +332,7 @@ def _task(cfg: DictConfig) -> float | None:
     run_dir = Path(hc.runtime.output_dir)
     sweep_group = Path(hc.sweep.dir).name if multirun else None
     try:
+        load_plugins()  # a sweep worker or a SLURM job is a fresh process
         config = to_root_config(cfg)
         if not _PRECHECKED.get("config"):
             from rlexp.config.checks import check_buildable
@@ -390,6 +390,7 @@ def main() -> None:
     """``python train.py [--distributed] [overrides]``: check the command line, then compose
     ``conf/`` with Hydra and train."""
     from rlexp.config.precheck import precheck
+    from rlexp.extras import hint
     from rlexp.launch import distributed
 
     register_configs()
@@ -405,9 +406,11 @@ def main() -> None:
             print(f"error: {exc}", file=sys.stderr)
             sys.exit(EXIT_CONFIG)
     try:
+        load_plugins()
+        rest = with_user_config_dir(rest)  # a conf/ in the working directory
         _PRECHECKED["config"] = precheck(rest, CONF_DIR)
     except ConfigError as exc:
-        print(f"config error: {exc}", file=sys.stderr)
+        print(f"config error: {hint(str(exc))}", file=sys.stderr)
         sys.exit(EXIT_CONFIG)
     sys.argv = [sys.argv[0], *rest]
     hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")(_task)()

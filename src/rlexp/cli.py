@@ -1,5 +1,5 @@
 """``rlexp`` command: ``rlexp train [overrides]``, ``rlexp eval CHECKPOINT [--episodes N]``,
-``rlexp report SWEEP_DIR``.
+``rlexp report SWEEP_DIR``, ``rlexp --version`` (also ``python -m rlexp ...``).
 
 Bad input (an option out of range, a missing or unreadable checkpoint) is one line on stderr and
 exit 2; a checkpoint whose policy weights are NaN/Inf exits 3, like a run the NaN guard stopped.
@@ -135,19 +135,55 @@ def eval_config(saved: dict) -> dict:
     (the machine that trained may have had more CPUs)."""
     config = {**saved, "events": {"train": {}, "eval": {}}}
     config["trainer"] = {**(saved.get("trainer") or {}), "torch_threads": 1}
+    if isinstance(saved.get("env"), dict):  # older checkpoints: a key that never did anything
+        config["env"] = {k: v for k, v in saved["env"].items() if k != "vectorization"}
     return config
+
+
+def _load_plugins_or_exit(prog: str) -> None:
+    """The installed ``rlexp.plugins`` (native tasks, terms, events); a broken one is one line."""
+    from rlexp.plugins import PluginError, load_plugins
+
+    try:
+        load_plugins()
+    except PluginError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+def train(argv: list[str]) -> None:
+    """``rlexp train`` / ``python train.py``: plugins first (a JSON file may name a plugin's task),
+    then ``--config-json`` / ``--distributed`` and Hydra (``rlexp.launch.json_entry``)."""
+    _load_plugins_or_exit("rlexp train")
+    from rlexp.launch.json_entry import main as train_main
+
+    train_main(argv)
+
+
+def _version() -> str:
+    from rlexp import __version__
+
+    return f"rlexp {__version__}"
 
 
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "train":  # exactly `python train.py ...` (--config-json, --distributed)
-        from rlexp.launch.json_entry import main as train_main
-
-        train_main(argv[1:])
+        train(argv[1:])
         return
-    parser = _Parser(prog="rlexp", description="rlexp experiment tools")
+    parser = _Parser(
+        prog="rlexp",
+        description="rlexp: PPO experiments on MuJoCo with Hydra configs",
+        epilog="rlexp train --help lists the config groups and their options.",
+    )
+    parser.add_argument("--version", action="version", version=_version())
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("train", help="train (same as python train.py; Hydra overrides follow)")
+    sub.add_parser(
+        "train",
+        help="train (same as python train.py): [--config-json FILE] [--distributed] [-m] "
+        "[group=option ...] [key=value ...]",
+        add_help=False,
+    )
     ev = sub.add_parser(
         "eval", help="evaluate a checkpoint: mean return over N deterministic episodes"
     )
@@ -169,15 +205,18 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     log.setLevel(logging.INFO)  # rlexp's own progress; other libraries' INFO lines stay quiet
     if args.command == "report":
+        from rlexp.extras import MissingExtra, require
         from rlexp.report import report
 
         try:
+            require("report", "rlexp report", None if not args.no_plot else ("scipy",))
             print(report(Path(args.sweep_dir), args.metric, plot=not args.no_plot), end="")
-        except FileNotFoundError as exc:
+        except (FileNotFoundError, MissingExtra) as exc:
             print(f"rlexp report: {exc}", file=sys.stderr)
             sys.exit(2)
         return
     if args.command == "eval":
+        _load_plugins_or_exit("rlexp eval")  # the checkpoint's task may be a plugin's
         try:
             res = evaluate(args.checkpoint, args.episodes, args.num_envs, args.seed)
         except (FileNotFoundError, ValueError) as exc:

@@ -1,4 +1,5 @@
-"""What produced a run: versions, git state, installed packages, host, device, start time."""
+"""What produced a run: versions, git state (rlexp's and the project's), plugins, installed
+packages, host, device, start time."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
+#: rlexp's own checkout when it runs from one (an editable install); an installed wheel has none.
 REPO = Path(__file__).resolve().parents[2]
 PACKAGES = ("rlexp", "torch", "torchrl", "tensordict", "mujoco", "gymnasium", "hydra-core", "numpy")
 
@@ -29,24 +31,57 @@ def versions() -> dict[str, str]:
     return out
 
 
-def _git(*args: str) -> str | None:
+def _git(repo: Path, *args: str) -> str | None:
     try:
         proc = subprocess.run(
-            ["git", "-C", str(REPO), *args], capture_output=True, text=True, timeout=20
+            ["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=20
         )
     except (OSError, subprocess.TimeoutExpired):
         return None
     return proc.stdout if proc.returncode == 0 else None
 
 
+def _rlexp_checkout() -> Path | None:
+    """The git checkout rlexp is imported from, or None (a wheel in site-packages)."""
+    if not (REPO / "src" / "rlexp").is_dir() or not (REPO / "pyproject.toml").is_file():
+        return None
+    top = _git(REPO, "rev-parse", "--show-toplevel")
+    return Path(top.strip()) if top else None
+
+
+def _project(cwd: Path, rlexp_repo: Path | None) -> dict | None:
+    """The git repository of the working directory (a user's project), when it is not rlexp's."""
+    top = _git(cwd, "rev-parse", "--show-toplevel")
+    if not top or (rlexp_repo is not None and Path(top.strip()) == rlexp_repo):
+        return None
+    commit = _git(cwd, "rev-parse", "HEAD")
+    status = _git(cwd, "status", "--porcelain", "--untracked-files=no")
+    return {
+        "path": top.strip(),
+        "git_commit": commit.strip() if commit else None,
+        "git_dirty": bool(status and status.strip()),
+    }
+
+
 def write_provenance(run_dir: Path, device: str) -> dict:
-    """Write ``provenance.json`` (+ ``git.diff`` when dirty, ``pip-freeze.txt``) into the run dir."""
-    commit = _git("rev-parse", "HEAD")
-    diff = _git("diff", "HEAD") if commit else None
+    """Write ``provenance.json`` (+ ``git.diff`` when dirty, ``pip-freeze.txt``) into the run dir.
+
+    ``git_commit`` / ``git.diff``: rlexp's checkout when rlexp runs from one; ``project``: the git
+    repository of the working directory when it is another (a user's project); ``plugins``: the
+    ``rlexp.plugins`` loaded, with their package versions."""
+    from rlexp.paths import CONF_DIR
+    from rlexp.plugins import LOADED
+
+    repo = _rlexp_checkout()
+    commit = _git(repo, "rev-parse", "HEAD") if repo else None
+    diff = _git(repo, "diff", "HEAD") if repo and commit else None
     info = {
         "versions": versions(),
         "git_commit": commit.strip() if commit else None,
         "git_dirty": bool(diff),
+        "rlexp_conf": str(CONF_DIR),
+        "project": _project(Path.cwd(), repo),
+        "plugins": dict(LOADED),
         "host": socket.gethostname(),
         "platform": platform.platform(),
         "device": device,

@@ -11,9 +11,14 @@ from typing import Any
 
 from hydra.core.singleton import Singleton
 from hydra.core.utils import JobReturn, JobStatus, filter_overrides
-from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
-from hydra_plugins.hydra_submitit_launcher.submitit_launcher import SlurmLauncher
 from omegaconf import OmegaConf, open_dict
+
+try:
+    from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
+    from hydra_plugins.hydra_submitit_launcher.submitit_launcher import SlurmLauncher
+except ImportError:  # no rlexp[slurm]: Hydra imports every plugin module at start and warns about
+    # one that fails; hydra/launcher=slurm then fails to compose, naming the extra (rlexp.extras)
+    BaseQueueConf, SlurmLauncher = None, object  # type: ignore[assignment,misc]
 
 from rlexp.launch.slurm import RequeueOnPreemption
 

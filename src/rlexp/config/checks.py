@@ -24,8 +24,10 @@ def check_buildable(config: RootConfig) -> None:
     """Build one env copy, the policy and the event managers; check a resume checkpoint against them."""
     from rlexp.envs.factory import make_env
     from rlexp.events import EventManager
+    from rlexp.extras import check_config
     from rlexp.policies.actor_critic import make_policy
 
+    check_config(config)  # an optional part it turns on is installed (W&B, mp4 videos)
     e = config.env
     try:
         env = make_env(e, 1, config.seed)

@@ -21,9 +21,9 @@ from rlexp.config.schema import RootConfig
 from rlexp.config.validate import ConfigError
 
 #: Hydra flags after which rlexp leaves the command line to Hydra alone (it prints, not runs, or it
-#: composes from another config dir).
+#: composes another primary config). ``--config-dir`` (a user's configs) is checked like the rest.
 _HYDRA_ONLY = ("help", "hydra_help", "cfg", "info", "shell_completion", "config_path",
-               "config_name", "config_dir", "experimental_rerun")  # fmt: skip
+               "config_name", "experimental_rerun")  # fmt: skip
 
 
 def _unwrap(tp: Any) -> Any:
@@ -117,8 +117,8 @@ def _quote(value: Any) -> str:
 
 def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
     """Check the command line of ``python train.py``; the validated config in a single run, None in
-    a sweep or when Hydra alone handles the command (``--cfg``, ``--help``, ``-cd``...)."""
-    from hydra import compose, initialize_config_dir
+    a sweep or when Hydra alone handles the command (``--cfg``, ``--help``, ``-cp``...)."""
+    from hydra import compose
     from hydra._internal.utils import get_args_parser
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
@@ -128,6 +128,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
     from rlexp.config.schema import register_configs
     from rlexp.config.validate import to_root_config
     from rlexp.envs.native.render import GL_FIX, gl_problem
+    from rlexp.paths import initialize_hydra
 
     problem = gl_problem(rendering=False)  # before anything imports MuJoCo, which would abort
     if problem:
@@ -141,7 +142,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
     register_configs()
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
+        with initialize_hydra(conf_dir, args.config_dir):  # and the user's --config-dir after it
             loader = GlobalHydra.instance().config_loader()
             overrides = check_overrides(args.overrides, loader)
             cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)

@@ -1,0 +1,93 @@
+"""Optional parts of rlexp and the pip extra that installs each (``pip install 'rlexp[wandb]'``).
+
+The core install runs ``rlexp train`` on one machine (TensorBoard and JSONL logs, local sweeps).
+A missing extra is one line naming it, before a run writes anything: ``check_config`` for what a
+config turns on, ``hint`` for the errors Hydra or an import give when one is missing.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+from typing import TYPE_CHECKING
+
+from rlexp.config.validate import ConfigError
+
+if TYPE_CHECKING:
+    from rlexp.config.schema import RootConfig
+
+#: extra -> the modules it provides (what rlexp imports).
+EXTRAS: dict[str, tuple[str, ...]] = {
+    "wandb": ("wandb",),
+    "slurm": ("submitit", "hydra_plugins.hydra_submitit_launcher"),
+    "optuna": ("optuna", "hydra_plugins.hydra_optuna_sweeper"),
+    "video": ("imageio", "imageio_ffmpeg"),
+    "report": ("scipy", "matplotlib"),
+}
+
+#: Hydra config groups that only a plugin package of an extra provides.
+HYDRA_CONFIGS: dict[str, str] = {
+    "hydra/launcher/submitit": "slurm",
+    "hydra/sweeper/optuna": "optuna",
+    "hydra/sweeper/sampler": "optuna",
+}
+
+
+class MissingExtra(ConfigError):
+    """An optional part that is not installed; the message says which extra installs it."""
+
+
+def _installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # a parent package missing, or a broken one
+        return False
+
+
+def missing(extra: str, modules: tuple[str, ...] | None = None) -> str | None:
+    """The first module of ``extra`` (or of ``modules``) that is not installed, else None."""
+    for module in modules or EXTRAS[extra]:
+        if not _installed(module):
+            return module
+    return None
+
+
+def install_hint(extra: str) -> str:
+    return f"pip install 'rlexp[{extra}]'"
+
+
+def require(extra: str, what: str, modules: tuple[str, ...] | None = None) -> None:
+    """``MissingExtra`` when ``what`` cannot run because ``extra`` is not installed."""
+    module = missing(extra, modules)
+    if module is not None:
+        raise MissingExtra(
+            f"{what} needs rlexp's optional '{extra}' extra ({module} is not installed): "
+            f"{install_hint(extra)}"
+        )
+
+
+def check_config(config: RootConfig) -> None:
+    """The extras a config turns on are installed (W&B logging, mp4 videos)."""
+    if config.logger.wandb.enabled:
+        require("wandb", "logger.wandb.enabled=true (logger=wandb)")
+    for manager in ("train", "eval"):
+        for name, event in getattr(config.events, manager).items():
+            if event.func in ("record_video", "rlexp.events.builtin.record_video"):
+                require("video", f"events.{manager}.{name} (record_video)")
+
+
+def hint(message: str) -> str:
+    """``message`` plus the extra to install, when it says that a module or a Hydra config that
+    an uninstalled extra provides is missing."""
+    wanted = set()
+    for module in re.findall(r"No module named '([\w.]+)'", message):
+        wanted |= {e for e, mods in EXTRAS.items() if any(module.startswith(m) for m in mods)}
+    for config in re.findall(r"Could not (?:find|load) '([\w/]+)'", message):
+        wanted |= {e for prefix, e in HYDRA_CONFIGS.items() if config.startswith(prefix)}
+    wanted = {e for e in wanted if missing(e) is not None and install_hint(e) not in message}
+    if not wanted:
+        return message
+    fixes = "; ".join(
+        f"rlexp's '{e}' extra is not installed: {install_hint(e)}" for e in sorted(wanted)
+    )
+    return f"{message} ({fixes})"
