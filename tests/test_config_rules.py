@@ -70,7 +70,6 @@ BAD = {
     "env.num_eval_envs": -1,
     "env.max_episode_steps": 0,
     "env.clip_observations": 0.0,
-    "env.vectorization": "threads",
     "logger.wandb.project": "a/b",
     "logger.wandb.mode": "sometimes",
     "logger.wandb.tags": "['']",

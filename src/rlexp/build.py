@@ -48,6 +48,7 @@ class Built:
             versions=versions,
             dist=distributed.info(),
             eval_seed=self.config.seed + EVAL_SEED_OFFSET,
+            console=self.config.logger.console,
         )
 
 

@@ -162,6 +162,8 @@ RESUME_MAY_CHANGE = (
     "trainer.progress",
     "trainer.strict_device",
     "algorithm.compile",  # how the loss runs, not what it computes
+    "logger.console",  # the summary lines on the console
+    "env.vectorization",  # removed (it never did anything); older run dirs still hold it
 )
 
 

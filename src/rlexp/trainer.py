@@ -97,8 +97,10 @@ class Trainer:
         versions: dict[str, str] | None = None,
         dist: DistInfo | None = None,
         eval_seed: int = 0,
+        console: bool = True,
     ) -> None:
         self.cfg = cfg
+        self.console = console  # logger.console: the [train] / [eval] summary lines
         self.policy = policy
         self.algorithm = algorithm
         self.env = env
@@ -253,7 +255,8 @@ class Trainer:
         if iteration % self.cfg.log_every == 0:
             self.logger.log(metrics, self.global_step)
             ret = metrics.get("train/episode_return", float("nan"))
-            log.info("[train] step=%d sps=%.0f return(100)=%.2f", self.global_step, sps, ret)
+            if self.console:
+                log.info("[train] step=%d sps=%.0f return(100)=%.2f", self.global_step, sps, ret)
 
     @torch.no_grad()
     def eval_once(self) -> dict[str, float]:
@@ -289,15 +292,16 @@ class Trainer:
         events.finalize(self._ctx(env))
         self._timing["eval"] += time.perf_counter() - t_start
         self.logger.log(metrics, self.global_step)
-        log.info(
-            "[eval] step=%d return=%.2f +- %.2f length=%.1f success=%.2f (%d episodes)",
-            self.global_step,
-            metrics["eval/episode_return"],
-            metrics["eval/episode_return_std"],
-            metrics["eval/episode_length"],
-            metrics["eval/success_rate"],
-            episodes,
-        )
+        if self.console:
+            log.info(
+                "[eval] step=%d return=%.2f +- %.2f length=%.1f success=%.2f (%d episodes)",
+                self.global_step,
+                metrics["eval/episode_return"],
+                metrics["eval/episode_return_std"],
+                metrics["eval/episode_length"],
+                metrics["eval/success_rate"],
+                episodes,
+            )
         events.fire("trigger", self._ctx(env, metrics=metrics), signal="eval_end")
         self.event_manager.fire("trigger", self._ctx(metrics=metrics), signal="eval_end")
         value = metrics.get(self.cfg.best_metric)

@@ -171,7 +171,6 @@ FIELD_RULES: dict[str, Rule] = {
     "env.max_episode_steps": optional(at_least(1), "the task's own limit"),
     "env.normalize_observations": FLAG,
     "env.clip_observations": above(0.0),
-    "env.vectorization": one_of("sync", "async"),
     "env.kwargs": Rule(
         lambda v: isinstance(v, dict),
         "keyword arguments the env accepts (checked by building one env; render_mode=human "

@@ -113,7 +113,6 @@ class EnvConfig:
         True  # running mean/std normalisation (statistics are checkpointed)
     )
     clip_observations: float = 10.0  # normalised observations are clipped to +- this
-    vectorization: str = "sync"  # gymnasium vector env mode for num_envs > 1: sync | async
     kwargs: dict[str, Any] = field(
         default_factory=dict
     )  # extra keyword arguments for gymnasium.make
@@ -149,7 +148,7 @@ class LoggerConfig:
     tensorboard: TensorBoardConfig = field(default_factory=TensorBoardConfig)
     wandb: WandbConfig = field(default_factory=WandbConfig)
     jsonl: bool = True  # <run_dir>/metrics.jsonl, one JSON object per logged step
-    console: bool = True  # periodic summary lines through Python logging
+    console: bool = True  # the [train] / [eval] summary lines through Python logging
 
 
 @dataclass
