@@ -151,10 +151,10 @@ def _load_plugins_or_exit(prog: str) -> None:
         sys.exit(2)
 
 
-def train(argv: list[str]) -> None:
+def train(argv: list[str], prog: str = "rlexp train") -> None:
     """``rlexp train`` / ``python train.py``: plugins first (a JSON file may name a plugin's task),
     then ``--config-json`` / ``--distributed`` and Hydra (``rlexp.launch.json_entry``)."""
-    _load_plugins_or_exit("rlexp train")
+    _load_plugins_or_exit(prog)
     from rlexp.launch.json_entry import main as train_main
 
     train_main(argv)
