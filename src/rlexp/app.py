@@ -352,8 +352,10 @@ def _task(cfg: DictConfig) -> float | None:
         log.error("interrupted before training started")
         sys.exit(EXIT_SIGNAL_BASE + 2)
     except Exception as exc:
-        if not multirun:
-            raise
+        from rlexp.trainer import StopRequested
+
+        if not multirun or isinstance(exc, StopRequested):
+            raise  # StopRequested: SLURM preemption, the launcher requeues the job (launch/slurm.py)
         log.exception("job failed")  # the traceback goes to the job's log; the sweep goes on
         return _failed(run_dir, f"{type(exc).__name__}: {_first_line(exc)}", EXIT_FAILED, True, exc)
     return metrics.get("eval/episode_return")
