@@ -23,6 +23,8 @@ from conftest import CONF_DIR, REPO
 from rlexp import paths, plugins
 from rlexp.config.validate import ConfigError
 
+pytestmark = pytest.mark.package  # in the default suite; alone: make test-package
+
 EXAMPLE = REPO / "examples" / "user_project"
 #: Not part of a build: the venv, caches, outputs, earlier in-tree builds.
 _NOT_SOURCE = shutil.ignore_patterns(
