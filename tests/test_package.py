@@ -133,6 +133,9 @@ def test_fresh_venv_user_project(wheels, tmp_path):
     assert prov["git_commit"] is None and prov["project"]["git_commit"]  # the project's commit
     assert prov["rlexp_conf"].startswith(str(venv))
 
+    evaluated = _run([rlexp, "eval", "run", "--episodes", "2"], project).stdout  # the plugin's task
+    assert "point_reach_ppo_step_000002048.pt (step 2048): mean return" in evaluated
+
     # the core install names the extra an option needs, before anything runs
     refused = subprocess.run(
         [rlexp, "train", "+experiment=point_reach_ppo", "logger=wandb", "hydra.run.dir=run2"],
@@ -140,6 +143,11 @@ def test_fresh_venv_user_project(wheels, tmp_path):
     )  # fmt: skip
     assert refused.returncode == 2, refused.stderr
     assert "pip install 'rlexp[wandb]'" in refused.stderr and not (project / "run2").exists()
+    report = subprocess.run(
+        [rlexp, "report", "run"], cwd=project, capture_output=True, text=True, timeout=60,
+        env=_clean_env(),
+    )  # fmt: skip
+    assert report.returncode == 2 and "pip install 'rlexp[report]'" in report.stderr, report.stderr
 
 
 # -- configs: rlexp's own and the user's ----------------------------------------------------------
