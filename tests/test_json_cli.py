@@ -151,3 +151,51 @@ def test_strict_device_makes_cuda_on_a_cpu_machine_an_error(tmp_path):
     )
     assert proc.returncode == 2
     assert "CUDA is not available" in proc.stdout + proc.stderr
+
+
+@pytest.mark.parametrize("logger", [None, "logger=none"])
+def test_use_wandb_and_logger_none_on_the_command_line(logger, tmp_path):
+    """use_wandb: true in the file runs W&B (offline here); logger=none on the command line wins."""
+    path = example_copy(tmp_path / "files", use_wandb=True, enable_eval=False)
+    run_train(
+        ["--config-json", str(path), *TINY_JSON, *([logger] if logger else [])],
+        cwd=tmp_path / "files",
+    )
+    run_dir = only_run_dir(tmp_path / "files")
+    config = to_root_config(OmegaConf.to_container(OmegaConf.load(run_dir / "config.yaml")))
+    wandb_on = logger is None
+    assert config.logger.wandb.enabled is wandb_on
+    assert config.logger.tensorboard.enabled is wandb_on  # logger=none: no TensorBoard either
+    assert (run_dir / "wandb").is_dir() is wandb_on
+    assert (run_dir / "wandb_run_id.txt").is_file() is wandb_on
+    assert (run_dir / "tensorboard").is_dir() is wandb_on
+    written = json.loads((run_dir / "train_config.json").read_text())
+    assert written["trainer"]["use_wandb"] is wandb_on
+
+
+def test_a_path_in_the_file_is_taken_literally(tmp_path):
+    """An eval-video save_path of "${oc.env:VAR}/videos" is a folder of that name under the working
+    dir, not the folder the variable names: nothing is written outside."""
+    outside = tmp_path / "outside"
+    path = example_copy(tmp_path / "files")
+    train = json.loads(path.read_text())
+    params = train["trainer"]["events"]["eval"]["record_camera"]["params"]
+    params["save_path"] = "${oc.env:RLEXP_TEST_OUT}/videos"
+    path.write_text(json.dumps(train))
+    work = tmp_path / "work"
+    work.mkdir()
+    run_train(
+        ["--config-json", str(path), *TINY_JSON, *TINY_EVAL, "env.max_episode_steps=5"],
+        cwd=work,
+        env_extra={"RLEXP_TEST_OUT": str(outside)},
+    )
+    assert not outside.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["files", "work"]
+    videos = list(work.rglob("*.mp4"))  # under the working dir or the run dir: both inside
+    assert len(videos) == 1, videos
+    assert videos[0].parent.parts[-2:] == ("${oc.env:RLEXP_TEST_OUT}", "videos")
+    run_dir = only_run_dir(work)
+    written = json.loads((run_dir / "train_config.json").read_text())
+    video = written["trainer"]["events"]["eval"]["record_camera"]["params"]
+    assert video["save_path"] == "${oc.env:RLEXP_TEST_OUT}/videos"
+    assert str(outside) not in (run_dir / "train_config.json").read_text()

@@ -7,13 +7,17 @@ the point where it would hand over to Hydra. The command lines themselves run in
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
+import random
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf, open_dict
 
 from conftest import REPO, SHARED, compose
 from rlexp.config.json_format import (
+    escape_interpolations,
     flatten,
     load_json_experiment,
     to_json_experiment,
@@ -326,6 +330,152 @@ def test_to_json_writes_the_format_keys():
         "actions",
         "extensions",
     }
+
+
+# --------------------------------------------------------------------------- strings are data
+
+#: An environment variable the files below try to read through OmegaConf interpolations.
+SECRET_VAR, SECRET = "RLEXP_TEST_SECRET", "s3cr3t-9f3c1e"
+ENV = "${oc.env:" + SECRET_VAR + "}"
+
+
+def _file_with_interpolations(folder: Path, names: bool) -> Path:
+    """The cart_pole example with OmegaConf interpolations in string values everywhere: train file,
+    task file, nested params, lists, the rlexp section; with and without backslashes before them.
+    ``names``: in the names validate() restricts (exp_name, W&B project, video name) too."""
+    train, gym = _load("cart_pole")
+    t = train["trainer"]
+    params = t["events"]["eval"]["record_camera"]["params"]
+    params["save_path"] = "\\" + ENV + "/\\\\${trainer.seed}"
+    if names:
+        t["exp_name"] = ENV
+        t["wandb_project_name"] = "${seed}"
+        params["name"] = "cam-" + ENV + "-${oc.env:RLEXP_TEST_UNSET,x}"
+    gym["env"]["extensions"]["note"] = {"deep": [ENV, "${now:%Y}"]}
+    gym["env"]["events"]["randomize_start"]["params"]["tag"] = ENV
+    train["rlexp"] = {"logger": {"wandb": {"entity": ENV, "tags": ["${oc.env:HOME}"]}}}
+    return _write(folder, train, gym)
+
+
+def test_strings_in_the_files_are_never_resolved(tmp_path, monkeypatch):
+    monkeypatch.setenv(SECRET_VAR, SECRET)
+    monkeypatch.chdir(tmp_path)
+    c = _compose(_file_with_interpolations(tmp_path / "files", names=False))
+    assert c.logger.wandb.entity == ENV
+    assert c.logger.wandb.tags == ["${oc.env:HOME}"]
+    assert c.events.eval["record_camera"].params["save_path"] == (
+        "\\" + ENV + "/\\\\${trainer.seed}"
+    )
+    n = c.env.native
+    assert n.extensions["note"] == {"deep": [ENV, "${now:%Y}"]}
+    assert n.events["randomize_start"].params["tag"] == ENV
+    # rlexp's own interpolations still work: exp_name is conf/trainer/default.yaml's ${env.name}_ppo
+    # (the file's exp_name is data: see the next test); the task YAML's terms are merged in
+    assert c.trainer.exp_name == "cart_pole_ppo"
+    assert list(n.rewards) == ["upright", "velocity_penalty"]
+    assert SECRET not in json.dumps(dataclasses.asdict(c))
+    # written back and loaded again: the same literal strings
+    train, gym = to_json_experiment(c)
+    assert SECRET not in json.dumps([train, gym])
+    assert gym["env"]["extensions"]["note"] == {"deep": [ENV, "${now:%Y}"]}
+    assert _roundtrip(c, tmp_path / "run") == c
+
+
+def test_the_nodes_hydra_composes_hold_the_files_strings(tmp_path, monkeypatch):
+    """Every string, the names included (exp_name names files: a "${...}" in it must not become a
+    path; validate() then refuses its characters, so the node is read here before validation), and
+    the notes each run logs, which quote the files' paths."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    monkeypatch.setenv(SECRET_VAR, SECRET)
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / ENV
+    exp = load_json_experiment(_file_with_interpolations(folder, names=True))
+    json_entry.register_json_experiment(exp)
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+            cfg = hydra_compose(
+                config_name="config",
+                overrides=[f"+experiment={json_entry.EXPERIMENT}"],
+                return_hydra_config=True,
+            )
+    finally:
+        GlobalHydra.instance().clear()
+    with open_dict(cfg):
+        callbacks = cfg.pop("hydra").callbacks  # the rest of hydra resolves only in a job
+    notes = OmegaConf.to_container(callbacks, resolve=True)["rlexp_json_notes"]["notes"]
+    assert str(folder / "train_config.json") in notes[0]
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    assert plain["trainer"]["exp_name"] == ENV
+    assert plain["logger"]["wandb"]["project"] == "${seed}"
+    assert plain["logger"]["wandb"]["entity"] == ENV
+    params = plain["events"]["eval"]["record_camera"]["params"]
+    assert params["name"] == "cam-" + ENV + "-${oc.env:RLEXP_TEST_UNSET,x}"
+    assert params["save_path"] == "\\" + ENV + "/\\\\${trainer.seed}"
+    assert plain["env"]["native"]["extensions"]["note"] == {"deep": [ENV, "${now:%Y}"]}
+    assert SECRET not in json.dumps([notes, plain])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_escape_interpolations_gives_back_every_string(seed):
+    """Random strings of $ { } \\ and letters: OmegaConf reads each escaped string back unchanged."""
+    rng = random.Random(seed)
+    strings = [
+        "".join(rng.choice("${}\\\\a:.") for _ in range(rng.randint(0, 12))) for _ in range(400)
+    ]
+    strings += ["${", "\\${x}", "\\\\${x}", "${a${b}}", "$${x}", "x\\", "\\\\\\${oc.env:HOME}\\"]
+    node = OmegaConf.create({"v": escape_interpolations(strings)})
+    assert list(node.v) == strings
+
+
+def test_an_escaped_string_in_a_number_field_of_the_rlexp_section(tmp_path):
+    train, gym = _load("cart_pole")
+    train["rlexp"] = {"trainer": {"log_every": "${oc.env:RLEXP_TEST_LOG_EVERY}"}}
+    with pytest.raises(ConfigError) as info:
+        load_json_experiment(_write(tmp_path / "files", train, gym))
+    msg = str(info.value)
+    assert "rlexp.trainer.log_every" in msg and "${oc.env:RLEXP_TEST_LOG_EVERY}" in msg
+    assert "\\$" not in msg and len(msg.splitlines()) == 1
+
+
+# ---------------------------------------------------------------------------- the logger choice
+
+
+@pytest.mark.parametrize(
+    ("overrides", "sinks"),
+    [
+        ((), (True, True)),  # the format's TensorBoard, plus W&B for use_wandb
+        (("logger=none",), (False, False)),
+        (("logger=wandb",), (False, True)),
+        (("logger=[tensorboard,wandb]",), (True, True)),
+        (("logger.wandb.enabled=false",), (True, False)),
+    ],
+)
+def test_logger_on_the_command_line_wins_over_use_wandb(overrides, sinks, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    train, gym = _load("cart_pole")
+    train["trainer"]["use_wandb"] = True
+    c = _compose(_write(tmp_path / "files", train, gym), overrides)
+    assert (c.logger.tensorboard.enabled, c.logger.wandb.enabled) == sinks
+    assert c.logger.wandb.project == "embodichain-cart_pole"  # the file's setting stays
+
+
+def test_logger_none_wins_over_the_rlexp_section(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = to_root_config(compose(["env=cart_pole", "logger=[tensorboard,wandb]"]))
+    write_json_experiment(config, tmp_path / ".")
+    path = tmp_path / "train_config.json"
+    assert json.loads(path.read_text())["trainer"]["use_wandb"] is True
+    assert _compose(path).logger == config.logger
+    c = _compose(path, ("logger=none",))
+    assert (c.logger.tensorboard.enabled, c.logger.wandb.enabled, c.logger.jsonl) == (
+        False,
+        False,
+        True,
+    )
 
 
 # ----------------------------------------------------------------------------------- older files

@@ -2,11 +2,15 @@
 the typed config.
 
 ``load_json_experiment(path)`` parses both files strictly and checks every key and value: an error
-names the file and the dotted key (``trainer.eval_freq``), the value, and the fix. It then maps the
-files onto RootConfig's keys as two plain nodes: the ``env`` group node (the task, built on
-``conf/env/<task>.yaml`` with the file's terms added to the YAML's, replacing same-named ones) and a root node (everything
-else). ``rlexp.launch.json_entry`` hands both to Hydra (``env=json_task``, ``+experiment=json_experiment``),
-so a JSON run is composed, overridden from the command line, swept and validated exactly as a YAML run.
+names the file and the dotted key (``trainer.eval_freq``), the value, and the fix; a path or content
+that is no experiment file at all (a directory, a FIFO, a symlink loop, a huge or deeply nested
+file, bytes that are not UTF-8) is one such error too. It then maps the files onto RootConfig's keys
+as three plain nodes: the ``env`` group node (the task, built on ``conf/env/<task>.yaml`` with the
+file's terms added to the YAML's, replacing same-named ones), the ``logger`` group node (which sinks
+are on) and a root node (everything else). Every string the files give is data: escaped so that
+OmegaConf never resolves a ``${...}`` in it. ``rlexp.launch.json_entry`` hands the nodes to Hydra
+(``env=json_task``, ``logger=json_logger``, ``+experiment=json_experiment``), so a JSON run is
+composed, overridden from the command line, swept and validated exactly as a YAML run.
 
 ``to_json_experiment(config)`` goes the other way: each run dir gets ``train_config.json`` and
 ``gym_config.json`` (``write_json_experiment``). What the format has no key for is written under a
@@ -21,13 +25,15 @@ import difflib
 import json
 import logging
 import math
+import os
 import re
+import stat
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rlexp.config.validate import ConfigError, to_dict
+from rlexp.config.validate import ConfigError
 
 if typing.TYPE_CHECKING:
     from rlexp.config.schema import RootConfig
@@ -51,6 +57,17 @@ NOT_SUPPORTED = {
     '(with policy "actor_critic")',
 }
 NET_TYPES = ("mlp",)
+#: The logger the format's system always had (its charts were TensorBoard); ``use_wandb`` adds W&B.
+FORMAT_LOGGER = "tensorboard"
+#: Logger leaves that turn a sink on or off. A JSON file's values for them go into its logger group
+#: node (``logger=json_logger``), so that ``logger=none`` on the command line replaces them, as it
+#: replaces any group choice; the sinks' settings (W&B project, tags...) stay with the experiment.
+LOGGER_SWITCHES = (
+    "logger.tensorboard.enabled",
+    "logger.wandb.enabled",
+    "logger.jsonl",
+    "logger.console",
+)
 
 TRAIN_SECTIONS = ("trainer", "policy", "algorithm", "rlexp")
 TRAINER_KEYS = (
@@ -97,9 +114,12 @@ TERM_KEYS: dict[str, tuple[tuple[str, ...], dict[str, Any], tuple[str, ...]]] = 
     "actions": (("func", "params"), {}, ()),
 }
 EVENT_TERM_KEYS = ("func", "mode", "interval_step", "params")
-#: Scene objects the rebuilds have (uid -> scene key prefix), when rlexp.envs.native cannot be imported.
-FALLBACK_OBJECTS = {"push_cube": ("cube",), "cart_pole": ()}
-FALLBACK_JOINTS = {"push_cube": 6, "cart_pole": 2}
+
+#: Experiment files are a few KiB; anything near this is not one (and would only cost memory).
+MAX_FILE_BYTES = 4 * 2**20
+#: Nesting the files may use (theirs need ~6): deeper JSON is refused before it is parsed, as the
+#: parser, OmegaConf and Hydra recurse once per level.
+MAX_DEPTH = 32
 
 _REQUIRED = object()
 
@@ -113,6 +133,7 @@ class JsonExperiment:
     env_group: str  # the conf/env group the task maps to (push_cube), or "" for none
     env: dict[str, Any]  # the whole env group node
     root: dict[str, Any]  # every other key, in RootConfig's shape (seed, trainer, policy, ...)
+    logger: dict[str, Any]  # the logger group node: which sinks are on (LOGGER_SWITCHES)
     notes: list[str] = field(default_factory=list)  # lines each run logs once
     action_dim: int | None = None  # policy.action_dim, checked against the env once it is built
 
@@ -139,12 +160,13 @@ def _no_constant(name: str) -> Any:
 
 def read_json(path: Path, shown: str) -> dict[str, Any]:
     """Strictly parsed JSON object (no duplicate keys, no NaN/Infinity); errors give line and column."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{shown}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{shown}: cannot be read ({exc})") from None
+    text = _read_text(path, shown)
+    line = _too_deep(text)
+    if line is not None:
+        raise ConfigError(
+            f"{shown}: JSON nested more than {MAX_DEPTH} levels deep (line {line}); an experiment "
+            "file needs a handful"
+        )
     try:
         data = json.loads(text, object_pairs_hook=_no_duplicates, parse_constant=_no_constant)
     except json.JSONDecodeError as exc:
@@ -163,10 +185,102 @@ def read_json(path: Path, shown: str) -> dict[str, Any]:
     return data
 
 
+_FILE_KINDS = (
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def _read_text(path: Path, shown: str) -> str:
+    """The file's text, refusing what is not a regular UTF-8 file of a sane size (a FIFO is opened
+    without blocking, so that a pipe with no writer cannot hang the run)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except FileNotFoundError:
+        raise ConfigError(f"{shown}: no such file") from None
+    except OSError as exc:
+        raise ConfigError(f"{shown}: cannot be read ({exc.strerror})") from None
+    except ValueError as exc:  # a NUL byte in the path
+        raise ConfigError(f"{shown}: cannot be read ({exc})") from None
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            raise ConfigError(
+                f"{shown}: is a directory; give the train file in it "
+                f"(e.g. {os.path.join(shown, 'train_config.json')})"
+            )
+        if not stat.S_ISREG(st.st_mode):
+            kind = next((name for test, name in _FILE_KINDS if test(st.st_mode)), "a special file")
+            raise ConfigError(f"{shown}: is not a regular file ({kind}); give a JSON file")
+        if st.st_size > MAX_FILE_BYTES:
+            raise ConfigError(_too_big(shown, st.st_size))
+        with open(fd, "rb", closefd=False) as f:
+            data = f.read(MAX_FILE_BYTES + 1)
+        if len(data) > MAX_FILE_BYTES:  # the size stat gave was wrong (a file still growing)
+            raise ConfigError(_too_big(shown, len(data)))
+    except OSError as exc:
+        raise ConfigError(f"{shown}: cannot be read ({exc.strerror})") from None
+    finally:
+        os.close(fd)
+    try:
+        return data.decode("utf-8-sig")  # a byte-order mark (Windows editors) is not an error
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise ConfigError(
+            f"{shown}: is not UTF-8 text (byte 0x{data[exc.start]:02x} at line {line}); "
+            "save it as UTF-8"
+        ) from None
+
+
+def _too_big(shown: str, size: int) -> str:
+    return f"{shown}: is {size} bytes; an experiment file may hold at most {MAX_FILE_BYTES // 2**20} MiB"
+
+
+#: A JSON string (escaped quotes included; an unterminated one runs to the end, so that the scan
+#: stays linear): brackets inside one are data, not nesting.
+_JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"?', re.DOTALL)
+
+
+def _too_deep(text: str) -> int | None:
+    """The line where ``text`` nests deeper than MAX_DEPTH, else None. Checked before parsing: the
+    parser (and everything after it that walks the values) recurses once per level."""
+    bare = _JSON_STRING.sub('""', text)  # JSON strings hold no raw newline: lines stay the same
+    if bare.count("[") + bare.count("{") <= MAX_DEPTH:
+        return None
+    depth = 0
+    for m in re.finditer(r"[\[\]{}]", bare):
+        depth += 1 if m.group() in "[{" else -1
+        if depth > MAX_DEPTH:
+            return bare.count("\n", 0, m.start()) + 1
+    return None
+
+
 def _line_of(text: str, key: str) -> str:
     """' (line N)' of the second occurrence of ``"key"``, for duplicate-key errors."""
     hits = [m.start() for m in re.finditer(re.escape(json.dumps(key)) + r"\s*:", text)]
     return f" (line {text.count(chr(10), 0, hits[1]) + 1})" if len(hits) > 1 else ""
+
+
+# ------------------------------------------------------------------------------ values are data
+
+#: A run of backslashes right before "${": what OmegaConf reads as an (escaped) interpolation.
+_INTERPOLATION = re.compile(r"(\\*)\$\{")
+
+
+def escape_interpolations(value: Any) -> Any:
+    """``value`` with every string escaped so that OmegaConf reads it back literally: a string from
+    a file is data, and ``"${oc.env:WANDB_API_KEY}"`` must stay those characters, not become the key
+    (nor a path outside the run dir). OmegaConf reads ``\\${`` as a literal ``${`` and ``\\\\`` before
+    ``${`` as one backslash: a run of n backslashes before ``${`` becomes 2n + 1."""
+    if isinstance(value, str):
+        return _INTERPOLATION.sub(lambda m: "\\" * (2 * len(m.group(1)) + 1) + "${", value)
+    if isinstance(value, dict):
+        return {k: escape_interpolations(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [escape_interpolations(v) for v in value]
+    return value
 
 
 # --------------------------------------------------------------------------------- typed reading
@@ -348,40 +462,28 @@ def _overlay(flat: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
 
 
 def _native() -> Any:
-    """``rlexp.envs.native`` if it can be imported (it imports MuJoCo), else None."""
-    try:
-        import rlexp.envs.native as native
-    except ImportError as exc:  # the native envs are optional for a loader that only checks names
-        log.debug(
-            "rlexp.envs.native unavailable (%s): term names are checked when the env is built", exc
-        )
-        return None
+    """``rlexp.envs.native`` (imported when first needed: it imports MuJoCo)."""
+    import rlexp.envs.native as native
+
     return native
 
 
-def _term_registry(kind: str) -> list[str] | None:
-    native = _native()
-    if native is None:
-        return None
+def _term_registry(kind: str) -> list[str]:
+    """Registered names of one kind of task term."""
     reg = {
         "events": "EVENTS",
         "observations": "OBSERVATIONS",
         "rewards": "REWARDS",
         "actions": "ACTIONS",
     }[kind]
-    return list(getattr(native, reg))
+    return list(getattr(_native(), reg))
 
 
 def _registered_events() -> dict[str, Any]:
-    """rlexp's event registry with the built-in events loaded (empty if it cannot be imported)."""
-    try:
-        from rlexp.events import EVENT_FUNCS
-    except ImportError:
-        return {}
-    try:
-        from rlexp.events import builtin  # noqa: F401  (registers the built-in events)
-    except ImportError:
-        pass
+    """rlexp's event registry with the built-in events loaded."""
+    from rlexp.events import builtin  # noqa: F401  (registers the built-in events)
+    from rlexp.events.manager import EVENT_FUNCS
+
     return EVENT_FUNCS
 
 
@@ -416,10 +518,7 @@ def _record_video_params() -> set[str]:
 
 def _task_spec(task: str) -> tuple[tuple[str, ...], int | None]:
     """(scene object uids, number of robot joints) of a native task."""
-    native = _native()
-    if native is None:
-        return FALLBACK_OBJECTS.get(task, ()), FALLBACK_JOINTS.get(task)
-    spec = native.get_task(task)
+    spec = _native().get_task(task)
     return tuple(spec.objects), len(spec.robot_joints)
 
 
@@ -464,15 +563,23 @@ class _Mapped:
     env_group: str = ""  # conf/env group of the task ("" for a Gymnasium id without one)
     env_base: dict[str, Any] = field(default_factory=dict)  # env.* leaves of conf/env/<group>.yaml
     leaves: dict[str, Any] = field(default_factory=dict)  # dotted RootConfig leaves the files set
+    # leaves whose value is the task YAML's dict with the file's entries added: the YAML's part
+    yaml_parts: dict[str, dict[str, Any]] = field(default_factory=dict)
     not_applicable: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     action_dim: int | None = None
 
 
 def _convert(
-    train: dict[str, Any], gym: dict[str, Any], tf: _File, gf: _File, rlexp_env: dict[str, Any]
+    train: dict[str, Any],
+    gym: dict[str, Any],
+    tf: _File,
+    gf: _File,
+    rlexp_env: dict[str, Any],
+    escape: bool = False,
 ) -> _Mapped:
-    """Check the two files' keys and values and map them onto RootConfig leaves."""
+    """Check the two files' keys and values and map them onto RootConfig leaves (``escape``: every
+    string the files give escaped for OmegaConf, see ``escape_interpolations``)."""
     tf.obj(train, "", TRAIN_SECTIONS)
     t = tf.obj(tf.get(train, "trainer", "", "object"), "trainer", TRAINER_KEYS)
     g = gf.obj(gym, "", GYM_KEYS)
@@ -482,6 +589,10 @@ def _convert(
     _map_policy(tf, train, m)
     _map_algorithm(tf, train, m)
     _map_task(gf, g, genv, rlexp_env, m)
+    if escape:
+        m.leaves = {k: escape_interpolations(v) for k, v in m.leaves.items()}
+    for key, base in m.yaml_parts.items():  # rlexp's own YAML is config, not data: not escaped
+        m.leaves[key] = {**base, **m.leaves[key]}
     if m.not_applicable:
         m.notes.append(
             "accepted but not applicable to the MuJoCo CPU rebuild (ignored): "
@@ -681,10 +792,11 @@ def _map_task(
     # replace a YAML term of the same name.
     yaml_terms = (yaml_node or {}).get("native", {}) if yaml_node is not None else {}
     for kind, value in terms.items():
-        out[f"env.native.{kind}"] = {**(yaml_terms.get(kind) or {}), **value}
+        out[f"env.native.{kind}"] = value
+        m.yaml_parts[f"env.native.{kind}"] = dict(yaml_terms.get(kind) or {})
     out["env.native.extensions"] = extensions
-    scene = _scene(gf, g, task, m.not_applicable)
-    out["env.native.scene"] = {**(m.env_base.get("env.native.scene") or {}), **scene}
+    out["env.native.scene"] = _scene(gf, g, task, m.not_applicable)
+    m.yaml_parts["env.native.scene"] = dict(m.env_base.get("env.native.scene") or {})
     if yaml_node is not None:
         kept = [
             f"{kind}.{name}"
@@ -715,12 +827,10 @@ def _events(tf: _File, events: dict[str, Any], where: str) -> dict[str, Any]:
                 + (f"; did you mean {close[0]!r}?" if close else "")
             )
         if "." in func:
-            try:
-                from rlexp.events.manager import resolve_event_func
+            from rlexp.events.manager import resolve_event_func
 
+            try:
                 resolve_event_func(func, w)
-            except ImportError:
-                pass
             except ValueError as exc:
                 raise tf.error(str(exc)) from None
         func = EVENT_ALIASES.get(func, func)
@@ -874,10 +984,32 @@ def _scene(gf: _File, g: dict[str, Any], task: str, na: list[str]) -> dict[str, 
 # ---------------------------------------------------------------------------------------- loading
 
 
+def _resolve(path: Path) -> Path:
+    """``path`` made absolute, symlinks resolved where they can be: a symlink loop, an unknown
+    ``~user`` or a NUL byte is reported when the file is read, not as a traceback here."""
+    try:
+        return path.expanduser().resolve()
+    except (OSError, RuntimeError, ValueError):
+        return Path(os.path.abspath(path))
+
+
+def _file_state(path: Path) -> str | None:
+    """None for a regular file, else why ``path`` cannot be one (for the "tried ..." list)."""
+    try:
+        mode = path.stat().st_mode
+    except (OSError, ValueError):
+        try:
+            path.lstat()
+        except (OSError, ValueError):
+            return "missing"
+        return "not a regular file"  # e.g. a symlink loop
+    return None if stat.S_ISREG(mode) else "not a regular file"
+
+
 def find_task_file(ref: str, train_path: Path, cwd: Path) -> tuple[Path, str]:
     """The task file ``ref`` names: relative to the working dir, then to the train file's folder, then
     the train file's folder with ``ref``'s base name (the shared files name their original repo's paths)."""
-    p = Path(ref).expanduser()
+    p = _resolve(Path(ref)) if ref.startswith("~") else Path(ref)
     if p.is_absolute():
         candidates = [(p, "absolute path")]
     else:
@@ -888,32 +1020,37 @@ def find_task_file(ref: str, train_path: Path, cwd: Path) -> tuple[Path, str]:
             (folder / p.name, f"the train file's folder, by base name ({ref!r} does not exist)"),
         ]
     seen: list[Path] = []
+    tried: list[str] = []
     for path, how in candidates:
-        path = path.resolve()
+        path = _resolve(path)
         if path in seen:
             continue
         seen.append(path)
-        if path.is_file():
+        state = _file_state(path)
+        if state is None:
             return path, how
+        tried.append(str(path) if state == "missing" else f"{path} ({state})")
     raise ConfigError(
-        f"{train_path}: trainer.gym_config={ref!r}: task file not found; tried {', '.join(map(str, seen))}"
+        f"{train_path}: trainer.gym_config={ref!r}: task file not found; tried {', '.join(tried)}"
     )
 
 
 def _rlexp_section(tf: _File, section: Any) -> dict[str, Any]:
     """The ``rlexp`` section (RootConfig keys the format has none for) as dotted leaves, checked
-    against the schema."""
+    against the schema; its strings are data (escaped), as every other value of the file."""
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
     from rlexp.config.schema import RootConfig
 
-    section = tf.obj(section, "rlexp")
+    section = escape_interpolations(tf.obj(section, "rlexp"))
     try:
-        OmegaConf.merge(OmegaConf.structured(default_root_config()), section)
+        merged = OmegaConf.merge(OmegaConf.structured(default_root_config()), section)
+        # resolving turns an escaped string back into the file's string, checked against its field
+        OmegaConf.to_container(merged, resolve=True)
     except OmegaConfBaseException as exc:
         key = getattr(exc, "full_key", "") or ""
-        msg = str(exc).splitlines()[0]
+        msg = re.sub(r"^While dereferencing interpolation '.*?': ", "", str(exc).splitlines()[0])
         raise tf.error(f"rlexp.{key}: {msg}" if key else f"rlexp: {msg}") from None
     return flatten(section, RootConfig)
 
@@ -935,8 +1072,8 @@ def default_root_config() -> RootConfig:
 def load_json_experiment(path: str | Path, cwd: str | Path | None = None) -> JsonExperiment:
     """Parse and check a train file and its task file; map them onto RootConfig-shaped nodes."""
     shown = str(path)
-    train_path = Path(path).expanduser().resolve()
     cwd = Path.cwd() if cwd is None else Path(cwd)
+    train_path = _resolve(Path(path))
     train = read_json(train_path, shown)
     tf = _File(shown)
     tf.obj(train, "", TRAIN_SECTIONS)
@@ -950,12 +1087,13 @@ def load_json_experiment(path: str | Path, cwd: str | Path | None = None) -> Jso
         tf,
         _File(str(gym_path)),
         {k: v for k, v in rlexp.items() if k.startswith("env.")},
+        escape=True,
     )
 
     notes = [f"JSON experiment {train_path} with task file {gym_path} ({how})"]
     if how.startswith("relative to the working dir"):
-        other = (train_path.parent / Path(t["gym_config"]).name).resolve()
-        if other != gym_path and other.is_file():
+        other = _resolve(train_path.parent / Path(t["gym_config"]).name)
+        if other != gym_path and _file_state(other) is None:
             notes.append(
                 f"warning: {other} beside the train file was not used ({gym_path} comes first)"
             )
@@ -968,19 +1106,29 @@ def load_json_experiment(path: str | Path, cwd: str | Path | None = None) -> Jso
         {k: v for k, v in mapped.leaves.items() if not k.startswith("env.")},
         {k: v for k, v in rlexp.items() if not k.startswith("env.")},
     )
-    env_node = nest({k[len("env.") :]: v for k, v in env_leaves.items()})
+    # Which sinks are on is a logger group choice, so that logger=... on the command line wins.
+    switches = {
+        k[len("logger.") :]: root_leaves.pop(k) for k in LOGGER_SWITCHES if k in root_leaves
+    }
     return JsonExperiment(
         train_path=train_path,
         gym_path=gym_path,
         env_group=mapped.env_group,
-        env=env_node,
+        env=nest({k[len("env.") :]: v for k, v in env_leaves.items()}),
         root=nest(root_leaves),
+        logger={"defaults": [FORMAT_LOGGER, "_self_"], **nest(switches)},
         notes=notes,
         action_dim=mapped.action_dim,
     )
 
 
 # ----------------------------------------------------------------------------------- writing back
+
+
+def _plain(config: RootConfig) -> dict[str, Any]:
+    """``config`` as plain dicts, strings as they are: not through OmegaConf, which would read a
+    ``"${...}"`` in a value (data, from a file) as an interpolation and resolve it."""
+    return dataclasses.asdict(config)
 
 
 def _task_id(env: Any) -> str:
@@ -995,7 +1143,7 @@ def _task_id(env: Any) -> str:
 def _format_dicts(config: RootConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """The format's keys for ``config`` (no ``rlexp`` section)."""
     t, e, p, a, lg = config.trainer, config.env, config.policy, config.algorithm, config.logger
-    d = to_dict(config)
+    d = _plain(config)
     trainer: dict[str, Any] = {
         "exp_name": t.exp_name,
         "gym_config": "gym_config.json",
@@ -1092,7 +1240,7 @@ def to_json_experiment(config: RootConfig) -> tuple[dict[str, Any], dict[str, An
         _File("gym_config.json"),
         env_backend,
     )
-    leaves = flatten(to_dict(config), RootConfig)
+    leaves = flatten(_plain(config), RootConfig)
     extra = {
         k: v for k, v in leaves.items() if k not in mapped.leaves or not _same(mapped.leaves[k], v)
     }

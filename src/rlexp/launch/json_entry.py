@@ -1,9 +1,10 @@
 """``python train.py --config-json FILE [overrides]``: our users' JSON experiment files through Hydra.
 
 The file is loaded and checked before Hydra starts, so a bad file prints one line on stderr and exits
-2 without creating a run dir. Its nodes then go into Hydra's ConfigStore (``env=json_task`` and
-``+experiment=json_experiment`` in package ``_global_``): Hydra composes ``conf/`` with them exactly as
-with a YAML preset, command-line overrides apply on top, and ``-m`` sweeps run from the JSON base.
+2 without creating a run dir. Its nodes then go into Hydra's ConfigStore (``env=json_task``,
+``logger=json_logger`` and ``+experiment=json_experiment`` in package ``_global_``, whose defaults list
+chooses the other two): Hydra composes ``conf/`` with them exactly as with a YAML preset, command-line
+overrides and group choices (``logger=none``) apply on top, and ``-m`` sweeps run from the JSON base.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Any
 
 from hydra.experimental.callback import Callback
 
-from rlexp.config.json_format import JsonExperiment, load_json_experiment
+from rlexp.config.json_format import JsonExperiment, escape_interpolations, load_json_experiment
 from rlexp.config.schema import RootConfig
 from rlexp.config.validate import ConfigError
 
@@ -24,6 +25,7 @@ log = logging.getLogger(__name__)
 
 CONFIG_FLAGS = ("--config-json", "--config")  # --config: the name the users' own train.py used
 ENV_NODE = "json_task"  # ConfigStore: env=json_task
+LOGGER_NODE = "json_logger"  # ConfigStore: logger=json_logger (the file's sinks)
 EXPERIMENT = "json_experiment"  # ConfigStore: +experiment=json_experiment
 
 
@@ -102,7 +104,9 @@ def insert_override(args: Sequence[str], override: str) -> list[str]:
 
 
 def register_json_experiment(exp: JsonExperiment) -> None:
-    """Put ``exp`` into Hydra's ConfigStore as ``env/json_task`` and ``experiment/json_experiment``."""
+    """Put ``exp`` into Hydra's ConfigStore as ``env/json_task``, ``logger/json_logger`` and
+    ``experiment/json_experiment``. The experiment chooses the other two in its defaults list, so a
+    group chosen on the command line (``logger=none``) wins over the file, as over any preset."""
     from hydra.core.config_store import ConfigStore
 
     from rlexp.config.schema import register_configs
@@ -110,13 +114,14 @@ def register_json_experiment(exp: JsonExperiment) -> None:
     register_configs()
     cs = ConfigStore.instance()
     cs.store(group="env", name=ENV_NODE, node=exp.env)
+    cs.store(group="logger", name=LOGGER_NODE, node=exp.logger)
+    # The notes quote the files (paths, names): data for OmegaConf, as the files' values are.
+    notes = escape_interpolations(exp.notes)
     node = {
-        "defaults": [{"override /env": ENV_NODE}, "_self_"],
+        "defaults": [{"override /env": ENV_NODE}, {"override /logger": LOGGER_NODE}, "_self_"],
         **exp.root,
         "hydra": {
-            "callbacks": {
-                "rlexp_json_notes": {"_target_": f"{__name__}.JsonNotes", "notes": exp.notes}
-            }
+            "callbacks": {"rlexp_json_notes": {"_target_": f"{__name__}.JsonNotes", "notes": notes}}
         },
     }
     cs.store(group="experiment", name=EXPERIMENT, package="_global_", node=node)
@@ -152,11 +157,8 @@ def check_task_builds(exp: JsonExperiment, config: RootConfig) -> None:
     e = config.env
     if e.backend != "native" or e.native is None:
         return
-    try:
-        from rlexp.envs.native import make_native_env
-    except ImportError as exc:
-        log.debug("native envs unavailable (%s): the task is checked when the run builds it", exc)
-        return
+    from rlexp.envs.native import make_native_env
+
     try:
         env = make_native_env(e.native, 1, config.seed, e.max_episode_steps)
     except (KeyError, ValueError, TypeError) as exc:
