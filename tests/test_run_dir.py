@@ -242,3 +242,30 @@ def test_a_sweep_dir_holding_another_sweep_is_refused_before_anything_is_written
     # The same sweep again is a re-run: its finished jobs are skipped.
     proc = run_train(["-m", *args, "seed=0,1"], cwd=tmp_path)
     assert proc.stdout.count("already finished") == 2
+
+
+def test_strings_that_look_like_interpolations_stay_data_in_config_yaml_and_checkpoints(
+    tmp_path, monkeypatch
+):
+    """A JSON file's "${oc.env:SECRET}" is escaped when loaded; it must stay those characters in
+    everything the run writes (config.yaml, checkpoints, W&B's config), never become the secret."""
+    from rlexp.config.validate import to_dict
+    from rlexp.rundir import check_same_experiment, write_run_files
+
+    monkeypatch.setenv("RLEXP_SECRET", "hunter2")
+    config = _config("events=record_rollouts")
+    literal = "${oc.env:RLEXP_SECRET}/rollouts"
+    config.events.train["record_rollouts"].params["save_path"] = literal
+    d = to_dict(config)
+    assert d["events"]["train"]["record_rollouts"]["params"]["save_path"] == literal
+    assert to_dict(to_root_config(d)) == d, "a checkpoint's config must read back as it was"
+    (tmp_path / "run").mkdir()
+    write_run_files(config, d, tmp_path / "run", "cpu")
+    text = (tmp_path / "run" / "config.yaml").read_text()
+    assert (
+        "hunter2" not in text
+        and "hunter2" not in (tmp_path / "run" / "train_config.json").read_text()
+    )
+    (tmp_path / "run" / "checkpoints").mkdir()
+    save_checkpoint(tmp_path / "run" / "checkpoints" / "x_step_000000001.pt", {"config": d})
+    check_same_experiment(tmp_path / "run", d)  # the saved config reads back equal

@@ -43,24 +43,6 @@ from rlexp.rundir import (
 log = logging.getLogger(__name__)
 
 
-def resolve_device(device: str, strict: bool = False) -> str:
-    """``auto`` -> ``cuda`` when a GPU is visible, else ``cpu``; CUDA asked on a CPU-only machine
-    falls back to CPU with one warning unless ``strict``."""
-    import torch
-
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        if strict:
-            raise ConfigError(
-                f"trainer.device={device!r} but CUDA is not available on this machine "
-                "(trainer.strict_device=true); use trainer.device=auto or cpu"
-            )
-        log.warning("trainer.device=%r but CUDA is not available: running on cpu", device)
-        return "cpu"
-    return device
-
-
 def seed_everything(seed: int) -> None:
     """Seed python, numpy and torch (the envs are seeded where they are built)."""
     import random
@@ -143,6 +125,8 @@ def _train_locked(
 
     t = config.trainer
     dist = distributed.info()
+    from rlexp.build import resolve_device
+
     device = resolve_device(t.device, t.strict_device)
     if dist.enabled and device.startswith("cuda"):
         device = f"cuda:{dist.local_rank}"  # each rank on its own GPU

@@ -9,8 +9,27 @@ from pathlib import Path
 from typing import Any
 
 from rlexp.config.schema import RootConfig
+from rlexp.config.validate import ConfigError
 
 log = logging.getLogger(__name__)
+
+
+def resolve_device(device: str, strict: bool = False) -> str:
+    """``auto`` -> ``cuda`` when a GPU is visible, else ``cpu``; CUDA asked on a CPU-only machine
+    falls back to CPU with one warning unless ``strict``."""
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        if strict:
+            raise ConfigError(
+                f"trainer.device={device!r} but CUDA is not available on this machine "
+                "(trainer.strict_device=true); use trainer.device=auto or cpu"
+            )
+        log.warning("trainer.device=%r but CUDA is not available: running on cpu", device)
+        return "cpu"
+    return device
 
 
 #: The eval envs' seed is the run's seed plus this (far from the per-rank training seeds).

@@ -224,7 +224,7 @@ def check_same_experiment(run_dir: Path, config_dict: dict[str, Any]) -> None:
     if not saved_path.is_file() or not step_checkpoints(Path(run_dir) / "checkpoints"):
         return
     try:
-        saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=False)
+        saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=True)
     except Exception as exc:  # a damaged config.yaml: say so rather than guess
         raise ConfigError(f"{saved_path} is unreadable ({exc}); move the run dir aside") from None
     if not isinstance(saved, dict):
@@ -242,10 +242,13 @@ def write_run_files(config: Any, config_dict: dict, run_dir: Path, device: str) 
     from omegaconf import OmegaConf
 
     from rlexp.config.json_format import write_json_experiment
+    from rlexp.config.validate import escape_interpolations
     from rlexp.provenance import write_provenance
 
     write_hydra_files(run_dir)
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(config_dict)))
+    # Escaped: a string that looks like ${...} (from a JSON file) reads back as those characters.
+    escaped = OmegaConf.create(escape_interpolations(config_dict))
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(escaped))
     write_json_experiment(config, run_dir)
     write_provenance(run_dir, device)
 

@@ -28,6 +28,10 @@ def check_buildable(config: RootConfig) -> None:
     from rlexp.policies.actor_critic import make_policy
 
     check_config(config)  # an optional part it turns on is installed (W&B, mp4 videos)
+    from rlexp.build import resolve_device
+
+    if config.trainer.strict_device:  # CUDA asked for and required: it must be there
+        resolve_device(config.trainer.device, strict=True)
     e = config.env
     try:
         env = make_env(e, 1, config.seed)

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rlexp.config.validate import ConfigError
+from rlexp.config.validate import ConfigError, escape_interpolations
 
 if typing.TYPE_CHECKING:
     from rlexp.config.schema import RootConfig
@@ -266,23 +266,6 @@ def _line_of(text: str, key: str) -> str:
 # ------------------------------------------------------------------------------ values are data
 
 #: A run of backslashes right before "${": what OmegaConf reads as an (escaped) interpolation.
-_INTERPOLATION = re.compile(r"(\\*)\$\{")
-
-
-def escape_interpolations(value: Any) -> Any:
-    """``value`` with every string escaped so that OmegaConf reads it back literally: a string from
-    a file is data, and ``"${oc.env:WANDB_API_KEY}"`` must stay those characters, not become the key
-    (nor a path outside the run dir). OmegaConf reads ``\\${`` as a literal ``${`` and ``\\\\`` before
-    ``${`` as one backslash: a run of n backslashes before ``${`` becomes 2n + 1."""
-    if isinstance(value, str):
-        return _INTERPOLATION.sub(lambda m: "\\" * (2 * len(m.group(1)) + 1) + "${", value)
-    if isinstance(value, dict):
-        return {k: escape_interpolations(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [escape_interpolations(v) for v in value]
-    return value
-
-
 # --------------------------------------------------------------------------------- typed reading
 
 

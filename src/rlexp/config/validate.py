@@ -9,6 +9,7 @@ import dataclasses
 import difflib
 import math
 import os
+import re
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -23,8 +24,8 @@ class ConfigError(ValueError):
 
 def to_root_config(cfg: DictConfig | dict[str, Any]) -> RootConfig:
     """Typed, validated config from Hydra's composed config (or a plain dict, e.g. a checkpoint's)."""
-    if not isinstance(cfg, DictConfig):
-        cfg = OmegaConf.merge(OmegaConf.structured(RootConfig), cfg)
+    if not isinstance(cfg, DictConfig):  # a plain dict (a checkpoint's): its strings are data
+        cfg = OmegaConf.merge(OmegaConf.structured(RootConfig), escape_interpolations(cfg))
     check_known_keys(cfg)
     config = OmegaConf.to_object(cfg)
     if not isinstance(config, RootConfig):
@@ -34,8 +35,9 @@ def to_root_config(cfg: DictConfig | dict[str, Any]) -> RootConfig:
 
 
 def to_dict(config: RootConfig) -> dict[str, Any]:
-    """Plain-dict form of a config (for checkpoints, loggers and JSON)."""
-    return OmegaConf.to_container(OmegaConf.structured(config), resolve=True)
+    """Plain-dict form of a config (for checkpoints, loggers and JSON). Its strings are the values
+    themselves: a ``${...}`` a JSON file gave stays those characters (OmegaConf would resolve it)."""
+    return dataclasses.asdict(config)
 
 
 def total_frames(config: RootConfig, world_size: int = 1) -> int:
@@ -185,3 +187,20 @@ def _check_events(config: RootConfig) -> None:
                 check_event(ev, f"{where}.{name}")
             except (ValueError, KeyError, TypeError) as exc:
                 raise ConfigError(str(exc.args[0] if exc.args else exc)) from None
+
+
+_INTERPOLATION = re.compile(r"(\\*)\$\{")
+
+
+def escape_interpolations(value: Any) -> Any:
+    """``value`` with every string escaped so that OmegaConf reads it back literally: a string from
+    a file is data, and ``"${oc.env:WANDB_API_KEY}"`` must stay those characters, not become the key
+    (nor a path outside the run dir). OmegaConf reads ``\\${`` as a literal ``${`` and ``\\\\`` before
+    ``${`` as one backslash: a run of n backslashes before ``${`` becomes 2n + 1."""
+    if isinstance(value, str):
+        return _INTERPOLATION.sub(lambda m: "\\" * (2 * len(m.group(1)) + 1) + "${", value)
+    if isinstance(value, dict):
+        return {k: escape_interpolations(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [escape_interpolations(v) for v in value]
+    return value
