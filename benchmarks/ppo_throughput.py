@@ -74,7 +74,7 @@ def compose(s: Setting, iterations: int, threads: int, seed: int, extra: list[st
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    from rlexp.app import CONF_DIR
+    from rlexp.paths import CONF_DIR
     from rlexp.config.schema import register_configs
     from rlexp.config.validate import to_root_config
 

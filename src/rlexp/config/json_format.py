@@ -509,7 +509,7 @@ def _task_spec(task: str) -> tuple[tuple[str, ...], int | None]:
 
 
 def _conf_dir() -> Path:
-    from rlexp.app import CONF_DIR
+    from rlexp.paths import CONF_DIR
 
     return CONF_DIR
 

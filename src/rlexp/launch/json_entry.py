@@ -134,7 +134,7 @@ def compose_json_experiment(exp: JsonExperiment, overrides: Sequence[str] = ()) 
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from rlexp.app import CONF_DIR
+    from rlexp.paths import CONF_DIR
     from rlexp.config.validate import to_root_config
 
     register_json_experiment(exp)
