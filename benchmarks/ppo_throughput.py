@@ -74,9 +74,9 @@ def compose(s: Setting, iterations: int, threads: int, seed: int, extra: list[st
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
-    from rlexp.paths import CONF_DIR
     from rlexp.config.schema import register_configs
     from rlexp.config.validate import to_root_config
+    from rlexp.paths import CONF_DIR
 
     overrides = [
         f"env={s.env}",

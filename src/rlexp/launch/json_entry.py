@@ -134,8 +134,8 @@ def compose_json_experiment(exp: JsonExperiment, overrides: Sequence[str] = ()) 
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from rlexp.paths import CONF_DIR
     from rlexp.config.validate import to_root_config
+    from rlexp.paths import CONF_DIR
 
     register_json_experiment(exp)
     GlobalHydra.instance().clear()
