@@ -54,9 +54,19 @@ def test_auto_without_a_compiler_warns_and_stays_eager(monkeypatch, caplog):
     assert not algo.compiled and "no C++ compiler" in caplog.text
 
 
-@pytest.mark.parametrize("value", ["True", "FALSE", "auto", True, False])
-def test_compile_accepts_booleans_and_words(value):
-    assert ppo.parse_compile(value) in ("true", "false", "auto")
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [
+        ("True", "true"),
+        ("FALSE", "false"),
+        ("auto", "auto"),
+        (" Auto ", "auto"),
+        (True, "true"),
+        (False, "false"),
+    ],
+)
+def test_compile_accepts_booleans_and_words(value, expected):
+    assert ppo.parse_compile(value) == expected
 
 
 def test_a_bad_compile_value_is_a_config_error_on_the_command_line(tmp_path, tiny_overrides):
