@@ -172,3 +172,47 @@ def test_collection_and_eval_run_one_torch_thread_and_the_update_torch_threads(
     finally:
         torch.set_num_threads(before)
     assert seen == {"step": {1}, "update": {2}}
+
+
+def test_best_pt_keeps_the_better_eval_when_a_later_one_is_worse(tmp_path, monkeypatch):
+    """Three eval rounds scoring 1, 5, 2: best.pt is the step-512 state, not the last one."""
+    import rlexp.trainer as trainer_mod
+    from conftest import compose
+    from rlexp.app import train
+    from rlexp.config.validate import to_root_config
+
+    scores = iter([1.0, 5.0, 2.0])
+    real_run_episodes = trainer_mod.run_episodes
+
+    def scripted(*args, **kwargs):
+        metrics = real_run_episodes(*args, **kwargs)  # the real episodes, a scripted score
+        metrics["eval/episode_return"] = next(scores)
+        return metrics
+
+    monkeypatch.setattr(trainer_mod, "run_episodes", scripted)
+    config = to_root_config(
+        compose(
+            [
+                *TINY,
+                "trainer.total_frames=768",
+                "trainer.keep_last=0",
+                "algorithm.num_epochs=1",
+                "logger=none",
+            ]
+        )
+    )
+    before = torch.get_num_threads()
+    try:
+        train(config, tmp_path / "run")
+    finally:
+        torch.set_num_threads(before)
+    ckpts = tmp_path / "run" / "checkpoints"
+    best = load_checkpoint(ckpts / "best.pt")
+    assert best["global_step"] == 512
+    assert best["best_metric"] == 5.0 and best["last_eval"]["eval/episode_return"] == 5.0
+    at_512 = load_checkpoint(ckpts / "InvertedPendulum-v5_ppo_step_000000512.pt")
+    last = load_checkpoint(ckpts / "InvertedPendulum-v5_ppo_step_000000768.pt")
+    assert last["last_eval"]["eval/episode_return"] == 2.0 and last["best_metric"] == 5.0
+    for key, value in best["policy"].items():
+        assert torch.equal(value, at_512["policy"][key]), f"best.pt {key} is not step 512's"
+    assert any(not torch.equal(v, last["policy"][k]) for k, v in best["policy"].items())
