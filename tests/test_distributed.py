@@ -201,3 +201,132 @@ def test_nan_on_one_rank_stops_both_ranks_with_the_nan_guard_error(tmp_path, wei
         assert reason in proc.stdout and "Traceback" not in proc.stdout, outputs
     status = json.loads((run_dir / "status.json").read_text())
     assert status["state"] == "failed" and status["reason"].startswith(reason), status
+
+
+# One PPO update per rank, each on its own rollout, with the gradient sync the trainer uses; every
+# gradient the optimiser stepped with is saved for the test to compare with single-process ones.
+_GRAD_WORKER = """
+import sys
+import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded
+from rlexp.algorithms.ppo import make_algorithm
+from rlexp.config.schema import AlgorithmConfig, PolicyConfig
+from rlexp.launch import distributed
+from rlexp.policies.actor_critic import make_policy
+
+distributed.init_in_job()
+rank = distributed.info().rank
+torch.manual_seed(0)  # the same initial parameters on both ranks
+pol = make_policy(PolicyConfig(), 5, 2, Bounded(-1.0, 1.0, shape=(2,)))
+initial = {k: v.clone() for k, v in pol.state_dict().items()}
+torch.manual_seed(100 + rank)  # each rank its own rollout
+steps = 32
+obs, next_obs = torch.randn(1, steps, 5), torch.randn(1, steps, 5)
+obs[:, 1:] = next_obs[:, :-1]
+with torch.no_grad():
+    _, _, action, log_prob = pol.sampling_policy().sample(obs)
+no = torch.zeros(1, steps, 1, dtype=torch.bool)
+batch = TensorDict(
+    {
+        "observation": obs,
+        "action": action,
+        "action_log_prob": log_prob + 0.2 * torch.randn(1, steps),
+        "next": {
+            "observation": next_obs,
+            "reward": torch.randn(1, steps, 1),
+            "terminated": no,
+            "truncated": no,
+            "done": no,
+        },
+    },
+    batch_size=[1, steps],
+)
+cfg = AlgorithmConfig(**{CFG})
+algo = make_algorithm(cfg, pol, 1, grad_sync=distributed.all_reduce_mean_)
+stepped = []
+step = algo.optimizer.step
+def record(*args, **kwargs):
+    stepped.append([p.grad.clone() for p in algo.params])
+    return step(*args, **kwargs)
+algo.optimizer.step = record
+algo.update(batch.clone())
+torch.save({"initial": initial, "batch": batch, "grads": stepped}, sys.argv[1] + f"/rank{rank}.pt")
+distributed.shutdown()
+"""
+
+# One minibatch of the whole rollout, no clipping: the stepped gradient is the loss's own.
+_GRAD_CFG = {"num_epochs": 2, "mini_batch_size": 32, "max_grad_norm": 0.0, "compile": "false"}
+
+
+def test_the_gradient_each_rank_steps_with_is_the_mean_of_the_ranks_gradients(tmp_path):
+    """Averaged, not summed: Adam nearly hides a factor of 2 in the parameters, so the gradients
+    themselves are compared with the mean of each rank's gradient computed in a single process."""
+    import socket
+
+    from torchrl.data import Bounded
+
+    from rlexp.algorithms.ppo import make_algorithm
+    from rlexp.config.schema import AlgorithmConfig, PolicyConfig
+    from rlexp.policies.actor_critic import make_policy
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    script = _GRAD_WORKER.replace("{CFG}", repr(_GRAD_CFG))
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", script, str(tmp_path)],
+            env={
+                **os.environ,
+                "PYTHONPATH": str(REPO / "src"),
+                "OMP_NUM_THREADS": "1",
+                "RANK": str(rank),
+                "LOCAL_RANK": str(rank),
+                "WORLD_SIZE": "2",
+                "MASTER_ADDR": "127.0.0.1",
+                "MASTER_PORT": str(port),
+            },
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for rank in (0, 1)
+    ]
+    try:
+        outs = [p.communicate(timeout=120)[0] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    assert [p.returncode for p in procs] == [0, 0], "\n".join(outs)
+
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in (0, 1)]
+    alone = []  # each rank's gradients, computed in this process with no sync
+    for saved in ranks:
+        pol = make_policy(PolicyConfig(), 5, 2, Bounded(-1.0, 1.0, shape=(2,)))
+        pol.load_state_dict(saved["initial"])
+        algo = make_algorithm(AlgorithmConfig(**_GRAD_CFG), pol, 1)
+        stepped, step = [], algo.optimizer.step
+
+        def record(*args, _stepped=stepped, _step=step, _algo=algo, **kwargs):
+            _stepped.append([p.grad.clone() for p in _algo.params])
+            return _step(*args, **kwargs)
+
+        algo.optimizer.step = record
+        algo.update(saved["batch"].clone())
+        alone.append(stepped)
+
+    assert len(ranks[0]["grads"]) == len(alone[0]) == 2  # two epochs of one minibatch each
+    # The first step: both ranks start from the same parameters, so the synced gradient must be the
+    # mean of what each rank computes alone (the second step follows from the first).
+    first = [(a + b) / 2 for a, b in zip(alone[0][0], alone[1][0], strict=True)]
+    assert any(not torch.allclose(a, b) for a, b in zip(alone[0][0], alone[1][0], strict=True))
+    for r, saved in enumerate(ranks):
+        for i, (got, want) in enumerate(zip(saved["grads"][0], first, strict=True)):
+            torch.testing.assert_close(
+                got, want, rtol=1e-5, atol=1e-7, msg=f"rank {r}, parameter {i}: not the mean"
+            )
+    for a, b in zip(ranks[0]["grads"][1], ranks[1]["grads"][1], strict=True):
+        assert torch.equal(a, b), "the ranks stepped with different gradients"
