@@ -8,6 +8,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -238,6 +239,9 @@ def test_local_parallel_launcher_runs_jobs_with_one_torch_thread(tmp_path):
     for n in ("0", "1"):
         assert json.loads((sweep / n / "status.json").read_text())["state"] == "finished"
         assert OmegaConf.load(sweep / n / "config.yaml").trainer.torch_threads == 1
+        # What the job's process really ran with (torch.get_num_threads(), logged by the job).
+        used = re.findall(r"torch threads (\d+)\)", (sweep / n / "train.log").read_text())
+        assert used == ["1"], f"job {n} logged torch threads {used}"
     launcher = OmegaConf.load(sweep / "multirun.yaml").hydra.launcher
     assert launcher._target_.endswith("JoblibLauncher") and launcher.n_jobs == 2
 

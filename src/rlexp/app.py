@@ -116,6 +116,8 @@ def _agree(failed: bool) -> None:
 def _train_locked(
     config: RootConfig, run_dir: Path, sweep_group: str | None, stops: Any
 ) -> dict[str, float]:
+    import torch
+
     from rlexp.checkpoint import check_checkpoint_fits, latest_good_checkpoint
     from rlexp.config.checks import check_resume_checkpoint
     from rlexp.launch import distributed
@@ -175,7 +177,13 @@ def _train_locked(
     # -- from here on the run dir is written -------------------------------------------------------
     if dist.is_main:
         write_run_files(config, config_dict, run_dir, device)
-    log.info("run dir: %s (device %s, seed %d)", run_dir, device, config.seed)
+    log.info(
+        "run dir: %s (device %s, seed %d, torch threads %d)",
+        run_dir,
+        device,
+        config.seed,
+        torch.get_num_threads(),  # what the update runs with, read back from torch
+    )
     if dist.is_main:
         logger = make_logger(config.logger, run_dir, t.exp_name, config_dict, group=sweep_group)
     else:
