@@ -46,7 +46,12 @@ def test_non_finite_observation_stops_the_run_and_keeps_the_last_good_checkpoint
 
 
 def test_keep_last_and_provenance(tmp_path):
+    head_before = _git(REPO, "rev-parse", "HEAD")
     run_train([*BASE, "trainer.total_frames=1280", "trainer.keep_last=2"], cwd=tmp_path)
+    heads = {
+        head_before,
+        _git(REPO, "rev-parse", "HEAD"),
+    }  # someone may commit while the run trains
     run_dir = only_run_dir(tmp_path)
     assert [p.name.rsplit("_", 1)[1] for p in step_checkpoints(run_dir / "checkpoints")] == [
         "000001024.pt",
@@ -55,7 +60,9 @@ def test_keep_last_and_provenance(tmp_path):
     prov = json.loads((run_dir / "provenance.json").read_text())
     assert prov["versions"]["torch"].startswith("2.") and prov["versions"]["torchrl"] == "0.14.1"
     assert prov["device"] == "cpu" and prov["host"] and prov["start_time"]
-    assert "git_commit" in prov
+    assert prov["git_commit"] in heads, (prov["git_commit"], heads)  # rlexp's checkout
+    assert prov["git_dirty"] == (run_dir / "git.diff").is_file()
+    assert prov["project"] is None  # the working dir (tmp_path) is no git repository
     assert "torch==" in (run_dir / "pip-freeze.txt").read_text()
     ckpt = load_checkpoint(step_checkpoints(run_dir / "checkpoints")[-1])
     assert (
@@ -139,3 +146,49 @@ def test_wandb_in_a_multirun_one_run_per_job_grouped_by_the_sweep(tmp_path):
     ]
     assert infos[0]["id"] != infos[1]["id"]
     assert infos[0]["group"] == infos[1]["group"] == sweep_dir.name
+
+
+def _git(repo, *args: str) -> str:
+    return subprocess.run(
+        ["git", "-C", str(repo), *args], capture_output=True, text=True, check=True
+    ).stdout.strip()
+
+
+def _repo(path, files: dict[str, str]):
+    path.mkdir(parents=True)
+    for name, text in files.items():
+        (path / name).parent.mkdir(parents=True, exist_ok=True)
+        (path / name).write_text(text)
+    _git(path, "init", "-q")
+    _git(path, "add", ".")
+    _git(path, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "first")
+    return path
+
+
+def test_provenance_records_the_checkouts_commit_and_whether_it_is_dirty(tmp_path, monkeypatch):
+    """rlexp's checkout (a stand-in repository) and the working dir's project: commit = rev-parse
+    HEAD, git_dirty and git.diff follow a change to a tracked file."""
+    from rlexp import provenance
+
+    checkout = _repo(tmp_path / "rlexp", {"pyproject.toml": "", "src/rlexp/__init__.py": "x = 1\n"})
+    project = _repo(tmp_path / "project", {"train.py": "print(1)\n"})
+    monkeypatch.setattr(provenance, "REPO", checkout)
+    monkeypatch.chdir(project)
+    (tmp_path / "run_clean").mkdir()
+    clean = provenance.write_provenance(tmp_path / "run_clean", "cpu")
+    assert clean["git_commit"] == _git(checkout, "rev-parse", "HEAD") and not clean["git_dirty"]
+    assert not (tmp_path / "run_clean" / "git.diff").exists()
+    assert clean["project"] == {
+        "path": str(project.resolve()),
+        "git_commit": _git(project, "rev-parse", "HEAD"),
+        "git_dirty": False,
+    }
+
+    (checkout / "src" / "rlexp" / "__init__.py").write_text("x = 2\n")
+    (project / "train.py").write_text("print(2)\n")
+    (tmp_path / "run_dirty").mkdir()
+    dirty = provenance.write_provenance(tmp_path / "run_dirty", "cpu")
+    assert dirty["git_commit"] == clean["git_commit"] and dirty["git_dirty"] is True
+    assert "+x = 2" in (tmp_path / "run_dirty" / "git.diff").read_text()
+    assert dirty["project"]["git_dirty"] is True
+    assert json.loads((tmp_path / "run_dirty" / "provenance.json").read_text())["git_dirty"] is True
