@@ -166,3 +166,42 @@ def test_a_checkpoint_from_another_machine_or_older_event_params_still_evaluates
     proc = _eval(path, "--episodes", "2")
     assert proc.returncode == 0, proc.stderr
     assert "mean return" in proc.stdout
+
+
+def test_evaluation_is_deterministic_and_rlexp_eval_agrees_with_the_trainers_eval(run_dir):
+    """Each checkpoint holds the Trainer's eval of its own weights (eval_once runs just before the
+    save); rebuilt by ``rlexp eval`` with the Trainer's eval seed (seed + EVAL_SEED_OFFSET), the
+    same episodes give the same numbers, every time."""
+    import re
+
+    from rlexp.build import EVAL_SEED_OFFSET
+    from rlexp.cli import evaluate
+
+    ckpts = step_checkpoints(run_dir / "checkpoints")
+    assert [load_checkpoint(c)["global_step"] for c in ckpts] == [256, 512]
+    for path in ckpts:
+        ckpt = load_checkpoint(path)
+        seed = ckpt["config"]["seed"] + EVAL_SEED_OFFSET
+        episodes = ckpt["config"]["trainer"]["eval_episodes"]
+        first = evaluate(str(path), episodes, None, seed)
+        assert evaluate(str(path), episodes, None, seed) == first, "two evaluations differ"
+        trainer_eval = ckpt["last_eval"]
+        assert first["episodes"] == episodes
+        assert (first["mean_return"], first["std_return"]) == (
+            trainer_eval["eval/episode_return"],
+            trainer_eval["eval/episode_return_std"],
+        ), f"{path.name}: rlexp eval {first} != the Trainer's eval {trainer_eval}"
+
+    # The command line too (it prints three decimals).
+    ckpt = load_checkpoint(ckpts[-1])
+    seed = ckpt["config"]["seed"] + EVAL_SEED_OFFSET
+    episodes = ckpt["config"]["trainer"]["eval_episodes"]
+    proc = _eval(ckpts[-1], "--episodes", episodes, "--seed", seed)
+    assert proc.returncode == 0, proc.stderr
+    m = re.search(r"mean return (\S+) \+- (\S+) over (\d+) episodes", proc.stdout)
+    assert m, proc.stdout
+    assert float(m.group(1)) == pytest.approx(ckpt["last_eval"]["eval/episode_return"], abs=5e-4)
+    assert float(m.group(2)) == pytest.approx(
+        ckpt["last_eval"]["eval/episode_return_std"], abs=5e-4
+    )
+    assert int(m.group(3)) == episodes
