@@ -189,7 +189,29 @@ def test_observation_and_action_noise_through_the_transform():
     assert not torch.allclose(out["next", "observation"][0], sim_obs, atol=1e-3)
 
 
+def _offscreen_gl_or_skip() -> None:
+    """Skip, saying why, where this machine has no offscreen GL backend (as
+    tests/envs/test_native_render.py does); any other rendering error fails."""
+    from rlexp.envs.native import default_task_config, make_native_env
+    from rlexp.envs.native.render import GL_FIX, gl_problem
+
+    problem = gl_problem()
+    if problem is not None:
+        pytest.skip(f"no OpenGL backend: {problem}; {GL_FIX}")
+    env = make_native_env(default_task_config("push_cube"), 1, seed=0)
+    try:
+        env.reset()
+        env.render(width=16, height=16, fovy=60)
+    except RuntimeError as exc:
+        if "offscreen rendering failed" in str(exc):
+            pytest.skip(f"no OpenGL backend: {exc}")
+        raise
+    finally:
+        env.close()
+
+
 def test_record_rollouts_and_eval_video_in_a_run(tmp_path):
+    _offscreen_gl_or_skip()
     run_train(
         [
             "env=push_cube",
