@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -22,13 +23,15 @@ from rlexp.checkpoint import (
 )
 
 
-def _cmd(env: str, run_dir: Path, frames: int, batch: int, extra: list[str]) -> list[str]:
+def _cmd(
+    env: str, run_dir: Path, frames: int, batch: int, extra: list[str], eval_every: int = 0
+) -> list[str]:
     return [
         f"env={env}",
         f"trainer.total_frames={2 * frames}",
         f"trainer.frames_per_batch={batch}",
         f"trainer.save_every={frames}",
-        "trainer.eval_every=0",
+        f"trainer.eval_every={eval_every}",
         "algorithm.num_epochs=2",
         f"hydra.run.dir={run_dir}",
         "seed=5",
@@ -60,15 +63,31 @@ def _kill_after_checkpoint(args: list[str], cwd: Path, ckpt_dir: Path, step: int
     assert max(steps) < 2 * step, "the run finished before it was killed"
 
 
+def _same(a, b) -> bool:
+    """Equality through dicts, lists, tensors and arrays (event and RNG states hold all of them)."""
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list | tuple):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, torch.Tensor):
+        return isinstance(b, torch.Tensor) and torch.equal(a, b)
+    if isinstance(a, np.ndarray):
+        return isinstance(b, np.ndarray) and np.array_equal(a, b)
+    return a == b
+
+
 def _assert_resume_is_exact(
-    tmp_path: Path, env: str, frames: int, batch: int, extra: list[str]
+    tmp_path: Path, env: str, frames: int, batch: int, extra: list[str], eval_every: int = 0
 ) -> None:
     whole, broken = tmp_path / "whole", tmp_path / "broken"
-    run_train(_cmd(env, whole, frames, batch, extra), cwd=tmp_path, timeout=600)
+    run_train(_cmd(env, whole, frames, batch, extra, eval_every), cwd=tmp_path, timeout=600)
     _kill_after_checkpoint(
-        _cmd(env, broken, frames, batch, extra), tmp_path, broken / "checkpoints", frames
+        _cmd(env, broken, frames, batch, extra, eval_every),
+        tmp_path,
+        broken / "checkpoints",
+        frames,
     )
-    proc = run_train(_cmd(env, broken, frames, batch, extra), cwd=tmp_path, timeout=600)
+    proc = run_train(_cmd(env, broken, frames, batch, extra, eval_every), cwd=tmp_path, timeout=600)
     assert "[resume] continuing from" in proc.stdout + proc.stderr
     a = load_checkpoint(latest_checkpoint(whole / "checkpoints"))
     b = load_checkpoint(latest_checkpoint(broken / "checkpoints"))
@@ -81,6 +100,14 @@ def _assert_resume_is_exact(
                 f"optimizer state {i}.{k} differs"
             )
     assert a["windows"]["returns"] == b["windows"]["returns"]
+    assert a["last_eval"] == b["last_eval"] and a["best_metric"] == b["best_metric"]
+    assert _same(a["events"], b["events"]), "event state (counters, RNG) differs after resume"
+    if eval_every:
+        assert a["last_eval"], "no evaluation ran: the comparison would be vacuous"
+        best_a, best_b = (load_checkpoint(d / "checkpoints" / "best.pt") for d in (whole, broken))
+        assert best_a["global_step"] == best_b["global_step"]
+        for key, value in best_a["policy"].items():
+            assert torch.equal(value, best_b["policy"][key]), f"best.pt policy.{key} differs"
 
 
 def test_sigkill_and_resume_is_bit_identical_gymnasium(tmp_path):
@@ -118,6 +145,49 @@ def test_sigkill_and_resume_is_bit_identical_push_cube(tmp_path):
         batch=256,
         extra=["env.num_envs=8", "env.num_eval_envs=2", "policy=mlp_256"],
     )
+
+
+#: PushCube with periodic evaluation (its own envs, best.pt) on a short episode limit.
+EVAL_EXTRA = ["env.num_envs=4", "env.num_eval_envs=2", "trainer.eval_episodes=2",
+              "env.max_episode_steps=50"]  # fmt: skip
+
+
+def test_sigkill_and_resume_is_bit_identical_with_evaluation_and_an_event(tmp_path):
+    """Periodic evaluation and a step event drawing from the event manager's RNG (action noise):
+    the continuation still matches the uninterrupted run bit for bit, best.pt included."""
+    extra = [*EVAL_EXTRA, "events=noise", "~events.train.observation_noise"]
+    _assert_resume_is_exact(tmp_path, "push_cube", 512, 256, extra, eval_every=256)
+
+
+# Known bugs, found by the test above with other events: strict, so a fix shows as XPASS (fails).
+@pytest.mark.parametrize(
+    "events",
+    [
+        pytest.param(
+            ["events=noise", "~events.train.action_noise"],
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="observation_noise is applied to each step's output only: the resumed "
+                "collector starts from the env state's clean observation "
+                "(NativeEnv.current_tensordict), not the noisy one the uninterrupted run's policy "
+                "saw",
+            ),
+            id="observation_noise",
+        ),
+        pytest.param(
+            ["events=domain_randomization"],
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="the resumed collector's first reset fires the reset events for every env "
+                "although load_env_state continues the episodes: randomize_physics runs 7 times "
+                "by step 1024 instead of 6, drawing new physics and RNG",
+            ),
+            id="randomize_physics",
+        ),
+    ],
+)
+def test_sigkill_and_resume_is_bit_identical_with_known_diverging_events(tmp_path, events):
+    _assert_resume_is_exact(tmp_path, "push_cube", 512, 256, [*EVAL_EXTRA, *events], 256)
 
 
 @needs_compiler
