@@ -196,7 +196,11 @@ def test_evaluation_is_deterministic_and_rlexp_eval_agrees_with_the_trainers_eva
     ckpt = load_checkpoint(ckpts[-1])
     seed = ckpt["config"]["seed"] + EVAL_SEED_OFFSET
     episodes = ckpt["config"]["trainer"]["eval_episodes"]
-    proc = _eval(ckpts[-1], "--episodes", episodes, "--seed", seed)
+    # The default seed is the run's own eval seed: no --seed needed to agree with the Trainer.
+    assert evaluate(str(ckpts[-1]), episodes, None) == evaluate(
+        str(ckpts[-1]), episodes, None, seed
+    )
+    proc = _eval(ckpts[-1], "--episodes", episodes)
     assert proc.returncode == 0, proc.stderr
     m = re.search(r"mean return (\S+) \+- (\S+) over (\d+) episodes", proc.stdout)
     assert m, proc.stdout

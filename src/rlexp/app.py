@@ -338,7 +338,7 @@ def _task(cfg: DictConfig) -> float | None:
     except RunEnded as exc:
         if exc.exit_code >= EXIT_SIGNAL_BASE:  # a signal: stop the whole sweep too
             log.error("%s", exc)
-            sys.exit(exc.exit_code)
+            _exit(exc.exit_code)
         return _failed(run_dir, str(exc), exc.exit_code, multirun, exc)
     except KeyboardInterrupt:  # Ctrl-C twice while the run was being built: nothing to save
         log.error("interrupted before training started")
@@ -363,13 +363,27 @@ def _join_distributed() -> None:
             raise ConfigError(str(exc)) from None
 
 
+def _exit(code: int) -> None:
+    """``sys.exit(code)``; a distributed rank leaves with ``os._exit`` once its logs are flushed:
+    after a failure its gloo threads can abort the interpreter's teardown ("terminate called
+    without an active exception", exit -6 instead of the code), seen on a loaded 2-core machine."""
+    from rlexp.launch import distributed
+
+    if not distributed.info().enabled:
+        sys.exit(code)
+    logging.shutdown()  # flush and close every handler (console, the job's log file)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Exception) -> None:
     """One line; a single run exits with ``code``, a sweep job records it and returns None."""
     from rlexp.rundir import RunDirBusy
 
     log.error("%s", message)
     if not multirun:
-        sys.exit(code)
+        _exit(code)
     state = read_status(run_dir).get("state")
     if not isinstance(exc, RunDirBusy) and state in (None, "failed"):  # never another run's status
         try:

@@ -86,7 +86,9 @@ def check_policy_finite(ckpt: dict[str, Any]) -> None:
         )
 
 
-def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) -> dict[str, float]:
+def evaluate(
+    checkpoint: str, episodes: int, num_envs: int | None, seed: int | None = None
+) -> dict[str, float]:
     """Rebuild the run's env and policy from a checkpoint (a file, or a run dir: its newest good
     one) and evaluate it deterministically."""
     if episodes < 1:
@@ -105,6 +107,10 @@ def evaluate(checkpoint: str, episodes: int, num_envs: int | None, seed: int) ->
 
     config = to_root_config(eval_config(ckpt["config"]))
     e = config.env
+    if seed is None:  # the run's own eval seed: the same episodes as the Trainer's eval rounds
+        from rlexp.build import EVAL_SEED_OFFSET
+
+        seed = config.seed + EVAL_SEED_OFFSET
     seed_everything(seed)
     n = num_envs or max(1, e.num_eval_envs)
     env = make_env(e, n, seed)
@@ -194,7 +200,12 @@ def main(argv: list[str] | None = None) -> None:
     ev.add_argument(
         "--num-envs", type=_at_least_1, default=None, help="eval envs (default: the run's)"
     )
-    ev.add_argument("--seed", type=int, default=12345)
+    ev.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="eval env seed (default: the run's own eval seed, seed + 1000000, as its eval rounds)",
+    )
     rep = sub.add_parser(
         "report", help="a sweep's per-configuration statistics: report.md, report.csv, curves.png"
     )
