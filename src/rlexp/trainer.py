@@ -129,6 +129,7 @@ class Trainer:
         self.collector: RolloutCollector | None = None  # built when training starts, after a resume
         self._event_transform: EventTransform | None = None
         self._resume_rng: dict[str, Any] | None = None
+        self._resume_obs: torch.Tensor | None = None  # what the policy acts on next, on resume
         self.stop_reason: str | None = (
             None  # set by request_stop (e.g. from a SLURM signal handler)
         )
@@ -351,6 +352,7 @@ class Trainer:
             "rng": rng_state(),
             "last_eval": dict(self.last_eval),
             "best_metric": self.best_metric,
+            "pending_observation": self._pending_observation(),
             "config": self.config_dict,
             "versions": self.versions,
         }
@@ -375,6 +377,8 @@ class Trainer:
         self.last_eval = dict(sd.get("last_eval", {}))
         self.best_metric = float(sd.get("best_metric", -float("inf")))
         self._resume_rng = sd["rng"]
+        if self.dist.is_main:  # with the env state it belongs to (rank 0's)
+            self._resume_obs = sd.get("pending_observation")
         if not self.dist.is_main:  # rank 0's RNG would give every rank the same noise
             self._resume_rng = None
             torch.manual_seed(torch.initial_seed() + self.global_step)
@@ -391,6 +395,15 @@ class Trainer:
         self.logger.close()
 
     # -- helpers -------------------------------------------------------------------------------------
+    def _pending_observation(self) -> torch.Tensor | None:
+        """The observation the policy acts on at the next step: the env's own one, or what a step
+        event (observation noise) made of it, which the env state alone cannot give back."""
+        c = self.collector
+        if c is None:
+            return self._resume_obs
+        obs = c._obs if c._obs is not None else c._carrier.get("observation", None)
+        return None if obs is None else obs.detach().clone()
+
     def _start_collector(self) -> None:
         if self.collector is None:
             self.collector = RolloutCollector(
@@ -402,6 +415,13 @@ class Trainer:
                 track_traj_ids=False,
                 auto_register_policy_transforms=False,  # the policy needs no env transforms
             )
+            obs, self._resume_obs = self._resume_obs, None
+            if obs is not None:  # resumed: act first on what the interrupted run would have
+                carrier = self.collector._carrier.get("observation", None)
+                if carrier is not None and carrier.shape == obs.shape:
+                    self.collector._carrier.set("observation", obs.to(carrier.device))
+                    if self.collector._fast:
+                        self.collector._obs = obs.to(carrier.device)
             self._rollouts = iter(self.collector)
 
     def _save_best(self) -> None:

@@ -47,12 +47,16 @@ class EventTransform(Transform):
     ) -> TensorDictBase:
         if not self._reset_events:
             return tensordict_reset
+        base = self.parent.base_env
+        if getattr(base, "last_reset_was_restore", False):
+            # A resumed env hands back its checkpointed episodes: nothing was reset, so no reset
+            # events (an uninterrupted run fired none here either).
+            return tensordict_reset
         mask = None if tensordict is None else tensordict.get("_reset", None)
         n = int(self.parent.batch_size.numel())
         ids = np.arange(n) if mask is None else np.flatnonzero(mask.reshape(n).cpu().numpy())
         if ids.size:
             self.manager.fire("reset", self._ctx(env_ids=ids, tensordict=tensordict_reset))
-            base = self.parent.base_env
             if hasattr(
                 base, "current_tensordict"
             ):  # events may have moved objects: fresh observation
