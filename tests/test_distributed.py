@@ -119,29 +119,39 @@ def test_distributed_without_a_launcher_is_one_clear_error(tmp_path):
     assert "Traceback" not in proc.stderr
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _rank_env(rank: int, port: int) -> dict[str, str]:
+    """The environment torchrun would give rank ``rank`` of two on this machine."""
+    return {
+        **os.environ,
+        "PYTHONPATH": str(REPO / "src"),
+        "OMP_NUM_THREADS": "1",
+        "RANK": str(rank),
+        "LOCAL_RANK": str(rank),
+        "WORLD_SIZE": "2",
+        "MASTER_ADDR": "127.0.0.1",
+        "MASTER_PORT": str(port),
+    }
+
+
 def _two_ranks(
     args: list[str], rank1_args: list[str], cwd, timeout: float = 120
 ) -> list[subprocess.CompletedProcess]:
     """Ranks 0 and 1 as two plain processes (no torchrun, which would kill the second when the
     first fails): each one's exit code is its own, and a rank left blocked shows as a timeout."""
-    import socket
     import time
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = _free_port()
     procs = []
     for rank, extra in ((0, []), (1, rank1_args)):
-        env = {
-            **os.environ,
-            "PYTHONPATH": str(REPO / "src"),
-            "OMP_NUM_THREADS": "1",
-            "RANK": str(rank),
-            "LOCAL_RANK": str(rank),
-            "WORLD_SIZE": "2",
-            "MASTER_ADDR": "127.0.0.1",
-            "MASTER_PORT": str(port),
-        }
+        env = _rank_env(rank, port)
         procs.append(
             subprocess.Popen(
                 [sys.executable, str(REPO / "train.py"), "--distributed", *args, *extra],
@@ -262,7 +272,6 @@ _GRAD_CFG = {"num_epochs": 2, "mini_batch_size": 32, "max_grad_norm": 0.0, "comp
 def test_the_gradient_each_rank_steps_with_is_the_mean_of_the_ranks_gradients(tmp_path):
     """Averaged, not summed: Adam nearly hides a factor of 2 in the parameters, so the gradients
     themselves are compared with the mean of each rank's gradient computed in a single process."""
-    import socket
 
     from torchrl.data import Bounded
 
@@ -270,23 +279,12 @@ def test_the_gradient_each_rank_steps_with_is_the_mean_of_the_ranks_gradients(tm
     from rlexp.config.schema import AlgorithmConfig, PolicyConfig
     from rlexp.policies.actor_critic import make_policy
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = _free_port()
     script = _GRAD_WORKER.replace("{CFG}", repr(_GRAD_CFG))
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", script, str(tmp_path)],
-            env={
-                **os.environ,
-                "PYTHONPATH": str(REPO / "src"),
-                "OMP_NUM_THREADS": "1",
-                "RANK": str(rank),
-                "LOCAL_RANK": str(rank),
-                "WORLD_SIZE": "2",
-                "MASTER_ADDR": "127.0.0.1",
-                "MASTER_PORT": str(port),
-            },
+            env=_rank_env(rank, port),
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
