@@ -19,6 +19,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from rlexp.config.rules import first_line
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
 from rlexp.paths import CONF_DIR, with_user_config_dir  # CONF_DIR: the package's or the checkout's
@@ -172,7 +173,7 @@ def _train_locked(
     except ConfigError:
         raise
     except Exception as exc:
-        raise ConfigError(f"the run cannot be built from this config: {_first_line(exc)}") from None
+        raise ConfigError(f"the run cannot be built from this config: {first_line(exc)}") from None
 
     # -- from here on the run dir is written -------------------------------------------------------
     if dist.is_main:
@@ -248,7 +249,7 @@ def _run(
     except Exception as exc:  # a bug or a library failure mid-run: keep what can be kept
         saved = _save_at_safe_point(trainer)
         trace = _write_traceback(run_dir)
-        reason = f"{type(exc).__name__}: {_first_line(exc)} (traceback in {trace}); {last_good()}"
+        reason = f"{type(exc).__name__}: {first_line(exc)} (traceback in {trace}); {last_good()}"
         if saved:
             reason += " (written at the end of the last complete update)"
         _try_write_status(run_dir, trainer, reason)
@@ -268,7 +269,7 @@ def _save_at_safe_point(trainer: Any) -> bool:
         trainer.save_checkpoint()
         return True
     except Exception as exc:
-        log.error("could not save a checkpoint after the failure: %s", _first_line(exc))
+        log.error("could not save a checkpoint after the failure: %s", first_line(exc))
         return False
 
 
@@ -298,11 +299,6 @@ def _try_write_status(run_dir: Path, trainer: Any, reason: str) -> None:
         write_status(run_dir, "failed", trainer.global_step, trainer.last_eval, reason=reason)
     except OSError as exc:
         log.error("could not write %s: %s", run_dir / "status.json", exc)
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
 
 
 #: Set by ``main`` once the command line passed ``precheck`` (a single run): the job need not build
@@ -349,7 +345,7 @@ def _task(cfg: DictConfig) -> float | None:
         if not multirun or isinstance(exc, StopRequested):
             raise  # StopRequested: SLURM preemption, the launcher requeues the job (launch/slurm.py)
         log.exception("job failed")  # the traceback goes to the job's log; the sweep goes on
-        return _failed(run_dir, f"{type(exc).__name__}: {_first_line(exc)}", EXIT_FAILED, True, exc)
+        return _failed(run_dir, f"{type(exc).__name__}: {first_line(exc)}", EXIT_FAILED, True, exc)
     return metrics.get("eval/episode_return")
 
 

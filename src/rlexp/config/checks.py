@@ -9,15 +9,11 @@ import logging
 import re
 from typing import Any
 
+from rlexp.config.rules import first_line
 from rlexp.config.schema import RootConfig
 from rlexp.config.validate import ConfigError
 
 log = logging.getLogger(__name__)
-
-
-def _msg(exc: BaseException) -> str:
-    text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def check_buildable(config: RootConfig) -> None:
@@ -38,7 +34,7 @@ def check_buildable(config: RootConfig) -> None:
     except ConfigError:
         raise
     except Exception as exc:
-        msg = _msg(exc)
+        msg = first_line(exc)
         bad_kwarg = re.search(r"unexpected keyword argument '([^']+)'", msg)
         if bad_kwarg and bad_kwarg.group(1) in e.kwargs:
             msg = (
@@ -63,7 +59,7 @@ def check_buildable(config: RootConfig) -> None:
         if e.num_eval_envs > 0 and t.eval_every > 0 and t.eval_episodes > 0:
             eval_events.check_env(env, num_envs=e.num_eval_envs)
     except (ValueError, KeyError, TypeError) as exc:
-        raise ConfigError(_msg(exc)) from None
+        raise ConfigError(first_line(exc)) from None
     finally:
         env.close()
     if config.trainer.resume not in ("auto", "never", ""):
@@ -79,9 +75,9 @@ def check_resume_checkpoint(config: RootConfig, policy: Any) -> dict[str, Any]:
     try:
         ckpt = load_checkpoint(config.trainer.resume)
     except (OSError, ValueError) as exc:
-        raise ConfigError(f"{where}: {_msg(exc)}") from None
+        raise ConfigError(f"{where}: {first_line(exc)}") from None
     try:
         check_checkpoint_fits(ckpt, config, policy)
     except ValueError as exc:
-        raise ConfigError(f"{where}: {_msg(exc)}") from None
+        raise ConfigError(f"{where}: {first_line(exc)}") from None
     return ckpt

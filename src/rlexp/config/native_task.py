@@ -12,9 +12,10 @@ import difflib
 import math
 import numbers
 import os
-import re
 from dataclasses import dataclass, field
 from typing import Any
+
+from rlexp.config.rules import MAX_NAME, is_safe_name
 
 
 @dataclass
@@ -76,8 +77,6 @@ class NativeTaskConfig:
 # dotted key in every error; docs/events.md and docs/native_tasks.md list them (``rule.text``).
 
 #: A name that becomes part of a file name: one safe path component (as trainer.exp_name).
-SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._=+-]*")
-MAX_NAME = 128
 
 
 def plain(value: Any) -> Any:
@@ -201,7 +200,7 @@ class FileName(ParamRule):
     def check(self, value: Any, where: str, env: Any = None) -> None:
         if not isinstance(value, str):
             raise TypeError(f"{where}={_show(value)} must be {self.text}")
-        if not SAFE_NAME.fullmatch(value) or ".." in value or len(value) > MAX_NAME:
+        if not is_safe_name(value):
             raise ValueError(f"{where}={value!r} must be {self.text}")
 
 

@@ -82,7 +82,14 @@ FLAG = Rule(lambda v: isinstance(v, bool), "true or false")
 FINITE = Rule(_num, "a finite number")
 
 
-def _safe_name(v: Any) -> bool:
+def first_line(exc: BaseException) -> str:
+    """An exception as one line (a KeyError's message without its quotes)."""
+    text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def is_safe_name(v: Any) -> bool:
+    """One safe file-name component: what every name a run puts in a file name must be."""
     return (
         isinstance(v, str) and bool(SAFE_NAME.fullmatch(v)) and ".." not in v and len(v) <= MAX_NAME
     )
@@ -97,7 +104,7 @@ def _tags(v: Any) -> bool:
 
 
 SAFE = Rule(
-    _safe_name,
+    is_safe_name,
     f"a safe file name: letters, digits and . _ = + - (starting with a letter or digit, no '/' "
     f"or '..', at most {MAX_NAME} characters)",
 )

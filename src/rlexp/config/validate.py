@@ -14,7 +14,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from rlexp.config.rules import ACTIVATIONS, FIELD_RULES, MAX_NAME, SAFE_NAME, available_cpus, get
+from rlexp.config.rules import ACTIVATIONS, FIELD_RULES, MAX_NAME, available_cpus, get, is_safe_name
 from rlexp.config.schema import RootConfig
 
 
@@ -94,7 +94,7 @@ def _check_floats(obj: Any, where: str, typed: bool) -> None:
 
 def check_name(key: str, value: str) -> None:
     """``value`` becomes part of a file name: one safe path component, of a sane length."""
-    if not isinstance(value, str) or not SAFE_NAME.fullmatch(value) or ".." in value:
+    if not isinstance(value, str) or not is_safe_name(value[:MAX_NAME]):
         raise ConfigError(
             f"{key}={value!r} is not a safe file name: use letters, digits and . _ = + - "
             "(starting with a letter or digit, no '/' or '..')"
