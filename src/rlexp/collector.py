@@ -43,6 +43,21 @@ class RolloutCollector(Collector):
         self._fast = supports_fast_rollout(env, policy)
         self._obs: torch.Tensor | None = None  # the observation to act on next (fast path)
 
+    def next_observation(self) -> torch.Tensor | None:
+        """The observation the policy acts on at the next step (after any step events)."""
+        obs = self._obs if self._obs is not None else self._carrier.get("observation", None)
+        return None if obs is None else obs.detach().clone()
+
+    def set_next_observation(self, obs: torch.Tensor) -> None:
+        """Resume: act first on the observation the interrupted run would have acted on."""
+        current = self._carrier.get("observation", None)
+        if current is None or current.shape != obs.shape:
+            return
+        obs = obs.to(current.device)
+        self._carrier.set("observation", obs)
+        if self._fast:
+            self._obs = obs
+
     @torch.no_grad()
     def rollout(self) -> TensorDictBase:
         if not self._fast:

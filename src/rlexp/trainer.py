@@ -398,11 +398,9 @@ class Trainer:
     def _pending_observation(self) -> torch.Tensor | None:
         """The observation the policy acts on at the next step: the env's own one, or what a step
         event (observation noise) made of it, which the env state alone cannot give back."""
-        c = self.collector
-        if c is None:
+        if self.collector is None:
             return self._resume_obs
-        obs = c._obs if c._obs is not None else c._carrier.get("observation", None)
-        return None if obs is None else obs.detach().clone()
+        return self.collector.next_observation()
 
     def _start_collector(self) -> None:
         if self.collector is None:
@@ -417,11 +415,7 @@ class Trainer:
             )
             obs, self._resume_obs = self._resume_obs, None
             if obs is not None:  # resumed: act first on what the interrupted run would have
-                carrier = self.collector._carrier.get("observation", None)
-                if carrier is not None and carrier.shape == obs.shape:
-                    self.collector._carrier.set("observation", obs.to(carrier.device))
-                    if self.collector._fast:
-                        self.collector._obs = obs.to(carrier.device)
+                self.collector.set_next_observation(obs)
             self._rollouts = iter(self.collector)
 
     def _save_best(self) -> None:
