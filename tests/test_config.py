@@ -18,12 +18,15 @@ GROUP_OPTIONS = [
 
 
 def test_every_group_has_options_and_names_its_schema():
+    from rlexp.config.schema import VARIANT_SCHEMAS
+
     for group, (schema_name, _) in GROUP_SCHEMAS.items():
         files = sorted((CONF_DIR / group).glob("*.yaml"))
         assert files, f"conf/{group}/ is empty"
+        names = [schema_name, *(n for n, (g, _) in VARIANT_SCHEMAS.items() if g == group)]
         for f in files:
-            assert f"- {schema_name}" in f.read_text(), (
-                f"{f} does not name {schema_name} in its defaults"
+            assert any(f"- {name}\n" in f.read_text() for name in names), (
+                f"{f} does not name one of {names} in its defaults"
             )
 
 
@@ -31,7 +34,14 @@ def test_every_group_has_options_and_names_its_schema():
     ("group", "option"), GROUP_OPTIONS, ids=[f"{g}={o}" for g, o in GROUP_OPTIONS]
 )
 def test_every_conf_file_composes_to_a_typed_config(group, option):
-    config = to_root_config(compose([f"{group}={option}"]))
+    # An option that needs another choice is composed with it (GRPO's groups are blocks of envs;
+    # PPO needs a critic, which the actor-only policies have not).
+    needs = {
+        "algorithm=grpo": ["env.num_envs=4"],
+        "policy=actor_only": ["algorithm=grpo", "env.num_envs=4"],
+        "policy=actor_only_256": ["algorithm=grpo", "env.num_envs=4"],
+    }
+    config = to_root_config(compose([f"{group}={option}", *needs.get(f"{group}={option}", [])]))
     assert isinstance(config, RootConfig)
 
 

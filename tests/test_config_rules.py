@@ -17,10 +17,23 @@ from rlexp.config.validate import ConfigError, to_root_config
 BUILT_SECTIONS = ("env.kwargs", "env.native", "events.train", "events.eval")
 
 
+def _fields(tp):
+    """The fields of ``tp`` and of every schema a section typed ``tp`` may hold (GRPO's, PPO's)."""
+    from rlexp.config.schema import VARIANTS
+
+    seen = {f.name: f for f in dataclasses.fields(tp)}
+    for variants in VARIANTS.values():
+        for cls in variants.values():
+            if issubclass(cls, tp) and cls is not tp:
+                seen.update({f.name: (f, cls) for f in dataclasses.fields(cls)})
+    for f in seen.values():
+        yield (f if isinstance(f, tuple) else (f, tp))
+
+
 def _leaves(tp, prefix=""):
-    for f in dataclasses.fields(tp):
+    for f, owner in _fields(tp):
         key = f"{prefix}{f.name}"
-        hint = typing.get_type_hints(tp)[f.name]
+        hint = typing.get_type_hints(owner)[f.name]
         inner = [a for a in typing.get_args(hint) if a is not type(None)] or [hint]
         if key not in BUILT_SECTIONS and dataclasses.is_dataclass(inner[0]):
             yield from _leaves(inner[0], key + ".")

@@ -644,7 +644,7 @@ BROKEN = [
         "policy-actor-only",
         "train",
         ("set", "policy.name", "actor_only"),
-        "not supported in this version",
+        "algorithm.name='ppo' needs a critic, but policy.name='actor_only' has none",
     ),
     (
         "policy-unknown",
@@ -674,7 +674,7 @@ BROKEN = [
         "algorithm-grpo",
         "train",
         ("set", "algorithm.name", "grpo"),
-        "algorithm.name='grpo' is not supported in this version",
+        "unknown key 'algorithm.cfg.vf_coef'",  # GRPO has no critic: PPO's vf_coef is not its key
     ),
     (
         "algorithm-unknown",

@@ -50,11 +50,10 @@ RECORD_VIDEO_PARAMS = ("name", "resolution", "eye", "target", "up", "intrinsics"
 ACTIVATIONS = ("relu", "elu", "tanh", "gelu", "silu", "swish")
 POLICIES = ("actor_critic", "actor_only")
 ALGORITHMS = ("ppo", "grpo")
-NOT_SUPPORTED = {
-    "actor_only": "policy.name='actor_only' (the actor-only policy of GRPO) is not supported in this "
-    'version of rlexp; use "actor_critic" with algorithm "ppo"',
-    "grpo": "algorithm.name='grpo' is not supported in this version of rlexp; use \"ppo\" "
-    '(with policy "actor_critic")',
+#: The format's policy / algorithm name -> the conf/ group option whose schema it is.
+GROUP_OPTIONS = {
+    "policy": {"actor_critic": "mlp", "actor_only": "actor_only"},
+    "algorithm": {"ppo": "ppo", "grpo": "grpo"},
 }
 NET_TYPES = ("mlp",)
 #: The logger the format's system always had (its charts were TensorBoard); ``use_wandb`` adds W&B.
@@ -93,6 +92,23 @@ PPO_KEYS = {
     "vf_coef": ("critic_coeff", 0.5),
     "max_grad_norm": ("max_grad_norm", 0.5),
 }
+#: GRPO keyword of the format -> GRPOConfig field (None: accepted, unused), and the format's default.
+GRPO_KEYS = {
+    "learning_rate": ("lr", 3e-4),
+    "n_epochs": ("num_epochs", 10),
+    "batch_size": ("mini_batch_size", 64),
+    "gamma": ("gamma", 0.99),
+    "gae_lambda": (None, 0.95),
+    "clip_coef": ("clip_epsilon", 0.2),
+    "ent_coef": ("entropy_coeff", 0.0),
+    "kl_coef": ("kl_coeff", 0.02),
+    "group_size": ("group_size", 4),
+    "eps": ("epsilon", 1e-8),
+    "reset_every_rollout": ("reset_every_rollout", True),
+    "truncate_at_first_done": ("truncate_at_first_done", True),
+    "max_grad_norm": ("max_grad_norm", 0.5),
+}
+ALGORITHM_FORMAT_KEYS = {"ppo": PPO_KEYS, "grpo": GRPO_KEYS}
 GYM_KEYS = (
     "id", "max_episodes", "max_episode_steps", "num_envs", "env", "robot", "sensor", "light", "background",
     "rigid_object", "rigid_object_group", "articulation",
@@ -132,6 +148,7 @@ class JsonExperiment:
     gym_path: Path
     env_group: str  # the conf/env group the task maps to (push_cube), or "" for none
     env: dict[str, Any]  # the whole env group node
+    groups: dict[str, str]  # policy / algorithm group options the file chooses (grpo, actor_only)
     root: dict[str, Any]  # every other key, in RootConfig's shape (seed, trainer, policy, ...)
     logger: dict[str, Any]  # the logger group node: which sinks are on (LOGGER_SWITCHES)
     notes: list[str] = field(default_factory=list)  # lines each run logs once
@@ -407,10 +424,21 @@ def _dataclass_of(tp: Any) -> type | None:
 def flatten(node: dict[str, Any], cls: type, prefix: str = "") -> dict[str, Any]:
     """Dotted leaves of a RootConfig-shaped dict: nested schema dataclasses are opened, every other
     field (numbers, lists, the term dicts) is one leaf, compared and replaced whole."""
+    from rlexp.config.schema import VARIANTS
+
     hints = typing.get_type_hints(cls)
     out: dict[str, Any] = {}
     for key, value in node.items():
         sub = _dataclass_of(hints.get(key))
+        if sub is not None and not prefix and key in VARIANTS:  # the schema its name names
+            variants = VARIANTS[key]
+            if isinstance(value, dict) and value.get("name") in variants:
+                sub = variants[value["name"]]
+            else:  # a partial section (the rlexp section's): any variant's keys
+                union = {
+                    n: t for v in variants.values() for n, t in typing.get_type_hints(v).items()
+                }
+                sub = dataclasses.make_dataclass(sub.__name__, list(union.items()))
         if sub is not None and isinstance(value, dict):
             out.update(flatten(value, sub, f"{prefix}{key}."))
         else:
@@ -551,6 +579,7 @@ class _Mapped:
     not_applicable: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     action_dim: int | None = None
+    groups: dict[str, str] = field(default_factory=dict)  # policy / algorithm group options
 
 
 def _convert(
@@ -657,16 +686,20 @@ def _named_section(
     (mapped to ``<section>.name``)."""
     obj = tf.obj(tf.get(train, section, "", "object"), section, keys)
     name = tf.get(obj, "name", section, "str", choices=choices)
-    if name in NOT_SUPPORTED:
-        raise tf.error(NOT_SUPPORTED[name])
     m.leaves[f"{section}.name"] = name
+    m.groups[section] = GROUP_OPTIONS[section][name]
     return obj
 
 
 def _map_policy(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
-    """policy.*: actor-critic MLPs."""
+    """policy.*: the actor's (and the actor-critic's critic's) MLP."""
     p = _named_section(tf, train, "policy", POLICY_KEYS, POLICIES, m)
-    for part in ("actor", "critic"):
+    parts = ("actor", "critic") if m.leaves["policy.name"] == "actor_critic" else ("actor",)
+    if "critic" in p and "critic" not in parts:
+        m.notes.append(
+            "warning: policy.critic is not used: policy.name='actor_only' has no critic (ignored)"
+        )
+    for part in parts:
         where = f"policy.{part}"
         net = tf.obj(tf.get(p, part, "policy", "object"), where, NET_KEYS)
         tf.get(net, "type", where, "str", "mlp", choices=NET_TYPES)
@@ -682,10 +715,17 @@ def _map_policy(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
 
 
 def _map_algorithm(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
-    """algorithm.*: PPO's keyword arguments under rlexp's (TorchRL's) names."""
+    """algorithm.*: PPO's or GRPO's keyword arguments under rlexp's (TorchRL's) names."""
     a = _named_section(tf, train, "algorithm", ALGORITHM_KEYS, ALGORITHMS, m)
-    c = tf.obj(tf.get(a, "cfg", "algorithm", "object", {}), "algorithm.cfg", tuple(PPO_KEYS))
+    name = m.leaves["algorithm.name"]
+    format_keys = ALGORITHM_FORMAT_KEYS[name]
+    c = tf.obj(tf.get(a, "cfg", "algorithm", "object", {}), "algorithm.cfg", tuple(format_keys))
     frames, num_envs = m.leaves["trainer.frames_per_batch"], m.leaves["env.num_envs"]
+    if name == "ppo" and m.leaves["policy.name"] != "actor_critic":
+        raise tf.error(
+            f"algorithm.name='ppo' needs a critic, but policy.name={m.leaves['policy.name']!r} has "
+            'none; use policy "actor_critic" (or algorithm "grpo")'
+        )
     ranges: dict[str, tuple[str, float | None, float | None]] = {  # kind, low, high (low None: > 0)
         "learning_rate": ("number", None, None),
         "n_epochs": ("int", 1, None),
@@ -696,6 +736,11 @@ def _map_algorithm(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
         "ent_coef": ("number", -math.inf, None),
         "vf_coef": ("number", 0.0, None),
         "max_grad_norm": ("number", -math.inf, None),
+        "kl_coef": ("number", 0.0, None),
+        "group_size": ("int", 2, None),
+        "eps": ("number", None, None),
+        "reset_every_rollout": ("bool", None, None),
+        "truncate_at_first_done": ("bool", None, None),
     }
     batch = c.get("batch_size")
     if isinstance(batch, int) and not isinstance(batch, bool) and batch > frames:
@@ -703,11 +748,17 @@ def _map_algorithm(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
             f"algorithm.cfg.batch_size={batch} is larger than a rollout: trainer.buffer_size x "
             f"num_envs = {frames // num_envs} x {num_envs} = {frames}"
         )
-    for key, (target, default) in PPO_KEYS.items():
+    for key, (target, default) in format_keys.items():
         kind, low, high = ranges[key]
         positive = low is None and kind == "number"
-        m.leaves[f"algorithm.{target}"] = tf.get(
-            c, key, "algorithm.cfg", kind, default, low, high, positive=positive
+        value = tf.get(c, key, "algorithm.cfg", kind, default, low, high, positive=positive)
+        if target is not None:
+            m.leaves[f"algorithm.{target}"] = value
+    group = m.leaves.get("algorithm.group_size")
+    if group is not None and num_envs % group:
+        raise tf.error(
+            f"algorithm.cfg.group_size={group} must divide trainer.num_envs={num_envs}: groups are "
+            "blocks of consecutive envs"
         )
 
 
@@ -1018,9 +1069,10 @@ def find_task_file(ref: str, train_path: Path, cwd: Path) -> tuple[Path, str]:
     )
 
 
-def _rlexp_section(tf: _File, section: Any) -> dict[str, Any]:
+def _rlexp_section(tf: _File, section: Any, names: dict[str, Any]) -> dict[str, Any]:
     """The ``rlexp`` section (RootConfig keys the format has none for) as dotted leaves, checked
-    against the schema; its strings are data (escaped), as every other value of the file."""
+    against the schema (the policy and algorithm schemas the file's ``name``s choose); its strings
+    are data (escaped), as every other value of the file."""
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
@@ -1028,7 +1080,7 @@ def _rlexp_section(tf: _File, section: Any) -> dict[str, Any]:
 
     section = escape_interpolations(tf.obj(section, "rlexp"))
     try:
-        merged = OmegaConf.merge(OmegaConf.structured(default_root_config()), section)
+        merged = OmegaConf.merge(OmegaConf.structured(default_root_config(**names)), section)
         # resolving turns an escaped string back into the file's string, checked against its field
         OmegaConf.to_container(merged, resolve=True)
     except OmegaConfBaseException as exc:
@@ -1038,14 +1090,15 @@ def _rlexp_section(tf: _File, section: Any) -> dict[str, Any]:
     return flatten(section, RootConfig)
 
 
-def default_root_config() -> RootConfig:
-    """A RootConfig with every group at its schema default."""
+def default_root_config(policy: Any = None, algorithm: Any = None) -> RootConfig:
+    """A RootConfig with every group at its schema default (``policy`` / ``algorithm``: the name of
+    the section's schema, e.g. ``grpo``; actor_critic and ppo when not one of the names)."""
     from rlexp.config import schema
 
     return schema.RootConfig(
         trainer=schema.TrainerConfig(),
-        policy=schema.PolicyConfig(),
-        algorithm=schema.AlgorithmConfig(),
+        policy=schema.VARIANTS["policy"].get(policy, schema.PolicyConfig)(),
+        algorithm=schema.VARIANTS["algorithm"].get(algorithm, schema.AlgorithmConfig)(),
         env=schema.EnvConfig(),
         events=schema.EventsConfig(),
         logger=schema.LoggerConfig(),
@@ -1063,7 +1116,12 @@ def load_json_experiment(path: str | Path, cwd: str | Path | None = None) -> Jso
     t = tf.obj(tf.get(train, "trainer", "", "object"), "trainer", TRAINER_KEYS)
     gym_path, how = find_task_file(tf.get(t, "gym_config", "trainer", "str"), train_path, cwd)
     gym = read_json(gym_path, str(gym_path))
-    rlexp = _rlexp_section(tf, train["rlexp"]) if "rlexp" in train else {}
+    names = {
+        section: train[section].get("name")
+        for section in ("policy", "algorithm")
+        if isinstance(train.get(section), dict)
+    }
+    rlexp = _rlexp_section(tf, train["rlexp"], names) if "rlexp" in train else {}
     mapped = _convert(
         train,
         gym,
@@ -1097,6 +1155,7 @@ def load_json_experiment(path: str | Path, cwd: str | Path | None = None) -> Jso
         train_path=train_path,
         gym_path=gym_path,
         env_group=mapped.env_group,
+        groups=dict(mapped.groups),
         env=nest({k[len("env.") :]: v for k, v in env_leaves.items()}),
         root=nest(root_leaves),
         logger={"defaults": [FORMAT_LOGGER, "_self_"], **nest(switches)},
@@ -1156,14 +1215,20 @@ def _format_dicts(config: RootConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     }
     policy = {"name": p.name}
     for part in ("actor", "critic"):
-        net = getattr(p, part)
+        net = getattr(p, part, None)
+        if net is None:  # actor_only: no critic
+            continue
         policy[part] = {
             "type": "mlp",
             "network_cfg": {"hidden_sizes": list(net.hidden_sizes), "activation": net.activation},
         }
     algorithm = {
         "name": a.name,
-        "cfg": {key: getattr(a, target) for key, (target, _) in PPO_KEYS.items()},
+        "cfg": {
+            key: getattr(a, target)
+            for key, (target, _) in ALGORITHM_FORMAT_KEYS[a.name].items()
+            if target is not None
+        },
     }
     train = {"trainer": trainer, "policy": policy, "algorithm": algorithm}
 

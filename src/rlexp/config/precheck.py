@@ -43,6 +43,10 @@ def check_key(key: str, add: bool = False) -> None:
         tp = _unwrap(tp)
         if dataclasses.is_dataclass(tp):
             hints = typing.get_type_hints(tp)
+            for variant in _variants(
+                tp
+            ):  # algorithm.kl_coeff: a key of one of the sections' schemas
+                hints = {**typing.get_type_hints(variant), **hints}
             if part not in hints:
                 section = ".".join(parts[:i]) or "the root"
                 close = difflib.get_close_matches(part, list(hints), n=1)
@@ -58,6 +62,18 @@ def check_key(key: str, add: bool = False) -> None:
             return
         else:
             raise ConfigError(f"{'.'.join(parts[:i])} is a value, not a section: cannot set {key}")
+
+
+def _variants(tp: Any) -> list[type]:
+    """The schemas a section typed ``tp`` may hold (GRPOConfig for BaseAlgorithmConfig)."""
+    from rlexp.config.schema import VARIANTS
+
+    return [
+        cls
+        for group in VARIANTS.values()
+        for cls in group.values()
+        if cls is not tp and issubclass(cls, tp)
+    ]
 
 
 def _check_option(loader: Any, group: str, option: str) -> None:
@@ -158,7 +174,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
             return None
         config = to_root_config(cfg)
     except (HydraException, OmegaConfBaseException) as exc:
-        raise ConfigError(_first_line(exc)) from None
+        raise ConfigError(_variant_key_message(exc) or _first_line(exc)) from None
     finally:
         GlobalHydra.instance().clear()
     from rlexp.config.checks import check_buildable
@@ -185,6 +201,35 @@ def _run_dir(cfg: Any) -> Path | None:
         return Path(str(OmegaConf.select(cfg, "hydra.run.dir", throw_on_resolution_failure=True)))
     except Exception:
         return None
+
+
+def _variant_key_message(exc: BaseException) -> str | None:
+    """``algorithm.lmbda=0.9`` with ``algorithm=grpo``: say which option has the key, not that the
+    class ``GRPOConfig`` lacks it."""
+    import re
+
+    from rlexp.config.schema import VARIANTS
+    from rlexp.config.validate import GROUP_OF_VARIANT
+
+    while exc is not None:
+        found = re.search(r"Key '(\w+)' not in '(\w+)'", str(exc))
+        for section, variants in VARIANTS.items():
+            for name, cls in variants.items():
+                if found and found.group(2) == cls.__name__:
+                    key = found.group(1)
+                    have = [
+                        f"{section}={GROUP_OF_VARIANT[section][n]}"
+                        for n, c in variants.items()
+                        if key in {f.name for f in dataclasses.fields(c)}
+                    ]
+                    fields = sorted(f.name for f in dataclasses.fields(cls))
+                    return (
+                        f"{section}.{key} is not a key of {section}={GROUP_OF_VARIANT[section][name]} "
+                        f"(it has {fields})"
+                        + (f"; {section}.{key} belongs to {' and '.join(have)}" if have else "")
+                    )
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _first_line(exc: BaseException) -> str:

@@ -139,25 +139,40 @@ FIELD_RULES: dict[str, Rule] = {
         "in [1, the CPUs this process may use] (more threads than CPUs only slow it down)",
     ),
     # policy
-    "policy.name": one_of("actor_critic"),
+    "policy.name": one_of("actor_critic", "actor_only"),
     "policy.actor.hidden_sizes": Rule(_widths, "a list of widths in [1, 65536] ([]: linear)"),
     "policy.actor.activation": one_of(*ACTIVATIONS),
-    "policy.critic.hidden_sizes": Rule(_widths, "a list of widths in [1, 65536] ([]: linear)"),
-    "policy.critic.activation": one_of(*ACTIVATIONS),
+    "policy.critic.hidden_sizes": Rule(
+        _widths, "a list of widths in [1, 65536] ([]: linear); actor_critic only"
+    ),
+    "policy.critic.activation": Rule(
+        lambda v: v in ACTIVATIONS, f"one of {list(ACTIVATIONS)}; actor_critic only"
+    ),
     "policy.init_log_std": Rule(_num, "a finite number in [min_log_std, max_log_std]"),
     "policy.min_log_std": between(-20.0, 20.0, ", below max_log_std"),
     "policy.max_log_std": between(-20.0, 20.0),
     "policy.ortho_init": FLAG,
     # algorithm
-    "algorithm.name": one_of("ppo"),
+    "algorithm.name": Rule(
+        lambda v: v in ("ppo", "grpo"),
+        "one of ['ppo', 'grpo'] (chosen with algorithm=ppo / algorithm=grpo; ppo needs "
+        "policy.name=actor_critic)",
+    ),
     "algorithm.gamma": between(0.0, 1.0),
-    "algorithm.lmbda": between(0.0, 1.0),
+    "algorithm.lmbda": between(0.0, 1.0, "; ppo only"),
     "algorithm.clip_epsilon": above(0.0),
     "algorithm.entropy_coeff": at_least(0.0),
-    "algorithm.critic_coeff": at_least(0.0),
-    "algorithm.loss_critic_type": one_of("l1", "l2", "smooth_l1"),
-    "algorithm.normalize_advantage": FLAG,
-    "algorithm.clip_value": optional(above(0.0), "no value clipping"),
+    "algorithm.critic_coeff": at_least(0.0, "; ppo only"),
+    "algorithm.loss_critic_type": Rule(
+        lambda v: v in ("l1", "l2", "smooth_l1"), "one of ['l1', 'l2', 'smooth_l1']; ppo only"
+    ),
+    "algorithm.normalize_advantage": Rule(FLAG.check, "true or false; ppo only"),
+    "algorithm.clip_value": optional(above(0.0), "no value clipping; ppo only"),
+    "algorithm.kl_coeff": at_least(0.0, " (0: no reference policy); grpo only"),
+    "algorithm.group_size": between(2, MAX_ENVS, ", a divisor of env.num_envs; grpo only"),
+    "algorithm.epsilon": above(0.0, "; grpo only"),
+    "algorithm.reset_every_rollout": Rule(FLAG.check, "true or false; grpo only"),
+    "algorithm.truncate_at_first_done": Rule(FLAG.check, "true or false; grpo only"),
     "algorithm.lr": above(0.0),
     "algorithm.adam_eps": above(0.0),
     "algorithm.anneal_lr": FLAG,
@@ -211,10 +226,16 @@ FIELD_RULES: dict[str, Rule] = {
 }
 
 
-def get(config: Any, key: str) -> Any:
-    """The value at dotted ``key`` of a config dataclass."""
+_ABSENT = object()
+
+
+def get(config: Any, key: str, default: Any = _ABSENT) -> Any:
+    """The value at dotted ``key`` of a config dataclass (``default`` where a section does not have
+    the key: ``algorithm.lmbda`` of GRPO's section; without a default that is an AttributeError)."""
     value = config
     for part in key.split("."):
+        if default is not _ABSENT and not hasattr(value, part):
+            return default
         value = getattr(value, part)
     return value
 

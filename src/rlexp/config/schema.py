@@ -59,12 +59,12 @@ class MLPConfig:
 
 
 @dataclass
-class PolicyConfig:
-    """Actor-critic with a Gaussian actor whose log-std is a learned, state-independent vector."""
+class BasePolicyConfig:
+    """A Gaussian actor: MLP for the action mean, a learned state-independent log-std (clamped),
+    no squashing. The policy group's options are the subclasses (``policy.name`` says which)."""
 
-    name: str = "actor_critic"  # actor_critic (separate actor and critic networks)
+    name: str = MISSING  # actor_critic | actor_only
     actor: MLPConfig = field(default_factory=MLPConfig)
-    critic: MLPConfig = field(default_factory=MLPConfig)
     init_log_std: float = 0.0  # initial log standard deviation of the actions
     min_log_std: float = -5.0  # log-std is clamped to [min_log_std, max_log_std]
     max_log_std: float = 2.0
@@ -74,20 +74,32 @@ class PolicyConfig:
 
 
 @dataclass
-class AlgorithmConfig:
-    """PPO: TorchRL's ClipPPOLoss + GAE, Adam, epochs x minibatches."""
+class PolicyConfig(BasePolicyConfig):
+    """Actor-critic (PPO): the Gaussian actor and a separate MLP critic."""
 
-    name: str = "ppo"
-    # GAE (torchrl.objectives.value.GAE)
+    name: str = "actor_critic"
+    critic: MLPConfig = field(default_factory=MLPConfig)
+
+
+ActorCriticConfig = PolicyConfig
+
+
+@dataclass
+class ActorOnlyConfig(BasePolicyConfig):
+    """The Gaussian actor alone, no critic (GRPO)."""
+
+    name: str = "actor_only"
+
+
+@dataclass
+class BaseAlgorithmConfig:
+    """What every algorithm has: discount, clipped ratio, entropy bonus, Adam, epochs x minibatches.
+    The algorithm group's options are the subclasses (``algorithm.name`` says which)."""
+
+    name: str = MISSING  # ppo | grpo
     gamma: float = 0.99  # discount
-    lmbda: float = 0.95  # GAE lambda
-    # ClipPPOLoss (torchrl.objectives.ClipPPOLoss)
     clip_epsilon: float = 0.2  # ratio clip
     entropy_coeff: float = 0.0  # entropy bonus weight
-    critic_coeff: float = 0.5  # value loss weight
-    loss_critic_type: str = "l2"  # l1 | l2 | smooth_l1
-    normalize_advantage: bool = True  # normalise advantages per minibatch
-    clip_value: float | None = None  # value clipping range (None: no value clipping)
     # Optimisation
     lr: float = 3e-4  # Adam learning rate
     adam_eps: float = 1e-5  # Adam epsilon
@@ -98,6 +110,36 @@ class AlgorithmConfig:
     # torch.compile of the loss (forward and backward): auto | true | false. auto compiles when the
     # run is long enough to win back the compile time (docs/performance.md)
     compile: str = "auto"
+
+
+@dataclass
+class AlgorithmConfig(BaseAlgorithmConfig):
+    """PPO: TorchRL's ClipPPOLoss + GAE, Adam, epochs x minibatches."""
+
+    name: str = "ppo"
+    # GAE (torchrl.objectives.value.GAE)
+    lmbda: float = 0.95  # GAE lambda
+    # ClipPPOLoss (torchrl.objectives.ClipPPOLoss)
+    critic_coeff: float = 0.5  # value loss weight
+    loss_critic_type: str = "l2"  # l1 | l2 | smooth_l1
+    normalize_advantage: bool = True  # normalise advantages per minibatch
+    clip_value: float | None = None  # value clipping range (None: no value clipping)
+
+
+PPOConfig = AlgorithmConfig
+
+
+@dataclass
+class GRPOConfig(BaseAlgorithmConfig):
+    """GRPO: group-relative advantages of Monte-Carlo returns (no critic), the clipped surrogate,
+    and an optional KL penalty to a frozen copy of the initial policy (docs/grpo.md)."""
+
+    name: str = "grpo"
+    kl_coeff: float = 0.02  # weight of the k3 KL estimate to the initial policy (0: no reference)
+    group_size: int = 4  # envs per group: blocks of consecutive env indices; divides env.num_envs
+    epsilon: float = 1e-8  # added to the group's return std before dividing
+    reset_every_rollout: bool = True  # reset every env before each rollout
+    truncate_at_first_done: bool = True  # mask each env's steps after its first done in a rollout
 
 
 @dataclass
@@ -169,8 +211,8 @@ class RootConfig:
 
     seed: int = 0  # seeds python, numpy, torch and the envs
     trainer: TrainerConfig = MISSING
-    policy: PolicyConfig = MISSING
-    algorithm: AlgorithmConfig = MISSING
+    policy: BasePolicyConfig = MISSING
+    algorithm: BaseAlgorithmConfig = MISSING
     env: EnvConfig = MISSING
     events: EventsConfig = MISSING
     logger: LoggerConfig = MISSING
@@ -187,6 +229,23 @@ GROUP_SCHEMAS: dict[str, tuple[str, type]] = {
 }
 
 
+#: group -> {``name`` value: its schema class}: a section's schema follows its ``name``.
+VARIANTS: dict[str, dict[str, type]] = {
+    "policy": {"actor_critic": PolicyConfig, "actor_only": ActorOnlyConfig},
+    "algorithm": {"ppo": AlgorithmConfig, "grpo": GRPOConfig},
+}
+#: ConfigStore names of the variants that are not their group's first schema (GROUP_SCHEMAS).
+VARIANT_SCHEMAS: dict[str, tuple[str, type]] = {
+    "actor_only_schema": ("policy", ActorOnlyConfig),
+    "grpo_schema": ("algorithm", GRPOConfig),
+}
+
+
+def variant_of(section: str, name: object) -> type | None:
+    """The schema class of ``section`` (policy / algorithm) whose ``name`` is ``name``."""
+    return VARIANTS.get(section, {}).get(name)  # type: ignore[call-overload]
+
+
 def register_configs() -> None:
     """Register the root and group schemas in Hydra's ConfigStore (idempotent)."""
     from hydra.core.config_store import ConfigStore
@@ -194,4 +253,6 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(name="rlexp_schema", node=RootConfig)
     for group, (name, node) in GROUP_SCHEMAS.items():
+        cs.store(group=group, name=name, node=node)
+    for name, (group, node) in VARIANT_SCHEMAS.items():
         cs.store(group=group, name=name, node=node)

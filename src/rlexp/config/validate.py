@@ -14,8 +14,22 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from rlexp.config.rules import ACTIVATIONS, FIELD_RULES, MAX_NAME, available_cpus, get, is_safe_name
-from rlexp.config.schema import RootConfig
+from rlexp.config.rules import (
+    ACTIVATIONS,
+    FIELD_RULES,
+    MAX_NAME,
+    available_cpus,
+    get,
+    is_safe_name,
+)
+from rlexp.config.schema import VARIANTS, GRPOConfig, RootConfig
+
+_ABSENT = object()
+#: section -> variant name -> the group option that selects it.
+GROUP_OF_VARIANT = {
+    "policy": {"actor_critic": "mlp", "actor_only": "actor_only"},
+    "algorithm": {"ppo": "ppo", "grpo": "grpo"},
+}
 
 
 class ConfigError(ValueError):
@@ -25,13 +39,25 @@ class ConfigError(ValueError):
 def to_root_config(cfg: DictConfig | dict[str, Any]) -> RootConfig:
     """Typed, validated config from Hydra's composed config (or a plain dict, e.g. a checkpoint's)."""
     if not isinstance(cfg, DictConfig):  # a plain dict (a checkpoint's): its strings are data
-        cfg = OmegaConf.merge(OmegaConf.structured(RootConfig), escape_interpolations(cfg))
+        cfg = OmegaConf.merge(structured_root(cfg), escape_interpolations(cfg))
     check_known_keys(cfg)
     config = OmegaConf.to_object(cfg)
     if not isinstance(config, RootConfig):
         raise ConfigError("the composed config does not use the rlexp_schema root schema")
     validate(config)
     return config
+
+
+def structured_root(plain: dict[str, Any]) -> DictConfig:
+    """The root schema for the plain dict ``plain``, its policy and algorithm sections typed by the
+    schema their ``name`` names (``grpo`` -> GRPOConfig), so that their own keys merge."""
+    root = OmegaConf.structured(RootConfig)
+    for section, variants in VARIANTS.items():
+        node = plain.get(section) if isinstance(plain, dict) else None
+        name = node.get("name") if isinstance(node, dict) else None
+        if name in variants:
+            root[section] = OmegaConf.structured(variants[name])
+    return root
 
 
 def to_dict(config: RootConfig) -> dict[str, Any]:
@@ -109,6 +135,8 @@ def validate(config: RootConfig) -> None:
     _check_floats(config, "", True)
     check_name("trainer.exp_name", t.exp_name)
     for part in ("actor", "critic"):
+        if not hasattr(p, part):
+            continue
         act = getattr(p, part).activation
         if act not in ACTIVATIONS:
             close = difflib.get_close_matches(str(act), ACTIVATIONS, n=1)
@@ -116,8 +144,11 @@ def validate(config: RootConfig) -> None:
                 f"policy.{part}.activation={act!r}; choose from {list(ACTIVATIONS)}"
                 + (f"; did you mean {close[0]!r}?" if close else "")
             )
+    _check_variants(config)
     for key, rule in FIELD_RULES.items():
-        value = get(config, key)
+        value = get(config, key, _ABSENT)
+        if value is _ABSENT:  # a key of another variant (algorithm.lmbda under GRPO)
+            continue
         if not rule.check(value):
             if key == "trainer.torch_threads":
                 raise ConfigError(
@@ -136,6 +167,17 @@ def validate(config: RootConfig) -> None:
         raise ConfigError(
             f"algorithm.mini_batch_size={a.mini_batch_size} must be in "
             f"[1, trainer.frames_per_batch={t.frames_per_batch}]"
+        )
+    if isinstance(a, GRPOConfig) and e.num_envs % a.group_size:
+        raise ConfigError(
+            f"algorithm.group_size={a.group_size} must divide env.num_envs={e.num_envs}: groups "
+            "are blocks of consecutive envs (envs 0..group_size-1 are group 0); set env.num_envs "
+            f"to a multiple of {a.group_size} (e.g. env.num_envs={a.group_size * 4})"
+        )
+    if a.name == "ppo" and getattr(p, "critic", None) is None:
+        raise ConfigError(
+            f"algorithm=ppo needs a critic, but policy.name={p.name!r} has none; use "
+            "policy=mlp (actor_critic), or algorithm=grpo"
         )
     if not p.min_log_std < p.max_log_std:
         raise ConfigError(
@@ -159,6 +201,24 @@ def validate(config: RootConfig) -> None:
         )
     _check_render_mode(e.kwargs)
     _check_events(config)
+
+
+def _check_variants(config: RootConfig) -> None:
+    """``policy.name`` / ``algorithm.name`` must be the name of the section's schema: the schema is
+    chosen with the group (``algorithm=grpo``), and setting only the name cannot change it."""
+    for section in VARIANTS:
+        node = getattr(config, section)
+        name = node.name
+        expected = next((n for n, cls in VARIANTS[section].items() if type(node) is cls), None)
+        if name == expected:
+            continue
+        options = GROUP_OF_VARIANT[section]
+        if name in VARIANTS[section]:
+            raise ConfigError(
+                f"{section}.name={name!r}, but the {section} section was composed for {expected!r}: "
+                f"choose {section}={options[name]} instead of setting the name"
+            )
+        raise ConfigError(f"{section}.name={name!r} must be one of {sorted(VARIANTS[section])}")
 
 
 def _check_render_mode(kwargs: dict[str, Any]) -> None:

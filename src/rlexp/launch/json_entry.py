@@ -118,7 +118,12 @@ def register_json_experiment(exp: JsonExperiment) -> None:
     # The notes quote the files (paths, names): data for OmegaConf, as the files' values are.
     notes = escape_interpolations(exp.notes)
     node = {
-        "defaults": [{"override /env": ENV_NODE}, {"override /logger": LOGGER_NODE}, "_self_"],
+        "defaults": [
+            {"override /env": ENV_NODE},
+            {"override /logger": LOGGER_NODE},
+            *({f"override /{group}": option} for group, option in exp.groups.items()),
+            "_self_",
+        ],
         **exp.root,
         "hydra": {
             "callbacks": {"rlexp_json_notes": {"_target_": f"{__name__}.JsonNotes", "notes": notes}}

@@ -1,4 +1,5 @@
-"""Actor-critic: MLP actor with a state-independent Gaussian log-std, MLP critic, shared obs normaliser.
+"""Gaussian policies: MLP actor with a state-independent log-std and an observation normaliser;
+``ActorCritic`` (PPO) adds an MLP critic, ``ActorOnly`` (GRPO) has none.
 
 The TorchRL modules (``ProbabilisticActor`` over an ``IndependentNormal``, ``ValueOperator``) are what
 the loss and evaluation use. Collection uses ``SamplingPolicy``: the same parameters, but it samples
@@ -19,7 +20,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
-from rlexp.config.schema import MLPConfig, PolicyConfig
+from rlexp.config.schema import BasePolicyConfig, MLPConfig
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
@@ -117,7 +118,11 @@ class GaussianActorNet(nn.Module):
     """obs -> (loc, scale) with a learned state-independent log-std, clamped to its bounds."""
 
     def __init__(
-        self, normalizer: ObservationNormalizer, mlp: nn.Sequential, act_dim: int, cfg: PolicyConfig
+        self,
+        normalizer: ObservationNormalizer,
+        mlp: nn.Sequential,
+        act_dim: int,
+        cfg: BasePolicyConfig,
     ):
         super().__init__()
         self.normalizer = normalizer
@@ -228,12 +233,17 @@ _FUNCTIONAL: dict[type[nn.Module], Callable[[torch.Tensor], torch.Tensor]] = {
 }
 
 
-class ActorCritic(nn.Module):
-    """Holds the normaliser, actor and critic; its ``state_dict`` is the policy part of a checkpoint."""
+class GaussianPolicy(nn.Module):
+    """The normaliser, the Gaussian actor and, when the config has one, the critic; its
+    ``state_dict`` is the policy part of a checkpoint.
+
+    ``actor`` is TorchRL's ``ProbabilisticActor`` (``IndependentNormal``: log-prob and entropy summed
+    over the action dimensions, no squashing); ``sampling_policy`` the fast collection policy;
+    ``critic`` TorchRL's ``ValueOperator`` (None without a critic)."""
 
     def __init__(
         self,
-        cfg: PolicyConfig,
+        cfg: BasePolicyConfig,
         obs_dim: int,
         act_dim: int,
         action_spec: TensorSpec,
@@ -241,16 +251,17 @@ class ActorCritic(nn.Module):
         clip_observations: float = 10.0,
     ) -> None:
         super().__init__()
-        if cfg.name != "actor_critic":
-            raise ValueError(f"policy.name={cfg.name!r}; rlexp's PPO supports 'actor_critic'")
+        critic_cfg: MLPConfig | None = getattr(cfg, "critic", None)
         self.normalizer = ObservationNormalizer(obs_dim, clip_observations, normalize_observations)
         actor_mlp = make_mlp(obs_dim, act_dim, cfg.actor, "policy.actor")
-        critic_mlp = make_mlp(obs_dim, 1, cfg.critic, "policy.critic")
+        critic_mlp = None
+        if critic_cfg is not None:
+            critic_mlp = make_mlp(obs_dim, 1, critic_cfg, "policy.critic")
         if cfg.ortho_init:
             _ortho_init(actor_mlp, 0.01)
-            _ortho_init(critic_mlp, 1.0)
+            if critic_mlp is not None:
+                _ortho_init(critic_mlp, 1.0)
         self.actor_net = GaussianActorNet(self.normalizer, actor_mlp, act_dim, cfg)
-        self.critic_net = CriticNet(self.normalizer, critic_mlp)
         self.actor = ProbabilisticActor(
             TensorDictModule(self.actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
             in_keys=["loc", "scale"],
@@ -260,22 +271,43 @@ class ActorCritic(nn.Module):
             spec=action_spec,
             default_interaction_type=ExplorationType.RANDOM,
         )
-        self.critic = ValueOperator(self.critic_net, in_keys=["observation"])
+        self.critic_net: CriticNet | None = None
+        self.critic: ValueOperator | None = None
+        if critic_mlp is not None:
+            self.critic_net = CriticNet(self.normalizer, critic_mlp)
+            self.critic = ValueOperator(self.critic_net, in_keys=["observation"])
 
     def sampling_policy(self, deterministic: bool = False) -> SamplingPolicy:
         """The fast collection policy (``deterministic``: the mean action, for evaluation)."""
         return SamplingPolicy(self.actor_net, deterministic)
 
 
+class ActorCritic(GaussianPolicy):
+    """The Gaussian actor and an MLP critic sharing the normaliser (``policy.name=actor_critic``)."""
+
+    critic_net: CriticNet
+    critic: ValueOperator
+
+
+class ActorOnly(GaussianPolicy):
+    """The Gaussian actor alone (``policy.name=actor_only``, GRPO): no critic."""
+
+
+#: ``policy.name`` -> the policy class.
+POLICIES: dict[str, type[GaussianPolicy]] = {"actor_critic": ActorCritic, "actor_only": ActorOnly}
+
+
 def make_policy(
-    cfg: PolicyConfig,
+    cfg: BasePolicyConfig,
     obs_dim: int,
     act_dim: int,
     action_spec: TensorSpec,
     normalize_observations: bool = True,
     clip_observations: float = 10.0,
-) -> ActorCritic:
-    """Build the actor-critic for an env with ``obs_dim`` observations and ``act_dim`` actions."""
-    return ActorCritic(
+) -> GaussianPolicy:
+    """Build the configured policy for an env with ``obs_dim`` observations and ``act_dim`` actions."""
+    if cfg.name not in POLICIES:
+        raise ValueError(f"policy.name={cfg.name!r}; choose from {sorted(POLICIES)}")
+    return POLICIES[cfg.name](
         cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations
     )
