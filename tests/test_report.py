@@ -255,3 +255,50 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path, what):
     assert proc.stderr.startswith("rlexp report: ")
     if what in ("missing", "a file", "no jobs"):
         assert str(target) in proc.stderr
+
+
+def grid_jobs(sweep: Path, task: list[str], curve_of) -> None:
+    """A finished job dir for each job of the basic sweeper's grid over ``task`` (the overrides in
+    the order Hydra writes them), and its multirun.yaml; ``curve_of(overrides)`` gives its rows."""
+    from rlexp.report import plan_from_config
+
+    multirun_yaml(sweep, task)
+    plan = plan_from_config(OmegaConf.load(sweep / "multirun.yaml"))
+    for expected in plan.jobs:
+        overrides = list(expected.overrides)
+        job(sweep, expected.num, overrides, finished(), rows(*curve_of(overrides)))
+
+
+def test_a_sweep_over_config_group_choices_has_one_row_per_choice_with_seeds_pooled(tmp_path):
+    from rlexp.report import find_jobs, report, summarize
+
+    def curve(overrides: list[str]) -> list[dict]:
+        seed = int(dict(o.split("=") for o in overrides)["seed"])
+        final = (100.0 if "algorithm=ppo" in overrides else 50.0) + seed
+        return [{"step": 512, "eval/episode_return": final}]
+
+    grid_jobs(tmp_path, ["algorithm=ppo,grpo", "policy=mlp", "seed=0,1,2"], curve)
+    assert (tmp_path / "5/.hydra/overrides.yaml").read_text().split() == [
+        *("-", "algorithm=grpo", "-", "policy=mlp", "-", "seed=2")
+    ]
+    stats = {s.label: s for s in summarize(find_jobs(tmp_path))}
+    assert sorted(stats) == ["algorithm=grpo", "algorithm=ppo"]
+    assert [j.seed for j in stats["algorithm=ppo"].jobs] == ["0", "1", "2"]
+    assert list(stats["algorithm=grpo"].finals) == [50.0, 51.0, 52.0]
+    md = report(tmp_path, plot=False)
+    assert "6 jobs expected" in md and "6 finished" in md and "Shared overrides: `policy=mlp`" in md
+    assert "| `algorithm=ppo` | 3 | 101.00 ± 1.00 |" in md
+    assert "| `algorithm=grpo` | 3 | 51.00 ± 1.00 |" in md
+
+    # Two group choices varied at once: one row per (algorithm, policy), seeds still pooled.
+    other = tmp_path / "two_groups"
+    other.mkdir()
+    grid_jobs(other, ["algorithm=ppo,grpo", "policy=mlp,actor_only", "seed=0,1"], curve)
+    stats = {s.label: s for s in summarize(find_jobs(other))}
+    assert sorted(stats) == [
+        "algorithm=grpo policy=actor_only",
+        "algorithm=grpo policy=mlp",
+        "algorithm=ppo policy=actor_only",
+        "algorithm=ppo policy=mlp",
+    ]
+    assert all([j.seed for j in s.jobs] == ["0", "1"] for s in stats.values())
