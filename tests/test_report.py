@@ -257,6 +257,94 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path, what):
         assert str(target) in proc.stderr
 
 
+# Steps to threshold: the pure function on hand-made (step, value) sequences, then the report.
+
+NAN = float("nan")
+
+
+@pytest.mark.parametrize(
+    "points, first, three",
+    [
+        pytest.param([(100, 500.0), (200, 480.0), (300, 490.0)], 100, 100, id="at-the-first-eval"),
+        pytest.param(
+            [(100, 10.0), (200, 480.0), (300, 20.0)], 200, None, id="reached-then-dropped"
+        ),
+        pytest.param(
+            [(100, 480.0), (200, 490.0), (300, 100.0), (400, 476.0), (500, 475.0), (600, 500.0)],
+            100,
+            400,
+            id="three-in-a-row-broken-by-a-dip-then-reached",
+        ),
+        pytest.param([(100, 10.0), (200, 474.9), (300, 20.0)], None, None, id="never-reached"),
+        pytest.param([], None, None, id="no-values"),
+        pytest.param(
+            [(100, NAN), (200, 480.0), (300, None), (400, NAN), (500, 490.0), (600, 475.0)],
+            200,
+            200,
+            id="nan-and-absent-values-skipped",
+        ),
+        pytest.param(
+            [(300, 480.0), (100, 10.0), (500, 490.0), (200, 476.0), (400, 30.0), (600, 500.0)],
+            200,
+            None,
+            id="unsorted-lines-sorted-by-step",
+        ),
+        pytest.param(
+            [(100, 480.0), (200, 490.0), (300, 495.0), (200, 10.0)],
+            100,
+            None,
+            id="a-re-logged-step-the-later-value-wins",
+        ),
+    ],
+)
+def test_steps_to_threshold(points, first, three):
+    from rlexp.report import IN_A_ROW, steps_to_threshold
+
+    assert IN_A_ROW == 3
+    assert steps_to_threshold(points, 475.0) == first
+    assert steps_to_threshold(points, 475.0, in_a_row=3) == three
+
+
+def test_steps_to_threshold_refuses_an_empty_run():
+    from rlexp.report import steps_to_threshold
+
+    with pytest.raises(ValueError, match="in_a_row must be at least 1, got 0"):
+        steps_to_threshold([(1, 1.0)], 0.0, in_a_row=0)
+
+
+def test_reached_stats_leave_seeds_that_never_reached_out_and_count_them():
+    from rlexp.report import reached_stats
+
+    k, median, iqm = reached_stats([400, None, 100, 300, 200, None, 10_000, 250])
+    assert k == 6 and median == 275.0
+    assert iqm == pytest.approx((200 + 250 + 300 + 400) / 4)  # 6 values: the middle 4 (trim 1+1)
+    k, median, iqm = reached_stats([None, None])
+    assert k == 0 and median != median and iqm != iqm  # NaN: nothing to summarise
+
+
+@pytest.mark.parametrize(
+    "text, parsed",
+    [
+        ("475", (None, 475.0)),
+        ("-12.5", (None, -12.5)),
+        ("eval/success_rate=0.9", ("eval/success_rate", 0.9)),
+        ("1e3", (None, 1000.0)),
+    ],
+)
+def test_parse_threshold(text, parsed):
+    from rlexp.report import parse_threshold
+
+    assert parse_threshold(text) == parsed
+
+
+@pytest.mark.parametrize("text", ["", "high", "nan", "inf", "=475", "eval/success_rate=", "a=b"])
+def test_parse_threshold_refuses_what_is_not_a_finite_level(text):
+    from rlexp.report import parse_threshold
+
+    with pytest.raises(ValueError, match="is not VALUE or METRIC=VALUE with a finite number"):
+        parse_threshold(text)
+
+
 def grid_jobs(sweep: Path, task: list[str], curve_of) -> None:
     """A finished job dir for each job of the basic sweeper's grid over ``task`` (the overrides in
     the order Hydra writes them), and its multirun.yaml; ``curve_of(overrides)`` gives its rows."""
@@ -302,3 +390,81 @@ def test_a_sweep_over_config_group_choices_has_one_row_per_choice_with_seeds_poo
         "algorithm=ppo policy=mlp",
     ]
     assert all([j.seed for j in s.jobs] == ["0", "1"] for s in stats.values())
+
+
+def test_rlexp_report_threshold_counts_the_seeds_that_reached_it(tmp_path):
+    import csv
+
+    # ppo: seeds reach 475 at steps 200/300/100 (3 in a row from 200/300/300); seed 3 never does.
+    # grpo: seed 0 reaches it once and drops (never 3 in a row); seed 1 never; seed 2 failed.
+    returns = {
+        ("ppo", 0): [10, 480, 490, 500, 500],
+        ("ppo", 1): [10, 20, 480, 476, 490],
+        ("ppo", 2): [476, 30, 480, 490, 495],
+        ("ppo", 3): [10, 20, 30, 40, 50],
+        ("grpo", 0): [10, 480, 20, float("nan"), 30],
+        ("grpo", 1): [10, 20, 30, 40, 50],
+        ("grpo", 2): [10, 480, 490, 500, 500],
+    }
+    for num, ((algo, seed), values) in enumerate(returns.items()):
+        metrics = rows(
+            *(
+                {"step": 100 * (i + 1), "eval/episode_return": v, "eval/success_rate": v / 500}
+                for i, v in enumerate(values)
+            )
+        ).replace("NaN", "null")
+        status = finished() if (algo, seed) != ("grpo", 2) else {"state": "failed", "reason": "x"}
+        job(tmp_path, num, [f"algorithm={algo}", f"seed={seed}"], status, metrics)
+    multirun_yaml(tmp_path, ["algorithm=ppo,grpo", "seed=0,1,2,3"])
+
+    proc = rlexp_report(str(tmp_path), "--threshold", "475", "--no-plot")
+    assert proc.returncode == 0, proc.stderr
+    md = (tmp_path / "report.md").read_text()
+    assert proc.stdout == md
+    assert "## Steps to threshold: `eval/episode_return` >= 475" in md
+    assert (
+        "| configuration | reached | median step | IQM step | reached (3 in a row) "
+        "| median step (3 in a row) | IQM step (3 in a row) |"
+    ) in md
+    assert "| `algorithm=ppo` | 3/4 | 200 | 200 | 3/4 | 300 | 267 |" in md
+    assert "| `algorithm=grpo` | 1/2 | 200 | 200 | 0/2 | n/a | n/a |" in md
+    # The main table is the one without --threshold.
+    assert "| `algorithm=ppo` | 4 | " in md and "| `algorithm=grpo` | 2 | " in md
+    with open(tmp_path / "report.csv") as f:
+        csv_rows = {r["configuration"]: r for r in csv.DictReader(f)}
+    ppo = csv_rows["algorithm=ppo"]
+    assert (ppo["threshold_metric"], ppo["threshold"]) == ("eval/episode_return", "475.0")
+    assert (ppo["n_seeds"], ppo["n_reached"], ppo["n_reached_3_in_a_row"]) == ("4", "3", "3")
+    assert ppo["seeds"] == "0 1 2 3" and ppo["steps_to_threshold_per_seed"] == "200 300 100 none"
+    assert ppo["steps_to_threshold_3_in_a_row_per_seed"] == "200 300 300 none"
+    assert float(ppo["steps_to_threshold_median"]) == 200.0
+    assert float(ppo["steps_to_threshold_3_in_a_row_iqm"]) == pytest.approx(800 / 3)
+    grpo = csv_rows["algorithm=grpo"]
+    assert grpo["steps_to_threshold_3_in_a_row_median"] == "nan"
+
+    # METRIC=VALUE: the threshold in another metric than the score's.
+    proc = rlexp_report(str(tmp_path), "--threshold", "eval/success_rate=0.96", "--no-plot")
+    assert proc.returncode == 0, proc.stderr
+    assert "## Steps to threshold: `eval/success_rate` >= 0.96" in proc.stdout
+    # success rate 0.96 = return 480: ppo seed 1 dips to 476 after its first 480 (not 3 in a row)
+    assert "| `algorithm=ppo` | 3/4 | 300 | 267 | 2/4 | 250 | 250 |" in proc.stdout
+
+
+def test_no_threshold_leaves_the_report_as_it_was(tmp_path):
+    from rlexp.report import CSV_FIELDS, report
+
+    job(tmp_path, 0, ["seed=0"], finished(), rows({"step": 512, "eval/episode_return": 500.0}))
+    multirun_yaml(tmp_path, ["seed=0"])
+    md = report(tmp_path, plot=False)
+    assert "Steps to threshold" not in md
+    header = (tmp_path / "report.csv").read_text().splitlines()[0]
+    assert header == ",".join(CSV_FIELDS)
+
+
+@pytest.mark.parametrize("value", ["high", "eval/success_rate=", "nan"])
+def test_a_bad_threshold_is_one_line_and_exit_2(tmp_path, value):
+    proc = rlexp_report(str(tmp_path), "--threshold", value)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert proc.stderr.startswith("rlexp report: argument --threshold")
+    assert "is not VALUE or METRIC=VALUE" in proc.stderr

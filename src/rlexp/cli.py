@@ -36,6 +36,16 @@ def _at_least_1(text: str) -> int:
     return value
 
 
+def _threshold(text: str) -> tuple[str | None, float]:
+    """``rlexp report --threshold``: VALUE or METRIC=VALUE (rlexp.report.parse_threshold)."""
+    from rlexp.report import parse_threshold
+
+    try:
+        return parse_threshold(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _one_line(exc: BaseException) -> str:
     """The first line of an error's message, without terminal colour codes (torch adds some)."""
     text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).strip()
@@ -212,6 +222,14 @@ def main(argv: list[str] | None = None) -> None:
     rep.add_argument("sweep_dir", help="a multirun dir, e.g. multirun/2026-11-22/10-00-00")
     rep.add_argument("--metric", default="eval/episode_return", help="score and curve metric")
     rep.add_argument("--no-plot", action="store_true", help="skip curves.png")
+    rep.add_argument(
+        "--threshold",
+        type=_threshold,
+        default=None,
+        metavar="[METRIC=]VALUE",
+        help="also the steps each seed took to reach VALUE (first time, and 3 logged values in "
+        "a row) in --metric, or in METRIC: e.g. 475, or eval/success_rate=0.9",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     log.setLevel(logging.INFO)  # rlexp's own progress; other libraries' INFO lines stay quiet
@@ -221,7 +239,15 @@ def main(argv: list[str] | None = None) -> None:
 
         try:
             require("report", "rlexp report", None if not args.no_plot else ("scipy",))
-            print(report(Path(args.sweep_dir), args.metric, plot=not args.no_plot), end="")
+            threshold_metric, threshold = args.threshold or (None, None)
+            md = report(
+                Path(args.sweep_dir),
+                args.metric,
+                plot=not args.no_plot,
+                threshold=threshold,
+                threshold_metric=threshold_metric,
+            )
+            print(md, end="")
         except (FileNotFoundError, MissingExtra) as exc:
             print(f"rlexp report: {exc}", file=sys.stderr)
             sys.exit(2)

@@ -3,10 +3,12 @@
 A configuration is a job's overrides (``.hydra/overrides.yaml``) less the seed; its seeds are the
 jobs that share it. For each configuration: the final eval return over seeds (mean +- std, and the
 interquartile mean with a 95% bootstrap confidence interval, as rliable recommends for few seeds),
-steps and training time. The jobs the sweep was to run come from its ``multirun.yaml`` (the basic
-sweeper's grid, Optuna's ``n_trials``): jobs whose ``status.json`` is missing or not ``finished``,
-and jobs that never started, are listed apart, never silently dropped. A file of the wrong shape (a
-torn ``metrics.jsonl`` line, a ``status.json`` that is not an object) is read as far as it goes and
+steps and training time; with ``--threshold``, how many seeds reached a level of a metric and the
+median and IQM of the steps they took (once, and IN_A_ROW logged values in a row). The jobs the
+sweep was to run come from its ``multirun.yaml`` (the basic sweeper's grid, Optuna's
+``n_trials``): jobs whose ``status.json`` is missing or not ``finished``, and jobs that never
+started, are listed apart, never silently dropped. A file of the wrong shape (a torn
+``metrics.jsonl`` line, a ``status.json`` that is not an object) is read as far as it goes and
 named in the report. Writes ``report.md``, ``report.csv`` and ``curves.png`` into the sweep dir; a
 sweep dir that cannot be written gets one line saying so, and the report is still returned.
 """
@@ -19,6 +21,7 @@ import json
 import logging
 import math
 import warnings
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +41,8 @@ TIME_KEYS = ("perf/collect_time", "perf/update_time", "perf/eval_time")
 UNEXPANDED = "the sweep's overrides could not be expanded"
 #: ``hydra.sweep.subdir`` that names each job dir after its job number (conf/config.yaml).
 JOB_NUM_SUBDIR = "${hydra.job.num}"
+#: Consecutive logged values at or above a threshold that count as holding it, not a lucky eval.
+IN_A_ROW = 3
 
 
 @dataclass
@@ -52,6 +57,7 @@ class Job:
     reason: str = ""
     curve: list[tuple[int, float]] = field(default_factory=list)  # (step, metric), one per step
     time_s: float = 0.0
+    curves: dict[str, list[tuple[int, float]]] = field(default_factory=dict)  # every metric read
     problems: list[str] = field(default_factory=list)  # what in its files could not be read
 
     @property
@@ -77,6 +83,42 @@ class Job:
         return f"state {self.state}"
 
 
+@dataclass(frozen=True)
+class Threshold:
+    """A level of ``metric`` whose first crossing measures how fast a seed learns."""
+
+    metric: str
+    value: float
+
+
+def parse_threshold(text: str) -> tuple[str | None, float]:
+    """``--threshold``'s argument: ``VALUE`` (in the report's metric) or ``METRIC=VALUE``."""
+    metric, sep, value = text.rpartition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not math.isfinite(number) or (sep and not metric.strip()):
+        raise ValueError(
+            f"{text!r} is not VALUE or METRIC=VALUE with a finite number "
+            "(e.g. 475, or eval/success_rate=0.9)"
+        )
+    return metric.strip() or None, number
+
+
+@dataclass
+class ThresholdStats:
+    """Steps to a threshold for each finished seed of a configuration (None: never reached)."""
+
+    threshold: Threshold
+    first: list[int | None]  # the first logged value at or above it
+    in_a_row: list[int | None]  # the first of IN_A_ROW consecutive logged values at or above it
+
+    @property
+    def n(self) -> int:
+        return len(self.first)
+
+
 @dataclass
 class ConfigStats:
     """The jobs of one configuration and their statistics over seeds."""
@@ -91,6 +133,7 @@ class ConfigStats:
     mean_ci: tuple[float, float]
     steps: float
     time_s: float
+    threshold: ThresholdStats | None = None
 
     @property
     def n_unfinished(self) -> int:
@@ -175,16 +218,24 @@ def read_metrics(
     re-log steps after its checkpoint) and the summed training-loop time. Lines of the wrong shape
     (not a JSON object, no whole ``step``, a metric that is not a number) are skipped and counted
     into ``problems``."""
-    values: dict[int, float] = {}
+    histories, time_s = read_histories(path, (metric,), problems)
+    return histories[metric], time_s
+
+
+def read_histories(
+    path: Path, metrics: Sequence[str], problems: list[str] | None = None
+) -> tuple[dict[str, list[tuple[int, float]]], float]:
+    """``read_metrics`` for several metrics in one pass over the file: each one's history."""
+    values: dict[str, dict[int, float]] = {m: {} for m in metrics}
     times: dict[int, float] = {}
     try:
         lines = _read_text(path).splitlines()
     except FileNotFoundError:
-        return [], 0.0
+        return {m: [] for m in metrics}, 0.0
     except OSError as exc:
         if problems is not None:
             problems.append(f"{path.name}: not readable ({exc.strerror or exc})")
-        return [], 0.0
+        return {m: [] for m in metrics}, 0.0
     bad: list[tuple[int, str]] = []
     for num, line in enumerate(lines, 1):
         if not line.strip():
@@ -202,20 +253,21 @@ def read_metrics(
             bad.append((num, f"step {row.get('step')!r} is not a whole number"))
             continue
         wrong = [
-            k for k in (metric, *TIME_KEYS) if row.get(k) is not None and _number(row[k]) is None
+            k for k in (*metrics, *TIME_KEYS) if row.get(k) is not None and _number(row[k]) is None
         ]
         if wrong:
             bad.append((num, f"{wrong[0]} {row[wrong[0]]!r} is not a number"))
-        value = _number(row.get(metric))
-        if value is not None and math.isfinite(value):
-            values[step] = value
+        for metric in metrics:
+            value = _number(row.get(metric))
+            if value is not None and math.isfinite(value):
+                values[metric][step] = value
         if any(k in row for k in TIME_KEYS):
             parts = [_number(row.get(k)) for k in TIME_KEYS]
             times[step] = sum(p for p in parts if p is not None and math.isfinite(p))
     if bad and problems is not None:
         num, why = bad[0]
         problems.append(f"{path.name}: {len(bad)} line(s) skipped (first: line {num}, {why})")
-    return sorted(values.items()), float(sum(times.values()))
+    return {m: sorted(v.items()) for m, v in values.items()}, float(sum(times.values()))
 
 
 def read_status(path: Path, problems: list[str]) -> dict[str, Any] | None:
@@ -254,15 +306,18 @@ def read_overrides(path: Path, problems: list[str]) -> list[str]:
     return [str(o) for o in data]
 
 
-def read_job(job_dir: Path, metric: str | None) -> Job:
-    """One job dir; ``metric`` None skips ``metrics.jsonl`` (the state alone is wanted)."""
+def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = ()) -> Job:
+    """One job dir; ``metric`` None skips ``metrics.jsonl`` (the state alone is wanted).
+    ``other_metrics``: histories read besides ``metric``'s (into ``Job.curves``)."""
     problems: list[str] = []
     overrides = read_overrides(job_dir / ".hydra" / "overrides.yaml", problems)
     seed = next((v for k, v in map(_split, overrides) if k in SEED_KEYS), None)
     status = read_status(job_dir / "status.json", problems)
-    curve, time_s = ([], 0.0)
+    curve, time_s, curves = [], 0.0, {}
     if metric is not None:
-        curve, time_s = read_metrics(job_dir / "metrics.jsonl", metric, problems)
+        names = [metric, *(m for m in other_metrics if m != metric)]
+        curves, time_s = read_histories(job_dir / "metrics.jsonl", names, problems)
+        curve = curves[metric]
     if status is None:
         state, status = "unreadable", {}
     elif not status:
@@ -287,18 +342,21 @@ def read_job(job_dir: Path, metric: str | None) -> Job:
         reason=reason if isinstance(reason, str) else json.dumps(reason),
         curve=curve,
         time_s=time_s,
+        curves=curves,
         problems=problems,
     )
 
 
-def find_jobs(sweep_dir: Path, metric: str | None = DEFAULT_METRIC) -> list[Job]:
+def find_jobs(
+    sweep_dir: Path, metric: str | None = DEFAULT_METRIC, other_metrics: Sequence[str] = ()
+) -> list[Job]:
     """Every job dir under ``sweep_dir`` (one with ``.hydra/overrides.yaml``), in job-number order."""
     jobs = []
     for ov_file in sweep_dir.rglob(".hydra/overrides.yaml"):
         job_dir = ov_file.parent.parent
         if ".submitit" in job_dir.relative_to(sweep_dir).parts:
             continue
-        jobs.append(read_job(job_dir, metric))
+        jobs.append(read_job(job_dir, metric, other_metrics))
 
     def order(job: Job) -> tuple:
         rel = job.path.relative_to(sweep_dir).parts
@@ -419,10 +477,13 @@ def match_plan(sweep_dir: Path, jobs: list[Job], plan: Plan) -> Sweep:
 
 
 def read_sweep(
-    sweep_dir: Path, metric: str | None = DEFAULT_METRIC, plan: Plan | None = None
+    sweep_dir: Path,
+    metric: str | None = DEFAULT_METRIC,
+    plan: Plan | None = None,
+    other_metrics: Sequence[str] = (),
 ) -> Sweep:
     """The job dirs of ``sweep_dir`` against ``plan`` (default: from its ``multirun.yaml``)."""
-    jobs = find_jobs(sweep_dir, metric)
+    jobs = find_jobs(sweep_dir, metric, other_metrics)
     return match_plan(sweep_dir, jobs, plan if plan is not None else read_plan(sweep_dir))
 
 
@@ -465,8 +526,53 @@ def bootstrap_ci(x: np.ndarray, statistic, seed: int = 0) -> tuple[float, float]
     return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 
-def summarize(jobs: list[Job]) -> list[ConfigStats]:
-    """Group jobs by configuration and compute the statistics over finished seeds."""
+def steps_to_threshold(
+    points: Iterable[tuple[int, float | None]], threshold: float, in_a_row: int = 1
+) -> int | None:
+    """The step where a metric's history first holds at or above ``threshold`` for ``in_a_row``
+    consecutive logged values (1: the first value that reaches it); None when it never does.
+    ``points`` are (step, value) in any order; a missing or non-finite value is skipped (it neither
+    counts nor breaks a run), and of two values at one step the later wins, as ``read_metrics``."""
+    if in_a_row < 1:
+        raise ValueError(f"in_a_row must be at least 1, got {in_a_row}")
+    values: dict[int, float] = {}
+    for step, value in points:
+        if value is not None and math.isfinite(value):
+            values[step] = value
+    start, run = None, 0
+    for step in sorted(values):
+        if values[step] >= threshold:
+            start = step if run == 0 else start
+            run += 1
+            if run == in_a_row:
+                return start
+        else:
+            run = 0
+    return None
+
+
+def reached_stats(steps: Sequence[int | None]) -> tuple[int, float, float]:
+    """How many seeds reached a threshold, and the median and IQM of their steps to it (NaN when
+    none did). Seeds that never reached it are left out of both, and counted by the first number."""
+    hit = np.array([s for s in steps if s is not None], dtype=float)
+    if not len(hit):
+        return 0, math.nan, math.nan
+    return len(hit), float(np.median(hit)), float(iqm(hit))
+
+
+def threshold_stats(jobs: list[Job], threshold: Threshold) -> ThresholdStats:
+    """Steps to ``threshold`` for each job (its ``Job.curves`` must hold the threshold's metric)."""
+    curves = [j.curves.get(threshold.metric, []) for j in jobs]
+    return ThresholdStats(
+        threshold=threshold,
+        first=[steps_to_threshold(c, threshold.value) for c in curves],
+        in_a_row=[steps_to_threshold(c, threshold.value, IN_A_ROW) for c in curves],
+    )
+
+
+def summarize(jobs: list[Job], threshold: Threshold | None = None) -> list[ConfigStats]:
+    """Group jobs by configuration and compute the statistics over finished seeds (and their steps
+    to ``threshold``)."""
     common = set(common_overrides(jobs))
     groups: dict[tuple[str, ...], list[Job]] = {}
     for job in jobs:
@@ -491,6 +597,7 @@ def summarize(jobs: list[Job]) -> list[ConfigStats]:
                 mean_ci=bootstrap_ci(finals, np.mean) if len(finals) else nan2,
                 steps=float(np.mean([j.global_step for j in done])) if done else math.nan,
                 time_s=float(np.mean([j.time_s for j in done])) if done else math.nan,
+                threshold=threshold_stats(done, threshold) if threshold else None,
             )
         )
     return stats
@@ -520,12 +627,42 @@ CSV_FIELDS = [
     "time_s",
     "n_unfinished",
 ]
+_ROW = f"_{IN_A_ROW}_in_a_row"
+#: Columns added after CSV_FIELDS when the report has a threshold (``n_seeds`` is the n of k/n).
+THRESHOLD_CSV_FIELDS = [
+    "threshold_metric",
+    "threshold",
+    "n_reached",
+    "steps_to_threshold_median",
+    "steps_to_threshold_iqm",
+    f"n_reached{_ROW}",
+    f"steps_to_threshold{_ROW}_median",
+    f"steps_to_threshold{_ROW}_iqm",
+    "steps_to_threshold_per_seed",  # in the order of `seeds`; "none": never reached
+    f"steps_to_threshold{_ROW}_per_seed",
+]
+
+
+def _threshold_row(t: ThresholdStats) -> dict[str, Any]:
+    """The THRESHOLD_CSV_FIELDS of one configuration."""
+    row: dict[str, Any] = {"threshold_metric": t.threshold.metric, "threshold": t.threshold.value}
+    for suffix, steps in (("", t.first), (_ROW, t.in_a_row)):
+        k, median, iqm_ = reached_stats(steps)
+        row[f"n_reached{suffix}"] = k
+        row[f"steps_to_threshold{suffix}_median"] = median
+        row[f"steps_to_threshold{suffix}_iqm"] = iqm_
+        row[f"steps_to_threshold{suffix}_per_seed"] = " ".join(
+            "none" if x is None else str(x) for x in steps
+        )
+    return row
 
 
 def to_csv(stats: list[ConfigStats]) -> str:
-    """One row per configuration."""
+    """One row per configuration (with a threshold: its THRESHOLD_CSV_FIELDS too)."""
+    with_threshold = any(s.threshold is not None for s in stats)
+    fields = CSV_FIELDS + (THRESHOLD_CSV_FIELDS if with_threshold else [])
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=CSV_FIELDS, lineterminator="\n")
+    writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     writer.writeheader()
     for s in stats:
         writer.writerow(
@@ -543,6 +680,7 @@ def to_csv(stats: list[ConfigStats]) -> str:
                 "steps": s.steps,
                 "time_s": s.time_s,
                 "n_unfinished": s.n_unfinished,
+                **(_threshold_row(s.threshold) if s.threshold is not None else {}),
             }
         )
     return buf.getvalue()
@@ -593,12 +731,16 @@ def to_markdown(sweep_dir: Path, sweep: Sweep, stats: list[ConfigStats], metric:
         "| configuration | seeds | final mean ± std | IQM [95% CI] | steps | time (s) | unfinished |",
         "|---|---|---|---|---|---|---|",
     ]
-    for s in sorted(stats, key=lambda s: -s.iqm if not math.isnan(s.iqm) else math.inf):
+    ranked = sorted(stats, key=lambda s: -s.iqm if not math.isnan(s.iqm) else math.inf)
+    for s in ranked:
         lines.append(
             f"| `{s.label}` | {len(s.finals)} | {_fmt(s.mean)} ± {_fmt(s.std)} | {_fmt(s.iqm)} "
             f"[{_fmt(s.iqm_ci[0])}, {_fmt(s.iqm_ci[1])}] | {_fmt(s.steps, 0)} | {_fmt(s.time_s, 1)} "
             f"| {s.n_unfinished} |"
         )
+    with_threshold = [s for s in ranked if s.threshold is not None]
+    if with_threshold:
+        lines += ["", *threshold_markdown(with_threshold)]
     bad = [j for j in jobs if not j.finished]
     lines += ["", f"## Unfinished or failed jobs ({len(bad)})", ""]
     if bad:
@@ -633,7 +775,35 @@ def to_markdown(sweep_dir: Path, sweep: Sweep, stats: list[ConfigStats], metric:
     return "\n".join(lines) + "\n"
 
 
-def plot_curves(stats: list[ConfigStats], path: Path, metric: str) -> None:
+def threshold_markdown(stats: list[ConfigStats]) -> list[str]:
+    """The steps-to-threshold section: per configuration, how many finished seeds reached the
+    threshold (k/n) and the median and IQM of their steps to it, once and IN_A_ROW in a row."""
+    t = stats[0].threshold.threshold
+    lines = [
+        f"## Steps to threshold: `{t.metric}` >= {t.value:.15g}",
+        "",
+        f"Per finished seed, in step order of its logged `{t.metric}` values: **first**, the "
+        f"step of the first value at or above {t.value:.15g}; **{IN_A_ROW} in a row**, the step of "
+        f"the first of the first {IN_A_ROW} consecutive values at or above it. Reached k/n: k of "
+        "the n finished seeds reached it; median and IQM are over those k only (n/a when none "
+        "did).",
+        "",
+        f"| configuration | reached | median step | IQM step | reached ({IN_A_ROW} in a row) "
+        f"| median step ({IN_A_ROW} in a row) | IQM step ({IN_A_ROW} in a row) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for s in stats:
+        cells = [f"`{s.label}`"]
+        for steps in (s.threshold.first, s.threshold.in_a_row):
+            k, median, iqm_ = reached_stats(steps)
+            cells += [f"{k}/{s.threshold.n}", _fmt(median, 0), _fmt(iqm_, 0)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def plot_curves(
+    stats: list[ConfigStats], path: Path, metric: str, threshold: float | None = None
+) -> None:
     """Mean learning curve per configuration with a 95% t-interval band over seeds."""
     import matplotlib
 
@@ -661,6 +831,14 @@ def plot_curves(stats: list[ConfigStats], path: Path, metric: str) -> None:
         half = np.where(n > 1, student_t.ppf(0.975, np.maximum(n - 1, 1)) * std / np.sqrt(n), 0.0)
         (line,) = ax.plot(steps, mean, label=f"{s.label} (n={len(curves)})")
         ax.fill_between(steps, mean - half, mean + half, alpha=0.2, color=line.get_color())
+    if threshold is not None:
+        ax.axhline(
+            threshold,
+            color="gray",
+            linestyle="--",
+            linewidth=1,
+            label=f"threshold {threshold:.15g}",
+        )
     ax.set_xlabel("env steps")
     ax.set_ylabel(metric)
     ax.set_title("mean over seeds, 95% CI")
@@ -672,24 +850,34 @@ def plot_curves(stats: list[ConfigStats], path: Path, metric: str) -> None:
     plt.close(fig)
 
 
-def report(sweep_dir: Path, metric: str = DEFAULT_METRIC, plot: bool = True) -> str:
+def report(
+    sweep_dir: Path,
+    metric: str = DEFAULT_METRIC,
+    plot: bool = True,
+    threshold: float | None = None,
+    threshold_metric: str | None = None,
+) -> str:
     """Write report.md, report.csv (and curves.png) into ``sweep_dir``; return the markdown. What
-    cannot be written (a read-only sweep dir) is said in one warning; the markdown is returned."""
+    cannot be written (a read-only sweep dir) is said in one warning; the markdown is returned.
+    ``threshold``: also the steps each seed took to reach it in ``threshold_metric`` (default:
+    ``metric``)."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise FileNotFoundError(f"no sweep dir {sweep_dir}")
-    sweep = read_sweep(sweep_dir, metric)
+    target = Threshold(threshold_metric or metric, threshold) if threshold is not None else None
+    sweep = read_sweep(sweep_dir, metric, other_metrics=(target.metric,) if target else ())
     if not sweep.jobs and sweep.plan.jobs is None:
         raise FileNotFoundError(
             f"no jobs under {sweep_dir} (no */.hydra/overrides.yaml) and no multirun.yaml: "
             "is it a multirun dir?"
         )
-    stats = summarize(sweep.jobs)
+    stats = summarize(sweep.jobs, target)
     md = to_markdown(sweep_dir, sweep, stats, metric)
     outputs = {"report.md": lambda p: p.write_text(md)}
     outputs["report.csv"] = lambda p: p.write_text(to_csv(stats))
     if plot:
-        outputs["curves.png"] = lambda p: plot_curves(stats, p, metric)
+        line = target.value if target and target.metric == metric else None
+        outputs["curves.png"] = lambda p: plot_curves(stats, p, metric, line)
     written, failed = [], []
     for name, write in outputs.items():
         try:
