@@ -3,7 +3,8 @@
 Speed (docs/performance.md): the loss can run through ``torch.compile`` (``algorithm.compile``), Adam
 is the fused kernel where torch has one, and the per-minibatch statistics stay tensors until the end
 of the update. None of it changes the maths: ``tests/test_ppo_math.py`` checks a whole update
-against a plain-torch PPO.
+against a plain-torch PPO. The guarded optimiser step (gradient sync, NaN guard, clipping) and Adam
+are shared with GRPO (``base.py``).
 """
 
 from __future__ import annotations
@@ -19,15 +20,41 @@ from tensordict import TensorDictBase
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from rlexp.algorithms import make_algorithm
+from rlexp.algorithms.base import (
+    COMPILE_CHOICES,
+    GradSync,
+    NonFiniteError,
+    guarded_step,
+    make_optimizer,
+    parse_compile,
+)
 from rlexp.config.schema import AlgorithmConfig
 from rlexp.config.validate import ConfigError
-from rlexp.policies.actor_critic import ActorCritic
+from rlexp.policies.actor_critic import POLICIES, ActorCritic
+
+# NonFiniteError, make_optimizer, parse_compile, COMPILE_CHOICES (rlexp.algorithms.base) and
+# make_algorithm (rlexp.algorithms) are importable from here too, as they were before GRPO.
+__all__ = [
+    "AUTO_COMPILE_MIN_SAVING_S",
+    "COMPILE_CHOICES",
+    "COMPILE_SAVING_PER_SAMPLE_S",
+    "COMPILE_SAVING_PER_UPDATE_S",
+    "LOSS_KEYS",
+    "PPO",
+    "STAT_KEYS",
+    "NonFiniteError",
+    "compile_unavailable",
+    "make_algorithm",
+    "make_gae",
+    "make_optimizer",
+    "parse_compile",
+]
 
 log = logging.getLogger(__name__)
 
 LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy")
 STAT_KEYS = (*LOSS_KEYS, "grad_norm", "clip_fraction", "kl_approx")
-COMPILE_CHOICES = ("auto", "true", "false")
 #: ``algorithm.compile=auto`` compiles when the run's estimated saving is at least this many seconds.
 AUTO_COMPILE_MIN_SAVING_S = 60.0
 #: Estimated saving of a compiled over an eager minibatch update (loss forward + backward), measured
@@ -35,10 +62,6 @@ AUTO_COMPILE_MIN_SAVING_S = 60.0
 #: 64 samples, 64x64 tanh) plus ~2 us per sample (72 vs 90 ms at 8192 samples, 256x256 relu).
 COMPILE_SAVING_PER_UPDATE_S = 1.0e-3
 COMPILE_SAVING_PER_SAMPLE_S = 2.0e-6
-
-
-class NonFiniteError(FloatingPointError):
-    """A NaN or Inf in a loss, a gradient or an observation: the run stops, checkpoints stay as they were."""
 
 
 def make_gae(cfg: AlgorithmConfig, value_network=None) -> GAE:
@@ -64,10 +87,17 @@ class PPO:
         policy: ActorCritic,
         total_iterations: int,
         nan_guard: bool = True,
-        grad_sync: Callable[[list[torch.Tensor]], None] | None = None,
+        grad_sync: GradSync | None = None,
     ) -> None:
         if cfg.name != "ppo":
             raise ValueError(f"algorithm.name={cfg.name!r}; available: ['ppo']")
+        if getattr(policy, "critic", None) is None:
+            name = next(
+                (n for n, c in POLICIES.items() if type(policy) is c), type(policy).__name__
+            )
+            raise ValueError(
+                f"algorithm=ppo needs a critic: policy=actor_critic (policy.name={name} has none)"
+            )
         if cfg.loss_critic_type not in ("l1", "l2", "smooth_l1"):
             raise ValueError(
                 f"algorithm.loss_critic_type={cfg.loss_critic_type!r}; choose from ['l1', 'l2', 'smooth_l1']"
@@ -111,8 +141,10 @@ class PPO:
         self.compiled = False  # whether the loss runs through torch.compile
         self._shuffle = torch.Generator()  # minibatch order (CPU: randperm indexes a CPU batch)
         self.iteration = 0
+        self.reset_each_rollout = False  # GAE bootstraps across rollouts: episodes run on
 
     def learning_rate(self) -> float:
+        """``lr``, annealed linearly to 0 over the run with ``anneal_lr``."""
         if not self.cfg.anneal_lr:
             return self.cfg.lr
         return self.cfg.lr * max(0.0, 1.0 - self.iteration / self.total_iterations)
@@ -167,6 +199,7 @@ class PPO:
         self._shuffle.manual_seed(int(torch.randint(2**62, (1,)).item()))
         rows: list[torch.Tensor] = []  # per minibatch: the STAT_KEYS this loss has, one tensor
         keys: list[str] = []
+        loss_keys: list[str] = []
         for epoch in range(self.cfg.num_epochs):
             # One gather per epoch, then contiguous slices: cheaper than indexing every minibatch.
             shuffled = flat[torch.randperm(n, generator=self._shuffle)]
@@ -175,36 +208,24 @@ class PPO:
                 out = self._loss_fn(minibatch)
                 if not keys:
                     keys = [k for k in STAT_KEYS if k == "grad_norm" or k in out.keys()]
-                total = out["loss_objective"] + out["loss_critic"]
-                if "loss_entropy" in out.keys():
-                    total = total + out["loss_entropy"]
+                    loss_keys = [k for k in LOSS_KEYS if k in keys]
+                terms = {k: out[k] for k in loss_keys}
+                total = terms["loss_objective"] + terms["loss_critic"]
+                if "loss_entropy" in terms:
+                    total = total + terms["loss_entropy"]
                 self.optimizer.zero_grad(set_to_none=True)
                 total.backward()
-                loss_seen = total.detach()
-                if self.grad_sync is not None:
-                    for p in self.params:
-                        if p.grad is None:
-                            p.grad = torch.zeros_like(p)
-                    # The loss rides along in the gradients' all-reduce: a non-finite loss on any
-                    # rank makes it non-finite on all, so all ranks stop together (one rank raising
-                    # alone would leave the others blocked in their next collective).
-                    loss_seen = loss_seen.reshape(1).clone()
-                    self.grad_sync([*(p.grad for p in self.params), loss_seen])
-                grad_norm = torch.nn.utils.get_total_norm(
-                    [p.grad for p in self.params if p.grad is not None]
+                grad_norm = guarded_step(
+                    self.optimizer,
+                    self.params,
+                    self.param_names,
+                    total,
+                    terms,
+                    max_grad_norm=self.cfg.max_grad_norm,
+                    grad_sync=self.grad_sync,
+                    nan_guard=self.nan_guard,
+                    where=f"PPO update (epoch {epoch}, minibatch {start // mb})",
                 )
-                # A non-finite loss gives a non-finite gradient norm: one check before the step,
-                # before clipping by a NaN norm turns every gradient into NaN.
-                if self.nan_guard and not torch.isfinite(grad_norm + loss_seen).all():
-                    raise NonFiniteError(
-                        f"non-finite {self._what_was_non_finite(out, loss_seen)} in PPO update "
-                        f"(epoch {epoch}, minibatch {start // mb})"
-                    )
-                if self.cfg.max_grad_norm > 0:  # = clip_grad_norm_, with the norm taken above
-                    torch.nn.utils.clip_grads_with_norm_(
-                        self.params, self.cfg.max_grad_norm, grad_norm
-                    )
-                self.optimizer.step()
                 rows.append(
                     torch.stack([grad_norm if k == "grad_norm" else out[k] for k in keys]).detach()
                 )
@@ -223,39 +244,6 @@ class PPO:
             "loss/log_std": float(self.policy.actor_net.log_std.detach().mean()),
         }
         return out
-
-    def _what_was_non_finite(self, out: TensorDictBase, loss_seen: torch.Tensor) -> str:
-        """The loss terms (and, distributed, the ranks) or the parameters whose gradients were NaN/Inf.
-
-        Distributed, every rank gets here at the same minibatch (the decision is taken on all-reduced
-        values), so the ranks can gather what each of them saw."""
-        import torch.distributed as dist
-
-        mine = [k for k in LOSS_KEYS if k in out.keys() and not torch.isfinite(out[k]).all()]
-        if self.grad_sync is not None and dist.is_available() and dist.is_initialized():
-            from rlexp.launch.distributed import all_gather_object
-
-            seen = [
-                f"{', '.join(keys)} on rank {rank}"
-                for rank, keys in enumerate(all_gather_object(mine))
-                if keys
-            ]
-            if seen:
-                return f"loss ({'; '.join(seen)})"
-        elif mine:
-            return f"loss ({', '.join(mine)})"
-        names = [
-            name
-            for name, p in zip(self.param_names, self.params, strict=True)
-            if p.grad is not None and not torch.isfinite(p.grad).all()
-        ]
-        if names:
-            shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
-            averaged = " after averaging over ranks" if self.grad_sync is not None else ""
-            return f"gradient ({shown}){averaged}"
-        if not torch.isfinite(loss_seen).all():  # not here, not gathered: another rank's loss
-            return "loss on another rank"
-        return "gradient norm (the gradients are finite, their norm overflows)"
 
     def _decide_compile(self, updates: int, mb: int) -> None:
         """Turn ``torch.compile`` of the loss on or off for this run (once, at the first update)."""
@@ -322,14 +310,6 @@ class PPO:
         self.iteration = int(sd["iteration"])
 
 
-def parse_compile(value: str | bool) -> str:
-    """``algorithm.compile`` as one of COMPILE_CHOICES (true/false may arrive as bools or 'True')."""
-    choice = str(value).strip().lower()
-    if choice not in COMPILE_CHOICES:
-        raise ValueError(f"algorithm.compile={value!r}; choose from {list(COMPILE_CHOICES)}")
-    return choice
-
-
 def compile_unavailable(device: torch.device | None) -> str | None:
     """Why ``torch.compile`` (inductor) cannot run on ``device`` here, or None when it can."""
     if device is None or device.type == "cpu":
@@ -344,23 +324,3 @@ def compile_unavailable(device: torch.device | None) -> str | None:
             return "triton is not installed (inductor needs it for CUDA code)"
         return None
     return f"device {device.type} is not supported by rlexp's compiled loss"
-
-
-def make_optimizer(params: list[torch.nn.Parameter], cfg: AlgorithmConfig) -> torch.optim.Adam:
-    """Adam; the fused kernel on CPU and CUDA (one kernel for all tensors, ~3.5x faster than foreach
-    at 64x64 here), foreach elsewhere. Same update rule either way."""
-    fused = bool(params) and all(p.device.type in ("cpu", "cuda") for p in params)
-    if fused:
-        return torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps, fused=True)
-    return torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps, foreach=True)
-
-
-def make_algorithm(
-    cfg: AlgorithmConfig,
-    policy: ActorCritic,
-    total_iterations: int,
-    nan_guard: bool = True,
-    grad_sync: Callable[[list[torch.Tensor]], None] | None = None,
-) -> PPO:
-    """Build the configured algorithm around ``policy`` (``grad_sync``: the distributed all-reduce)."""
-    return PPO(cfg, policy, total_iterations, nan_guard, grad_sync)

@@ -1,0 +1,143 @@
+"""What every learner shares: the ``Algorithm`` interface the Trainer drives, Adam, the ``compile``
+choice, and one guarded optimiser step (gradient sync -> NaN guard -> clip -> step) with the message
+that says what was non-finite."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
+
+import torch
+
+if TYPE_CHECKING:
+    from tensordict import TensorDictBase
+
+    from rlexp.config.schema import BaseAlgorithmConfig
+
+COMPILE_CHOICES = ("auto", "true", "false")
+
+#: The distributed gradient average: all-reduces (mean) a list of tensors in place.
+GradSync = Callable[[list[torch.Tensor]], None]
+
+
+class NonFiniteError(FloatingPointError):
+    """A NaN or Inf in a loss, a gradient or an observation: the run stops, checkpoints stay as they were."""
+
+
+class Algorithm(Protocol):
+    """What the Trainer needs of a learner (PPO, GRPO)."""
+
+    #: updates done so far (drives LR annealing; saved in checkpoints)
+    iteration: int
+    #: whether the Trainer resets every env before each rollout (GRPO's groups start together)
+    reset_each_rollout: bool
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """Learn from one rollout [num_envs, T]; returns ``loss/...`` metrics."""
+        ...
+
+    def learning_rate(self) -> float:
+        """The learning rate the next update uses."""
+        ...
+
+    def state_dict(self) -> dict[str, Any]:
+        """Optimiser state, iteration and anything else a bit-exact resume needs."""
+        ...
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        """Restore what ``state_dict`` returned."""
+        ...
+
+
+def parse_compile(value: str | bool) -> str:
+    """``algorithm.compile`` as one of COMPILE_CHOICES (true/false may arrive as bools or 'True')."""
+    choice = str(value).strip().lower()
+    if choice not in COMPILE_CHOICES:
+        raise ValueError(f"algorithm.compile={value!r}; choose from {list(COMPILE_CHOICES)}")
+    return choice
+
+
+def make_optimizer(params: list[torch.nn.Parameter], cfg: BaseAlgorithmConfig) -> torch.optim.Adam:
+    """Adam; the fused kernel on CPU and CUDA (one kernel for all tensors, ~3.5x faster than foreach
+    at 64x64 here), foreach elsewhere. Same update rule either way."""
+    fused = bool(params) and all(p.device.type in ("cpu", "cuda") for p in params)
+    if fused:
+        return torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps, fused=True)
+    return torch.optim.Adam(params, lr=cfg.lr, eps=cfg.adam_eps, foreach=True)
+
+
+def guarded_step(
+    optimizer: torch.optim.Optimizer,
+    params: Sequence[torch.nn.Parameter],
+    param_names: Sequence[str],
+    loss: torch.Tensor,
+    terms: Mapping[str, torch.Tensor],
+    *,
+    max_grad_norm: float,
+    grad_sync: GradSync | None,
+    nan_guard: bool,
+    where: str,
+) -> torch.Tensor:
+    """After ``loss.backward()``: average the gradients over ranks, stop on a non-finite loss or
+    gradient (``NonFiniteError`` naming ``terms``' culprits or the parameters, then ``where``),
+    clip to ``max_grad_norm`` (<= 0: off) and step. Returns the gradient norm before clipping."""
+    loss_seen = loss.detach()
+    if grad_sync is not None:
+        for p in params:
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+        # The loss rides along in the gradients' all-reduce: a non-finite loss on any rank makes it
+        # non-finite on all, so all ranks stop together (one rank raising alone would leave the
+        # others blocked in their next collective).
+        loss_seen = loss_seen.reshape(1).clone()
+        grad_sync([*(p.grad for p in params), loss_seen])
+    grad_norm = torch.nn.utils.get_total_norm([p.grad for p in params if p.grad is not None])
+    # A non-finite loss gives a non-finite gradient norm: one check before the step, before
+    # clipping by a NaN norm turns every gradient into NaN.
+    if nan_guard and not torch.isfinite(grad_norm + loss_seen).all():
+        what = what_was_non_finite(terms, loss_seen, params, param_names, grad_sync is not None)
+        raise NonFiniteError(f"non-finite {what} in {where}")
+    if max_grad_norm > 0:  # = clip_grad_norm_, with the norm taken above
+        torch.nn.utils.clip_grads_with_norm_(params, max_grad_norm, grad_norm)
+    optimizer.step()
+    return grad_norm
+
+
+def what_was_non_finite(
+    terms: Mapping[str, torch.Tensor],
+    loss_seen: torch.Tensor,
+    params: Sequence[torch.nn.Parameter],
+    param_names: Sequence[str],
+    synced: bool,
+) -> str:
+    """The loss terms (and, distributed, the ranks) or the parameters whose gradients were NaN/Inf.
+
+    Distributed (``synced``), every rank gets here at the same minibatch (the decision is taken on
+    all-reduced values), so the ranks can gather what each of them saw."""
+    import torch.distributed as dist
+
+    mine = [k for k, v in terms.items() if not torch.isfinite(v).all()]
+    if synced and dist.is_available() and dist.is_initialized():
+        from rlexp.launch.distributed import all_gather_object
+
+        seen = [
+            f"{', '.join(keys)} on rank {rank}"
+            for rank, keys in enumerate(all_gather_object(mine))
+            if keys
+        ]
+        if seen:
+            return f"loss ({'; '.join(seen)})"
+    elif mine:
+        return f"loss ({', '.join(mine)})"
+    names = [
+        name
+        for name, p in zip(param_names, params, strict=True)
+        if p.grad is not None and not torch.isfinite(p.grad).all()
+    ]
+    if names:
+        shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+        averaged = " after averaging over ranks" if synced else ""
+        return f"gradient ({shown}){averaged}"
+    if not torch.isfinite(loss_seen).all():  # not here, not gathered: another rank's loss
+        return "loss on another rank"
+    return "gradient norm (the gradients are finite, their norm overflows)"
