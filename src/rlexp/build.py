@@ -73,7 +73,7 @@ class Built:
 
 def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
     """Envs, policy, algorithm and event managers, in that order (nothing is written)."""
-    from rlexp.algorithms.ppo import make_algorithm
+    from rlexp.algorithms import make_algorithm
     from rlexp.envs.factory import make_env
     from rlexp.events import EventManager
     from rlexp.launch import distributed

@@ -58,6 +58,11 @@ class RolloutCollector(Collector):
         if self._fast:
             self._obs = obs
 
+    def reset(self, index=None, **kwargs) -> None:
+        """Start new episodes in every env (GRPO resets all envs before each rollout)."""
+        super().reset(index, **kwargs)
+        self._obs = None  # the fast path reads the reset observation from the carrier
+
     @torch.no_grad()
     def rollout(self) -> TensorDictBase:
         if not self._fast:

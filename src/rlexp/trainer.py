@@ -1,4 +1,5 @@
-"""The training loop: collect a rollout, update PPO, log, evaluate, checkpoint. Read it top to bottom."""
+"""The training loop: collect a rollout, update the algorithm (PPO, GRPO), log, evaluate, checkpoint.
+Read it top to bottom."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, TransformedEnv
 
-from rlexp.algorithms.ppo import PPO, NonFiniteError
+from rlexp.algorithms.base import Algorithm, NonFiniteError
 from rlexp.checkpoint import (
     checkpoint_path,
     prune_checkpoints,
@@ -30,7 +31,7 @@ from rlexp.events import EventContext, EventManager
 from rlexp.events.transform import EventTransform
 from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
 from rlexp.logging import MetricLogger
-from rlexp.policies.actor_critic import ActorCritic
+from rlexp.policies.actor_critic import GaussianPolicy
 from rlexp.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -85,8 +86,8 @@ class Trainer:
         self,
         *,
         cfg: TrainerConfig,
-        policy: ActorCritic,
-        algorithm: PPO,
+        policy: GaussianPolicy,
+        algorithm: Algorithm,
         env: EnvBase,
         eval_env: EnvBase | None,
         logger: MetricLogger,
@@ -197,6 +198,10 @@ class Trainer:
         """One batch of ``frames_per_batch`` env steps through the TorchRL collector."""
         t0 = time.perf_counter()
         with one_torch_thread():
+            if self.algorithm.reset_each_rollout:  # GRPO: every env starts a new episode
+                self.collector.reset()
+                self._ep_ret[:] = 0.0  # the episodes in flight are dropped, not counted
+                self._ep_len[:] = 0
             batch = next(self._rollouts)
         self._timing["collect"] = time.perf_counter() - t0
         self.global_step += batch.numel() * self.dist.world_size  # every rank collected as much
@@ -224,7 +229,7 @@ class Trainer:
         return batch
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
-        """PPO on the rollout, then fold its observations into the normaliser."""
+        """The algorithm's update on the rollout, then fold its observations into the normaliser."""
         t0 = time.perf_counter()
         try:
             losses = self.algorithm.update(batch)

@@ -174,6 +174,11 @@ def validate(config: RootConfig) -> None:
             "are blocks of consecutive envs (envs 0..group_size-1 are group 0); set env.num_envs "
             f"to a multiple of {a.group_size} (e.g. env.num_envs={a.group_size * 4})"
         )
+    if isinstance(a, GRPOConfig) and str(a.compile).strip().lower() == "true":
+        raise ConfigError(
+            "algorithm.compile=true: GRPO's loss runs eager (torch.compile is PPO's); use "
+            "algorithm.compile=auto or false"
+        )
     if a.name == "ppo" and getattr(p, "critic", None) is None:
         raise ConfigError(
             f"algorithm=ppo needs a critic, but policy.name={p.name!r} has none; use "
