@@ -73,7 +73,7 @@ BAD = {
     "algorithm.critic_coeff": -1.0,
     "algorithm.loss_critic_type": "huber",
     "algorithm.clip_value": 0.0,
-    "algorithm.lr": 0.0,
+    "algorithm.lr": -1e-4,  # 0 is allowed: a policy that does not learn (a baseline)
     "algorithm.adam_eps": -1e-8,
     "algorithm.num_epochs": 0,
     "algorithm.mini_batch_size": 0,

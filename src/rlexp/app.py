@@ -139,14 +139,17 @@ def _train_locked(
     # -- the run dir: what it holds decides what this run does (nothing is written here yet) -------
     status = read_status(run_dir)
     step_done = status.get("global_step")
-    if (
-        status.get("state") == "finished"
-        and t.resume == "auto"
-        and isinstance(step_done, int)
-        and step_done >= total
+    if t.resume == "auto" and (
+        (status.get("state") == "finished" and isinstance(step_done, int) and step_done >= total)
+        or status.get("state") == "stopped_early"
     ):
         # A re-run of the same sweep: this job already finished its budget; report it, train nothing.
-        log.info("run dir %s already finished at step %s: skipping", run_dir, step_done)
+        log.info(
+            "run dir %s already %s at step %s: skipping",
+            run_dir,
+            status.get("state", "finished").replace("_", " "),
+            step_done,
+        )
         final = status.get("final_eval")
         return dict(final) if isinstance(final, dict) else {}
     if dist.is_main:
@@ -217,7 +220,16 @@ def _run(
         trainer.train(total)
         if trainer.eval_env is not None and not trainer.last_eval:
             trainer.eval_once()
-        write_status(run_dir, "finished", trainer.global_step, trainer.last_eval)
+        if trainer.stopped_early is not None:  # a hook ended it: a result, not a failure (exit 0)
+            write_status(
+                run_dir,
+                "stopped_early",
+                trainer.global_step,
+                trainer.last_eval,
+                reason=trainer.stopped_early,
+            )
+        else:
+            write_status(run_dir, "finished", trainer.global_step, trainer.last_eval)
     except StopRequested as exc:
         step = trainer.global_step
         if stop_requested_by_signal():  # SLURM preemption: the launcher requeues the job

@@ -50,6 +50,7 @@ class Built:
     eval_events: Any
 
     def trainer(self, logger: Any, config_dict: dict, versions: dict) -> Any:
+        from rlexp.hooks import HookManager
         from rlexp.launch import distributed
         from rlexp.trainer import Trainer
 
@@ -68,6 +69,7 @@ class Built:
             dist=distributed.info(),
             eval_seed=self.config.seed + EVAL_SEED_OFFSET,
             console=self.config.logger.console,
+            hooks=HookManager(self.config.hooks, self.algorithm.hyperparameters()),
         )
 
 

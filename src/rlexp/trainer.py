@@ -9,6 +9,7 @@ from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,7 @@ from rlexp.config.schema import TrainerConfig
 from rlexp.evaluation import run_episodes
 from rlexp.events import EventContext, EventManager
 from rlexp.events.transform import EventTransform
+from rlexp.hooks import HookManager, HookState
 from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
 from rlexp.logging import MetricLogger
 from rlexp.policies.actor_critic import GaussianPolicy
@@ -99,6 +101,7 @@ class Trainer:
         dist: DistInfo | None = None,
         eval_seed: int = 0,
         console: bool = True,
+        hooks: HookManager | None = None,
     ) -> None:
         self.cfg = cfg
         self.console = console  # logger.console: the [train] / [eval] summary lines
@@ -134,6 +137,12 @@ class Trainer:
         self.stop_reason: str | None = (
             None  # set by request_stop (e.g. from a SLURM signal handler)
         )
+        self.hooks = hooks or HookManager({})  # user code at the loop's hook points (docs/hooks.md)
+        self.stopped_early: str | None = None  # why a hook ended the run (status stopped_early)
+        self.total_steps = 0
+        self._last_losses: dict[str, float] = {}
+        self._last_metrics: dict[str, float] = {}
+        self._hparams_set: dict[str, float] = {}  # set by hooks since the last log (logged)
         if event_manager.has(
             "step", "reset"
         ):  # only then: runs without such events pay nothing per step
@@ -144,7 +153,8 @@ class Trainer:
 
     # -- the loop ----------------------------------------------------------------------------------
     def train(self, total_timesteps: int) -> None:
-        """Train until ``global_step`` reaches ``total_timesteps`` env steps."""
+        """Train until ``global_step`` reaches ``total_timesteps`` env steps (or a hook stops it)."""
+        self.total_steps = total_timesteps
         if self.global_step == 0:
             self.event_manager.fire("startup", self._ctx())
         self._start_collector()
@@ -154,29 +164,46 @@ class Trainer:
             set_rng_state(self._resume_rng)
             self._resume_rng = None
         self.progress = Progress(total_timesteps, enabled=self.cfg.progress, start=self.global_step)
-        with self.progress:
-            while self.global_step < total_timesteps:
-                before = self.global_step
-                self.safe_point = False
-                batch = self.collect_rollout()
-                losses = self.update(batch)
-                self.safe_point = True  # the update is complete: a checkpoint now is consistent
-                self.log_train(losses)
-                self.event_manager.fire("interval", self._ctx(batch=batch))
-                if crossed(before, self.global_step, self.cfg.eval_every):
-                    self.eval_once()
-                if crossed(before, self.global_step, self.cfg.save_every):
-                    self.save_checkpoint()
-                if self.dist.enabled:  # a signal may reach one rank only: all stop together
-                    self._agree_on_stop()
-                if (
-                    self.stop_reason is not None
-                ):  # a safe point: checkpoint, then let the caller decide
-                    self.save_checkpoint()
-                    raise StopRequested(self.stop_reason)
-        if self.dist.enabled:
-            self.check_ranks_in_sync()
-        self.save_checkpoint()
+        status = "failed"
+        try:
+            self._hook("train_start")
+            self._apply_hook_decisions()
+            with self.progress:
+                while self.global_step < total_timesteps and self.stopped_early is None:
+                    self._iteration()
+            if self.dist.enabled:
+                self.check_ranks_in_sync()
+            self.save_checkpoint()
+            status = "finished" if self.stopped_early is None else "stopped_early"
+        except (StopRequested, KeyboardInterrupt):
+            status = "interrupted"
+            raise
+        finally:
+            self._hook_train_end(status)
+
+    def _iteration(self) -> None:
+        """One iteration: collect, update, log, evaluate and checkpoint when due, stop if asked."""
+        before = self.global_step
+        self.safe_point = False
+        batch = self.collect_rollout()
+        self._hook("rollout_end", batch=batch)
+        self._apply_hook_decisions()  # e.g. a schedule's value for this update, on every rank
+        losses = self.update(batch)
+        self.safe_point = True  # the update is complete: a checkpoint now is consistent
+        self._last_losses = dict(losses)
+        self._hook("update_end")
+        self.log_train(losses)
+        self.event_manager.fire("interval", self._ctx(batch=batch))
+        if crossed(before, self.global_step, self.cfg.eval_every):
+            self.eval_once()
+        if crossed(before, self.global_step, self.cfg.save_every):
+            self.save_checkpoint()
+        self._apply_hook_decisions()  # a hook's stop: the loop ends, the run saves and finishes
+        if self.dist.enabled:  # a signal may reach one rank only: all stop together
+            self._agree_on_stop()
+        if self.stop_reason is not None:  # a safe point: checkpoint, then let the caller decide
+            self.save_checkpoint()
+            raise StopRequested(self.stop_reason)
 
     def _agree_on_stop(self) -> None:
         device = next(self.policy.parameters()).device  # nccl reduces GPU tensors only
@@ -256,9 +283,14 @@ class Trainer:
             metrics["train/episode_return"] = float(np.mean(self.ret_window))
             metrics["train/episode_length"] = float(np.mean(self.len_window))
         metrics.update(self._term_means)
+        metrics.update({f"hparams/{k}": v for k, v in self._hparams_set.items()})
+        self._hparams_set = {}
         if self.progress is not None:
             self.progress.update(self.global_step, sps, metrics.get("train/episode_return"))
         if iteration % self.cfg.log_every == 0:
+            self._last_metrics = metrics
+            self._hook("log", metrics=MappingProxyType(metrics))
+            metrics.update(self.hooks.take_logged())  # rollout_end / update_end / log additions
             self.logger.log(metrics, self.global_step)
             ret = metrics.get("train/episode_return", float("nan"))
             if self.console:
@@ -310,6 +342,10 @@ class Trainer:
             )
         events.fire("trigger", self._ctx(env, metrics=metrics), signal="eval_end")
         self.event_manager.fire("trigger", self._ctx(metrics=metrics), signal="eval_end")
+        self._hook("eval_end")
+        logged = self.hooks.take_logged()
+        if logged:
+            self.logger.log(logged, self.global_step)
         value = metrics.get(self.cfg.best_metric)
         if value is not None and value > self.best_metric:
             self.best_metric = value
@@ -326,6 +362,7 @@ class Trainer:
         prune_checkpoints(self.ckpt_dir, self.cfg.keep_last, newest=path)
         log.info("[ckpt] saved %s", path)
         self.event_manager.fire("trigger", self._ctx(), signal="checkpoint")
+        self._hook("checkpoint", checkpoint=path)
         return path
 
     def request_stop(self, reason: str) -> None:
@@ -357,6 +394,7 @@ class Trainer:
             "rng": rng_state(),
             "last_eval": dict(self.last_eval),
             "best_metric": self.best_metric,
+            "hooks": self.hooks.state_dict(),
             "pending_observation": self._pending_observation(),
             "config": self.config_dict,
             "versions": self.versions,
@@ -381,6 +419,7 @@ class Trainer:
         self.eval_event_manager.load_state_dict(sd["events"]["eval"], self.eval_env)
         self.last_eval = dict(sd.get("last_eval", {}))
         self.best_metric = float(sd.get("best_metric", -float("inf")))
+        self.hooks.load_state_dict(sd.get("hooks", {}))
         self._resume_rng = sd["rng"]
         if self.dist.is_main:  # with the env state it belongs to (rank 0's)
             self._resume_obs = sd.get("pending_observation")
@@ -422,6 +461,55 @@ class Trainer:
             if obs is not None:  # resumed: act first on what the interrupted run would have
                 self.collector.set_next_observation(obs)
             self._rollouts = iter(self.collector)
+
+    def _hook(self, point: str, **kw: Any) -> None:
+        """Fire the hooks of ``point`` with a read-only view of the run."""
+        if not self.hooks:
+            return
+        state = HookState(
+            point=point,
+            global_step=self.global_step,
+            iteration=self.algorithm.iteration,
+            total_steps=self.total_steps,
+            run_dir=self.run_dir,
+            rank=self.dist.rank,
+            world_size=self.dist.world_size,
+            resumed=self.resumed_from is not None,
+            losses=MappingProxyType(self._last_losses),
+            metrics=kw.pop("metrics", MappingProxyType(self._last_metrics)),
+            eval_metrics=MappingProxyType(self.last_eval),
+            hyperparameters=MappingProxyType(self.algorithm.hyperparameters()),
+            **kw,
+        )
+        self.hooks.fire(point, state)
+
+    def _apply_hook_decisions(self) -> None:
+        """Apply what hooks decided (rank 0's decisions, on every rank: all ranks call this at the
+        same points of the loop): hyperparameters first, then a stop."""
+        if not self.hooks:
+            return
+        decisions = self.hooks.take_decisions()
+        if self.dist.enabled:
+            decisions = all_gather_object(decisions)[0]
+        for name, value in decisions.set.items():
+            self.algorithm.set_hyperparameter(name, value)
+            self._hparams_set[name] = value
+        if decisions.stop is not None and self.stopped_early is None:
+            self.stopped_early = decisions.stop
+            log.info("[hooks] stopping early at step %d: %s", self.global_step, decisions.stop)
+
+    def _hook_train_end(self, status: str) -> None:
+        """``train_end``; a hook failing here is logged, not raised over how the run ended."""
+        try:
+            self._hook("train_end", status=status)
+            logged = self.hooks.take_logged()
+            if logged:
+                self.logger.log(logged, self.global_step)
+        except Exception as exc:
+            if status != "finished" and status != "stopped_early":
+                log.error("[hooks] train_end failed: %s", exc)
+                return
+            raise
 
     def _save_best(self) -> None:
         path = save_checkpoint(self.ckpt_dir / "best.pt", self.state_dict())

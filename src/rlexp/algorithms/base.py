@@ -48,6 +48,49 @@ class Algorithm(Protocol):
         """Restore what ``state_dict`` returned."""
         ...
 
+    def hyperparameters(self) -> dict[str, float]:
+        """The hyperparameters hooks may change (``set_hyperparameter``), with their values."""
+        ...
+
+    def set_hyperparameter(self, name: str, value: float) -> None:
+        """Change one of ``hyperparameters()`` from the next update on."""
+        ...
+
+
+class MutableHyperparameters:
+    """``hyperparameters`` / ``set_hyperparameter`` over the fields of the learner's own copy of its
+    config (``self.cfg``) that ``rlexp.config.rules.MUTABLE_HYPERPARAMETERS`` names for the
+    algorithm; ``_applied(name)`` pushes a change into whatever
+    holds a copy of the value (a TorchRL loss's buffer). The values are part of ``state_dict`` so a
+    resumed run continues with what hooks set."""
+
+    cfg: Any
+
+    def mutable(self) -> tuple[str, ...]:
+        from rlexp.config.rules import MUTABLE_HYPERPARAMETERS
+
+        return MUTABLE_HYPERPARAMETERS[self.cfg.name]
+
+    def hyperparameters(self) -> dict[str, float]:
+        return {name: float(getattr(self.cfg, name)) for name in self.mutable()}
+
+    def set_hyperparameter(self, name: str, value: float) -> None:
+        if name not in self.mutable():
+            raise ValueError(
+                f"{name!r} is not a mutable hyperparameter of algorithm={self.cfg.name}; choose "
+                f"from {sorted(self.mutable())}"
+            )
+        setattr(self.cfg, name, float(value))
+        self._applied(name)
+
+    def _applied(self, name: str) -> None:
+        """A hyperparameter changed (the learner reads the others from ``self.cfg`` when used)."""
+
+    def _load_hyperparameters(self, sd: Mapping[str, Any]) -> None:
+        for name, value in (sd.get("hyperparameters") or {}).items():
+            if name in self.mutable() and float(getattr(self.cfg, name)) != float(value):
+                self.set_hyperparameter(name, value)
+
 
 def parse_compile(value: str | bool) -> str:
     """``algorithm.compile`` as one of COMPILE_CHOICES (true/false may arrive as bools or 'True')."""

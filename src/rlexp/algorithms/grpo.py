@@ -28,6 +28,7 @@ Adam) is PPO's, from ``base.py``. ``tests/test_grpo_math.py`` checks it against 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 from typing import Any
 
@@ -35,7 +36,13 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.objectives.llm import k3_kl_token_estimate
 
-from rlexp.algorithms.base import GradSync, guarded_step, make_optimizer, parse_compile
+from rlexp.algorithms.base import (
+    GradSync,
+    MutableHyperparameters,
+    guarded_step,
+    make_optimizer,
+    parse_compile,
+)
 from rlexp.config.schema import GRPOConfig
 from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import GaussianPolicy
@@ -93,7 +100,7 @@ def group_advantages(
     return returns, alive.to(reward.dtype), advantages
 
 
-class GRPO:
+class GRPO(MutableHyperparameters):
     """One GRPO learner: ``update(batch)`` computes group advantages, then the clipped-surrogate
     epochs with the KL penalty to the initial policy on a rollout [num_envs, T]."""
 
@@ -114,7 +121,7 @@ class GRPO:
                 "algorithm.compile=true, but GRPO's loss runs eager (no torch.compile for it); "
                 "use algorithm.compile=auto or false"
             )
-        self.cfg = cfg
+        self.cfg = dataclasses.replace(cfg)  # its own copy: hooks may change its values
         self.policy = policy
         self.total_iterations = max(1, total_iterations)
         self.nan_guard = nan_guard
@@ -248,7 +255,11 @@ class GRPO:
 
     def state_dict(self) -> dict[str, Any]:
         """Optimiser, iteration and, with ``kl_coeff > 0``, the frozen reference policy."""
-        sd: dict[str, Any] = {"optimizer": self.optimizer.state_dict(), "iteration": self.iteration}
+        sd: dict[str, Any] = {
+            "optimizer": self.optimizer.state_dict(),
+            "iteration": self.iteration,
+            "hyperparameters": self.hyperparameters(),
+        }
         if self.reference is not None:
             sd["reference"] = self.reference.state_dict()
         return sd
@@ -266,3 +277,9 @@ class GRPO:
             self.reference.load_state_dict(sd["reference"])
         self.optimizer.load_state_dict(sd["optimizer"])
         self.iteration = int(sd["iteration"])
+        self._load_hyperparameters(sd)
+
+    def mutable(self) -> tuple[str, ...]:
+        """``kl_coeff`` only when there is a reference to pull towards (kl_coeff > 0 at the start)."""
+        names = super().mutable()
+        return tuple(n for n in names if n != "kl_coeff" or self.reference is not None)

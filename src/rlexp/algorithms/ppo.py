@@ -9,6 +9,7 @@ are shared with GRPO (``base.py``).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import shutil
@@ -24,6 +25,7 @@ from rlexp.algorithms import make_algorithm
 from rlexp.algorithms.base import (
     COMPILE_CHOICES,
     GradSync,
+    MutableHyperparameters,
     NonFiniteError,
     guarded_step,
     make_optimizer,
@@ -78,7 +80,7 @@ def make_gae(cfg: AlgorithmConfig, value_network=None) -> GAE:
     )
 
 
-class PPO:
+class PPO(MutableHyperparameters):
     """One PPO learner: ``update(batch)`` runs GAE then the clipped-surrogate epochs on a rollout."""
 
     def __init__(
@@ -102,7 +104,7 @@ class PPO:
             raise ValueError(
                 f"algorithm.loss_critic_type={cfg.loss_critic_type!r}; choose from ['l1', 'l2', 'smooth_l1']"
             )
-        self.cfg = cfg
+        self.cfg = dataclasses.replace(cfg)  # its own copy: hooks may change its values
         self.policy = policy
         self.total_iterations = max(1, total_iterations)
         self.nan_guard = nan_guard
@@ -302,12 +304,25 @@ class PPO:
 
         self._loss_fn, self.compiled = first_call, True
 
+    def _applied(self, name: str) -> None:
+        """ClipPPOLoss holds the coefficients as buffers: change them in place."""
+        value = float(getattr(self.cfg, name))
+        if name in ("clip_epsilon", "entropy_coeff", "critic_coeff"):
+            getattr(self.loss, name).fill_(value)
+        if name == "entropy_coeff" and value != 0.0:
+            self.loss.entropy_bonus = True  # built without the entropy term when it started at 0
+
     def state_dict(self) -> dict:
-        return {"optimizer": self.optimizer.state_dict(), "iteration": self.iteration}
+        return {
+            "optimizer": self.optimizer.state_dict(),
+            "iteration": self.iteration,
+            "hyperparameters": self.hyperparameters(),
+        }
 
     def load_state_dict(self, sd: dict) -> None:
         self.optimizer.load_state_dict(sd["optimizer"])
         self.iteration = int(sd["iteration"])
+        self._load_hyperparameters(sd)
 
 
 def compile_unavailable(device: torch.device | None) -> str | None:

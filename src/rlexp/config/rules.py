@@ -35,6 +35,12 @@ EVAL_METRICS = (
     "eval/episode_length",
     "eval/success_rate",
 )
+#: The hyperparameters hooks may change while a run trains, per algorithm (``kl_coeff``: GRPO with a
+#: reference policy, i.e. kl_coeff > 0 at the start). rlexp.algorithms uses the same lists.
+MUTABLE_HYPERPARAMETERS = {
+    "ppo": ("lr", "clip_epsilon", "entropy_coeff", "max_grad_norm", "critic_coeff"),
+    "grpo": ("lr", "clip_epsilon", "entropy_coeff", "max_grad_norm", "kl_coeff"),
+}
 MAX_ENVS = 65_536  # per process; far above what fits in memory for MuJoCo tasks here
 
 
@@ -173,7 +179,7 @@ FIELD_RULES: dict[str, Rule] = {
     "algorithm.epsilon": above(0.0, "; grpo only"),
     "algorithm.reset_every_rollout": Rule(FLAG.check, "true or false; grpo only"),
     "algorithm.truncate_at_first_done": Rule(FLAG.check, "true or false; grpo only"),
-    "algorithm.lr": above(0.0),
+    "algorithm.lr": at_least(0.0, " (0: the policy does not learn, a baseline)"),
     "algorithm.adam_eps": above(0.0),
     "algorithm.anneal_lr": FLAG,
     "algorithm.max_grad_norm": Rule(_num, "a finite number (<= 0: no clipping)"),
@@ -209,6 +215,12 @@ FIELD_RULES: dict[str, Rule] = {
         "step/trigger, interval_step >= 1, params as docs/events.md says",
     ),
     "events.eval": Rule(lambda v: isinstance(v, dict), "as events.train"),
+    # hooks
+    "hooks": Rule(
+        lambda v: isinstance(v, dict),
+        "hooks whose func is registered (or allowlisted): stop_at, stop_on_plateau, schedule, "
+        "median_stop or your own; params as docs/hooks.md says",
+    ),
     # logger
     "logger.tensorboard.enabled": FLAG,
     "logger.wandb.enabled": FLAG,

@@ -170,6 +170,14 @@ class EventsConfig:
 
 
 @dataclass
+class HookConfig:
+    """One trainer hook: a registered function or class and its parameters (docs/hooks.md)."""
+
+    func: str = MISSING  # registered name (stop_at, stop_on_plateau, schedule, median_stop, ...)
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
 class TensorBoardConfig:
     enabled: bool = False  # write TensorBoard event files under <run_dir>/tensorboard
 
@@ -216,6 +224,8 @@ class RootConfig:
     env: EnvConfig = MISSING
     events: EventsConfig = MISSING
     logger: LoggerConfig = MISSING
+    #: trainer hooks by name, fired in this order at each hook point (conf/hooks/, docs/hooks.md)
+    hooks: dict[str, Any] = field(default_factory=dict)  # name -> HookConfig (typed by validate)
 
 
 #: group -> (schema name, schema class); each group YAML lists ``<schema name>`` in its defaults.

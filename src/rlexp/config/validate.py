@@ -18,11 +18,12 @@ from rlexp.config.rules import (
     ACTIVATIONS,
     FIELD_RULES,
     MAX_NAME,
+    MUTABLE_HYPERPARAMETERS,
     available_cpus,
     get,
     is_safe_name,
 )
-from rlexp.config.schema import VARIANTS, GRPOConfig, RootConfig
+from rlexp.config.schema import VARIANTS, GRPOConfig, HookConfig, RootConfig
 
 _ABSENT = object()
 #: section -> variant name -> the group option that selects it.
@@ -44,8 +45,41 @@ def to_root_config(cfg: DictConfig | dict[str, Any]) -> RootConfig:
     config = OmegaConf.to_object(cfg)
     if not isinstance(config, RootConfig):
         raise ConfigError("the composed config does not use the rlexp_schema root schema")
+    config.hooks = typed_hooks(config.hooks)
     validate(config)
     return config
+
+
+def typed_hooks(hooks: Any) -> dict[str, HookConfig]:
+    """``hooks`` (name -> ``{func, params}``, as the command line's ``+hooks.x.func=...`` adds it)
+    as HookConfigs; a key other than func / params, or a missing func, names the hook."""
+    if not isinstance(hooks, dict):
+        raise ConfigError(f"hooks={hooks!r} must be a mapping of hook names to {{func, params}}")
+    out: dict[str, HookConfig] = {}
+    fields = [f.name for f in dataclasses.fields(HookConfig)]
+    for name, value in hooks.items():
+        where = f"hooks.{name}"
+        if isinstance(value, HookConfig):
+            value = dataclasses.asdict(value)
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}={value!r} must be {{func: <hook>, params: {{...}}}}")
+        for key in value:
+            if key not in fields:
+                close = difflib.get_close_matches(str(key), fields, n=1)
+                raise ConfigError(
+                    f"{where}.{key} is not a hook key (a hook has {fields})"
+                    + (f"; did you mean {where}.{close[0]}?" if close else "")
+                )
+        if not isinstance(value.get("func"), str) or not value["func"]:
+            raise ConfigError(
+                f"{where}.func is missing: name the hook's function, e.g. "
+                f"+{where}.func=stop_at +{where}.params.threshold=3000"
+            )
+        params = value.get("params") or {}
+        if not isinstance(params, dict):
+            raise ConfigError(f"{where}.params={params!r} must be a mapping of parameters")
+        out[str(name)] = HookConfig(func=value["func"], params=dict(params))
+    return out
 
 
 def structured_root(plain: dict[str, Any]) -> DictConfig:
@@ -206,6 +240,7 @@ def validate(config: RootConfig) -> None:
         )
     _check_render_mode(e.kwargs)
     _check_events(config)
+    _check_hooks(config)
 
 
 def _check_variants(config: RootConfig) -> None:
@@ -252,6 +287,43 @@ def _check_events(config: RootConfig) -> None:
                 check_event(ev, f"{where}.{name}")
             except (ValueError, KeyError, TypeError) as exc:
                 raise ConfigError(str(exc.args[0] if exc.args else exc)) from None
+
+
+def _check_hooks(config: RootConfig) -> None:
+    """Every hook names a registered function (or allowlisted path) and its parameters fit it."""
+    if not config.hooks:
+        return
+    from rlexp.hooks import check_hook
+
+    a = config.algorithm
+    mutable = [
+        n
+        for n in MUTABLE_HYPERPARAMETERS[a.name]
+        if n != "kl_coeff" or getattr(a, "kl_coeff", 0.0) > 0
+    ]
+    for name, hook in config.hooks.items():
+        where = f"hooks.{name}"
+        if not is_safe_name(name):
+            raise ConfigError(f"{where}: a hook name must be a safe name (letters, digits, _)")
+        try:
+            check_hook(hook.func, hook.params, where)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ConfigError(str(exc.args[0] if exc.args else exc)) from None
+        if hook.func != "schedule":
+            continue
+        target = hook.params.get("name")
+        if target not in mutable:
+            close = difflib.get_close_matches(str(target), mutable, n=1)
+            raise ConfigError(
+                f"{where}.params.name={target!r} is not a mutable hyperparameter of "
+                f"algorithm={a.name}; choose from {mutable}"
+                + (f"; did you mean {close[0]!r}?" if close else "")
+            )
+        if target == "lr" and a.anneal_lr:
+            raise ConfigError(
+                f"{where} schedules lr while algorithm.anneal_lr=true: that anneals the learning "
+                "rate twice; use one of them"
+            )
 
 
 _INTERPOLATION = re.compile(r"(\\*)\$\{")
