@@ -87,6 +87,15 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
     eval_env = None  # rank 0 alone evaluates; eval_every=0 or eval_episodes=0: no evaluation at all
     if e.num_eval_envs > 0 and dist.is_main and t.eval_every > 0 and t.eval_episodes > 0:
         eval_env = make_env(e, e.num_eval_envs, config.seed + EVAL_SEED_OFFSET)
+    elif config.events.eval and dist.is_main:
+        log.warning(
+            "events.eval (%s) never fire: evaluation is off (trainer.eval_every=%d, "
+            "trainer.eval_episodes=%d, env.num_eval_envs=%d; a JSON file's enable_eval: false)",
+            ", ".join(config.events.eval),
+            t.eval_every,
+            t.eval_episodes,
+            e.num_eval_envs,
+        )
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec.shape[-1]
     log.info("env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, act_dim)

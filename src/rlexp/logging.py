@@ -151,6 +151,8 @@ class MetricLogger:
         """Write to every backend. A backend whose write fails (a full disk) is reported once and
         tried again at the next step; training goes on, since checkpoints are what a run must not
         lose (a checkpoint that cannot be written stops the run with status ``failed``)."""
+        if not metrics:
+            return
         for backend in self.backends:
             name = type(backend).__name__
             try:

@@ -6,8 +6,6 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -33,6 +31,7 @@ from rlexp.events.transform import EventTransform
 from rlexp.hooks import HookManager, HookState
 from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
 from rlexp.logging import MetricLogger
+from rlexp.loop import base_env, crossed, one_torch_thread, parameter_digest
 from rlexp.policies.actor_critic import GaussianPolicy
 from rlexp.progress import Progress
 
@@ -41,44 +40,6 @@ log = logging.getLogger(__name__)
 
 class StopRequested(Exception):
     """Raised by ``train`` after it checkpointed at a safe point because ``request_stop`` was called."""
-
-
-def _base_env(env: EnvBase | None) -> EnvBase | None:
-    while env is not None and hasattr(env, "base_env"):
-        env = env.base_env
-    return env
-
-
-def parameter_digest(module: torch.nn.Module) -> str:
-    """sha256 of every parameter's bytes, in ``state_dict`` order."""
-    import hashlib
-
-    h = hashlib.sha256()
-    for _, p in sorted(module.named_parameters()):
-        h.update(p.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()[:16]
-
-
-@contextmanager
-def one_torch_thread() -> Iterator[None]:
-    """Env stepping runs the policy on a few observations at a time: more torch threads only slow it
-    down, and the cores belong to the physics (the native envs' thread pool). ``trainer.torch_threads``
-    is for the update; collection and evaluation run with one (PushCube x64, torch_threads=2: 7,960
-    -> 9,581 env-steps/s, docs/performance.md)."""
-    threads = torch.get_num_threads()
-    if threads == 1:
-        yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
-
-
-def crossed(before: int, after: int, every: int) -> bool:
-    """True when the step count went past a multiple of ``every`` (not only on exact equality)."""
-    return every > 0 and after // every > before // every
 
 
 class Trainer:
@@ -308,7 +269,7 @@ class Trainer:
 
         def on_reset(td: TensorDictBase) -> TensorDictBase:
             events.fire("reset", self._ctx(env, env_ids=np.arange(n)))
-            base = _base_env(env)
+            base = base_env(env)
             if events.has("reset") and hasattr(
                 base, "current_tensordict"
             ):  # objects may have moved
@@ -343,9 +304,7 @@ class Trainer:
         events.fire("trigger", self._ctx(env, metrics=metrics), signal="eval_end")
         self.event_manager.fire("trigger", self._ctx(metrics=metrics), signal="eval_end")
         self._hook("eval_end")
-        logged = self.hooks.take_logged()
-        if logged:
-            self.logger.log(logged, self.global_step)
+        self.logger.log(self.hooks.take_logged(), self.global_step)
         value = metrics.get(self.cfg.best_metric)
         if value is not None and value > self.best_metric:
             self.best_metric = value
@@ -373,7 +332,7 @@ class Trainer:
     def state_dict(self) -> dict[str, Any]:
         """Everything a bit-exact continuation needs (see docs/checkpoints.md)."""
         envs = {}  # the training envs mid-episode; eval rounds start from fresh resets
-        base = _base_env(self.env)
+        base = base_env(self.env)
         if base is not None and hasattr(base, "env_state"):
             envs["train"] = base.env_state()
         return {
@@ -411,7 +370,7 @@ class Trainer:
         if len(w.get("running_return", ())) == self._num_envs:
             self._ep_ret[:] = np.asarray(w["running_return"])
             self._ep_len[:] = np.asarray(w["running_length"])
-        base = _base_env(self.env)
+        base = base_env(self.env)
         # The checkpoint holds rank 0's envs; other ranks continue with fresh episodes.
         if self.dist.is_main and "train" in sd.get("envs", {}) and hasattr(base, "load_env_state"):
             base.load_env_state(sd["envs"]["train"])
@@ -488,28 +447,24 @@ class Trainer:
         same points of the loop): hyperparameters first, then a stop."""
         if not self.hooks:
             return
-        decisions = self.hooks.take_decisions()
-        if self.dist.enabled:
-            decisions = all_gather_object(decisions)[0]
-        for name, value in decisions.set.items():
-            self.algorithm.set_hyperparameter(name, value)
-            self._hparams_set[name] = value
+        decisions = self.hooks.apply(
+            self.algorithm, all_gather_object if self.dist.enabled else None
+        )
+        self._hparams_set.update(decisions.set)
         if decisions.stop is not None and self.stopped_early is None:
             self.stopped_early = decisions.stop
             log.info("[hooks] stopping early at step %d: %s", self.global_step, decisions.stop)
 
     def _hook_train_end(self, status: str) -> None:
-        """``train_end``; a hook failing here is logged, not raised over how the run ended."""
+        """``train_end``; after a failure or a stop, a hook failing here is logged, not raised over
+        how the run ended."""
         try:
             self._hook("train_end", status=status)
-            logged = self.hooks.take_logged()
-            if logged:
-                self.logger.log(logged, self.global_step)
+            self.logger.log(self.hooks.take_logged(), self.global_step)
         except Exception as exc:
-            if status != "finished" and status != "stopped_early":
-                log.error("[hooks] train_end failed: %s", exc)
-                return
-            raise
+            if status in ("finished", "stopped_early"):
+                raise
+            log.error("[hooks] train_end failed: %s", exc)
 
     def _save_best(self) -> None:
         path = save_checkpoint(self.ckpt_dir / "best.pt", self.state_dict())

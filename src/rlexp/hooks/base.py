@@ -144,8 +144,6 @@ class HookControl:
 
 def resolve_hook_func(name: str, where: str) -> Callable[..., Any]:
     """A registered name, or a dotted path inside the allowlist."""
-    from rlexp.hooks import builtin  # noqa: F401  (registers the built-in hooks)
-
     if name in HOOK_FUNCS:
         return HOOK_FUNCS[name]
     if "." in name:
@@ -245,8 +243,14 @@ class HookManager:
         logged, self.control.logged = self.control.logged, {}
         return logged
 
-    def take_decisions(self) -> Decisions:
+    def apply(self, algorithm: Any, gather: Callable[[Any], list[Any]] | None = None) -> Decisions:
+        """Take the decisions made since the last call and set their hyperparameters on
+        ``algorithm``; distributed (``gather``: all_gather_object), rank 0's decisions for all."""
         decisions, self.control.decisions = self.control.decisions, Decisions()
+        if gather is not None:
+            decisions = gather(decisions)[0]
+        for name, value in decisions.set.items():
+            algorithm.set_hyperparameter(name, value)
         return decisions
 
     def state_dict(self) -> dict[str, Any]:
