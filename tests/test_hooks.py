@@ -278,3 +278,25 @@ def test_the_trainer_holds_no_reference_in_the_hook_state():
     names = {f.name for f in dataclasses.fields(HookState)}
     assert "trainer" not in names and "algorithm" not in names and "policy" not in names
     assert torch  # (imported for the checkpoints above)
+
+
+@register_hook("log_action_std", points=("rollout_end",))
+def log_action_std(state, control, scale=1.0):
+    """docs/hooks.md's own example, verbatim."""
+    control.log("rollout/action_std", scale * float(state.batch["action"].std()))
+
+
+def test_the_docs_custom_hook_runs_and_its_params_are_checked(tmp_path):
+    trainer, config, run_dir = _trainer(
+        tmp_path,
+        ["trainer.total_frames=256", "trainer.eval_every=0", "trainer.save_every=0",
+         "logger.jsonl=true", "+hooks.astd.func=log_action_std", "+hooks.astd.params.scale=2"],
+    )  # fmt: skip
+    try:
+        trainer.train(config.trainer.total_frames)
+    finally:
+        trainer.close()
+    row = json.loads((run_dir / "metrics.jsonl").read_text().splitlines()[0])
+    assert row["rollout/action_std"] > 0
+    with pytest.raises(ConfigError, match="did you mean 'scale'"):
+        to_root_config(compose([*TINY, "+hooks.a.func=log_action_std", "+hooks.a.params.scal=2"]))
