@@ -232,7 +232,9 @@ class Trainer:
     def log_train(self, losses: dict[str, float]) -> None:
         """Log losses, episode statistics, per-term rewards and throughput."""
         iteration = self.algorithm.iteration
-        elapsed = self._timing["collect"] + self._timing["update"] + self._timing["eval"]
+        # Training throughput: an iteration that also evaluated is not slower at training (the
+        # evaluation's time is perf/eval_time, and the run's wall time counts both).
+        elapsed = self._timing["collect"] + self._timing["update"]
         sps = self.cfg.frames_per_batch * self.dist.world_size / max(elapsed, 1e-9)
         metrics = dict(losses)
         metrics["perf/sps"] = sps
