@@ -468,3 +468,168 @@ def test_a_bad_threshold_is_one_line_and_exit_2(tmp_path, value):
     assert len(proc.stderr.splitlines()) == 1, proc.stderr
     assert proc.stderr.startswith("rlexp report: argument --threshold")
     assert "is not VALUE or METRIC=VALUE" in proc.stderr
+
+
+# Jobs a hook stopped early (status stopped_early): results, not failures; the budget they saved.
+
+MEDIAN_REASON = (
+    "median stopping rule: eval/episode_return=12 at step {step} is below the median 150 of 2 "
+    "sibling jobs (hooks.median_stop)"
+)
+
+
+def stopped_early(step: int) -> dict:
+    return {
+        "state": "stopped_early",
+        "global_step": step,
+        "final_eval": {"eval/episode_return": 12.0},
+        "reason": MEDIAN_REASON.format(step=step),
+    }
+
+
+def budget_config(job_dir: Path, where: str = "config.yaml", **trainer) -> None:
+    """The trainer part of the config a job dir holds (rlexp's ``config.yaml`` or Hydra's)."""
+    cfg = {"seed": 0, "trainer": {"iterations": None, "frames_per_batch": 1024, **trainer}}
+    (job_dir / where).write_text(OmegaConf.to_yaml(OmegaConf.create(cfg)))
+
+
+def curve(*values: float, every: int = 1024) -> str:
+    return rows(
+        *({"step": every * (i + 1), "eval/episode_return": v} for i, v in enumerate(values))
+    )
+
+
+@pytest.fixture
+def median_sweep(tmp_path) -> Path:
+    """lr=1 seeds 0,1 finished (budget 8192); lr=0 seed 0 stopped at 2048 and seed 1 at 4096;
+    lr=2 seed 0 failed, seed 1 stopped early (its budget: iterations 4 x 1024 in .hydra/)."""
+    multirun_yaml(tmp_path, ["algorithm.lr=1,0,2", "seed=0,1"])
+    specs = [
+        (["algorithm.lr=1", "seed=0"], finished(8192), curve(50, 150, 300, 400, every=2048)),
+        (["algorithm.lr=1", "seed=1"], finished(8192), curve(40, 160, 310, 420, every=2048)),
+        (["algorithm.lr=0", "seed=0"], stopped_early(2048), curve(10, 12)),
+        (["algorithm.lr=0", "seed=1"], stopped_early(4096), curve(11, 14, 13, 16)),
+        (["algorithm.lr=2", "seed=0"], {"state": "failed", "reason": "NaN loss"}, curve(5)),
+        (["algorithm.lr=2", "seed=1"], stopped_early(2048), curve(20, 30)),
+    ]
+    for num, (overrides, status, metrics) in enumerate(specs):
+        d = job(tmp_path, num, overrides, status, metrics)
+        if num == 5:
+            budget_config(d, ".hydra/config.yaml", iterations=4, total_frames=10**6)
+        else:
+            budget_config(d, total_frames=8192)
+    return tmp_path
+
+
+def test_jobs_stopped_early_are_results_listed_apart_with_the_budget_they_saved(median_sweep):
+    import csv
+
+    from rlexp.report import budget_saved, find_jobs, report
+
+    jobs = find_jobs(median_sweep)
+    assert [j.budget for j in jobs] == [8192] * 5 + [4096]
+    assert [j.saved for j in jobs] == [0, 0, 8192 - 2048, 8192 - 4096, 0, 4096 - 2048]
+    saved = budget_saved(jobs)
+    assert (saved.saved, saved.total, saved.n_unknown) == (6144 + 4096 + 2048, 5 * 8192 + 4096, 0)
+
+    md = report(median_sweep, plot=True)
+    assert (
+        "6 jobs expected (multirun.yaml: the grid of the sweep's overrides), 6 started, "
+        "2 finished, 3 stopped early, 1 failed or unfinished, 0 never started."
+    ) in md
+    # Their value at the stop is their score; the configuration row counts them.
+    assert "| unfinished | stopped early |" in md
+    assert "| `algorithm.lr=1` | 2 | 410.00 ± 14.14 |" in md and md.count("| 0 | 0 |\n") == 1
+    assert "| `algorithm.lr=0` | 2 | 14.00 ± 2.83 |" in md and "| 0 | 2 |\n" in md
+    assert "| `algorithm.lr=2` | 1 | 30.00 ± 0.00 |" in md and "| 1 | 1 |\n" in md
+    assert "## Stopped early (3)" in md
+    reason = MEDIAN_REASON.format(step=2048)
+    assert f"| `2` | `algorithm.lr=0 seed=0` | 2048 | 8192 | 12.00 | {reason} |" in md
+    assert "| `3` | `algorithm.lr=0 seed=1` | 4096 | 8192 | 16.00 |" in md
+    assert "| `5` | `algorithm.lr=2 seed=1` | 2048 | 4096 | 30.00 |" in md
+    assert "Budget saved: 12288 env steps, 27.3% of the sweep's 45056" in md
+    # The failed job is apart, and the stopped ones are not among the failures.
+    assert "## Unfinished or failed jobs (1)" in md and "| `4` | `algorithm.lr=2 seed=0` |" in md
+    failures = md.split("## Unfinished or failed jobs")[1]
+    assert "stopped_early" not in failures and "median stopping rule" not in failures
+    assert md.index("## Stopped early") < md.index("## Unfinished or failed jobs")
+    with open(median_sweep / "report.csv") as f:
+        table = {r["configuration"]: r for r in csv.DictReader(f)}
+    lr0 = table["algorithm.lr=0"]
+    assert (lr0["n_seeds"], lr0["seeds"], lr0["n_unfinished"]) == ("2", "0 1", "0")
+    assert (lr0["n_stopped_early"], lr0["seeds_stopped_early"]) == ("2", "0 1")
+    assert float(lr0["steps"]) == 3072  # the steps they reached
+    lr2 = table["algorithm.lr=2"]
+    assert (lr2["n_seeds"], lr2["n_unfinished"], lr2["n_stopped_early"]) == ("1", "1", "1")
+    assert (median_sweep / "curves.png").stat().st_size > 0
+
+
+def test_the_budget_of_a_job_stopped_early_without_a_readable_config_is_not_counted(tmp_path):
+    from rlexp.report import report
+
+    multirun_yaml(tmp_path, ["seed=0,1,2"])
+    budget_config(job(tmp_path, 0, ["seed=0"], finished(8192), curve(100)), total_frames=8192)
+    job(tmp_path, 1, ["seed=1"], stopped_early(2048), curve(12, 12))  # no config at all
+    d = job(tmp_path, 2, ["seed=2"], stopped_early(1024), curve(12))
+    (d / "config.yaml").write_text("trainer: [unclosed\n")
+    md = report(tmp_path, plot=False)
+    assert "| `1` | `seed=1` | 2048 | n/a | 12.00 |" in md
+    assert (
+        "Budget saved: 0 env steps, 0.0% of the sweep's 8192 (2 job dir(s) without a readable "
+        "budget not counted)"
+    ) in md
+    assert "2 job(s) stopped early have no readable budget (config.yaml): not counted." in md
+    assert "- `2/config.yaml`: not readable" in md
+
+
+def test_a_job_stopped_early_before_any_eval_counts_as_stopped_not_as_a_seed(tmp_path):
+    from rlexp.report import find_jobs, report, summarize
+
+    multirun_yaml(tmp_path, ["seed=0,1"])
+    job(tmp_path, 0, ["seed=0"], finished(), curve(100))
+    stopped = {**stopped_early(256), "reason": "train/loss=0.1 <= 0.5 at step 256 (hooks.stop)"}
+    job(tmp_path, 1, ["seed=1"], stopped, "")  # stopped on a training metric, no eval logged
+    (s,) = summarize(find_jobs(tmp_path))
+    assert (len(s.finals), s.n_unfinished, s.n_stopped_early) == (1, 0, 1)
+    md = report(tmp_path, plot=False)
+    assert (
+        "| `1` | `seed=1` | 256 | n/a | n/a | train/loss=0.1 <= 0.5 at step 256 (hooks.stop) |"
+        in md
+    )
+    assert "## Unfinished or failed jobs (0)" in md
+
+
+def test_a_sweep_without_jobs_stopped_early_reads_as_before(tmp_path):
+    from rlexp.report import report
+
+    multirun_yaml(tmp_path, ["seed=0,1"])
+    for num in (0, 1):
+        budget_config(job(tmp_path, num, [f"seed={num}"], finished(), curve(5)), total_frames=512)
+    md = report(tmp_path, plot=False)
+    assert "stopped early" not in md.lower() and "Budget saved" not in md
+    assert (
+        "| configuration | seeds | final mean ± std | IQM [95% CI] | steps | time (s) | unfinished |\n"
+        in md
+    )
+
+
+def test_the_sweep_summary_counts_jobs_stopped_early_as_done(median_sweep):
+    from rlexp.launch.sweep import summarize_sweep
+
+    config = OmegaConf.load(median_sweep / "multirun.yaml")
+    line, ok = summarize_sweep(median_sweep, config)
+    assert not ok  # job 4 failed
+    assert line.startswith(
+        f"sweep {median_sweep}: 5 of 6 jobs done: 2 finished, 3 stopped early: "
+        f"{median_sweep / '2'} ({MEDIAN_REASON.format(step=2048)}), {median_sweep / '3'} ("
+    )
+    assert "; budget saved: 12288 env steps, 27.3% of the sweep's 45056; " in line
+    assert line.endswith(
+        f"; 1 failed: {median_sweep / '4'} (NaN loss) (rlexp report {median_sweep})"
+    )
+
+    # Had job 4 finished, every job would be done: the sweep exits 0.
+    (median_sweep / "4/status.json").write_text(json.dumps(finished(8192)))
+    line, ok = summarize_sweep(median_sweep, config)
+    assert ok and line.startswith(f"sweep {median_sweep}: 6 of 6 jobs done: 3 finished, 3 stopped")
+    assert line.endswith("budget saved: 12288 env steps, 27.3% of the sweep's 45056")

@@ -4,13 +4,16 @@ A configuration is a job's overrides (``.hydra/overrides.yaml``) less the seed; 
 jobs that share it. For each configuration: the final eval return over seeds (mean +- std, and the
 interquartile mean with a 95% bootstrap confidence interval, as rliable recommends for few seeds),
 steps and training time; with ``--threshold``, how many seeds reached a level of a metric and the
-median and IQM of the steps they took (once, and IN_A_ROW logged values in a row). The jobs the
-sweep was to run come from its ``multirun.yaml`` (the basic sweeper's grid, Optuna's
-``n_trials``): jobs whose ``status.json`` is missing or not ``finished``, and jobs that never
-started, are listed apart, never silently dropped. A file of the wrong shape (a torn
-``metrics.jsonl`` line, a ``status.json`` that is not an object) is read as far as it goes and
-named in the report. Writes ``report.md``, ``report.csv`` and ``curves.png`` into the sweep dir; a
-sweep dir that cannot be written gets one line saying so, and the report is still returned.
+median and IQM of the steps they took (once, and IN_A_ROW logged values in a row). Jobs a hook
+ended early (``stopped_early``, e.g. the median stopping rule) are results: their value at the stop
+enters the statistics, their configuration counts them, and they are listed apart with the budget
+they saved. The jobs the sweep was to run come from its ``multirun.yaml`` (the basic sweeper's
+grid, Optuna's ``n_trials``): jobs whose ``status.json`` is missing or neither ``finished`` nor
+``stopped_early``, and jobs that never started, are listed apart, never silently dropped. A file
+of the wrong shape (a torn ``metrics.jsonl`` line, a ``status.json`` that is not an object) is
+read as far as it goes and named in the report. Writes ``report.md``, ``report.csv`` and
+``curves.png`` into the sweep dir; a sweep dir that cannot be written gets one line saying so, and
+the report is still returned.
 """
 
 from __future__ import annotations
@@ -43,6 +46,8 @@ UNEXPANDED = "the sweep's overrides could not be expanded"
 JOB_NUM_SUBDIR = "${hydra.job.num}"
 #: Consecutive logged values at or above a threshold that count as holding it, not a lucky eval.
 IN_A_ROW = 3
+#: The state of a job a hook ended before its budget (``rlexp.hooks``): a result, not a failure.
+STOPPED_EARLY = "stopped_early"
 
 
 @dataclass
@@ -52,9 +57,11 @@ class Job:
     path: Path
     overrides: list[str]
     seed: str | None
-    state: str  # finished | running | stopped | interrupted | failed | missing | unreadable
+    # finished | stopped_early | running | stopped | interrupted | failed | missing | unreadable
+    state: str
     global_step: int
     reason: str = ""
+    budget: int | None = None  # env steps the job was to train (its config), None: not known
     curve: list[tuple[int, float]] = field(default_factory=list)  # (step, metric), one per step
     time_s: float = 0.0
     curves: dict[str, list[tuple[int, float]]] = field(default_factory=dict)  # every metric read
@@ -68,6 +75,23 @@ class Job:
     @property
     def finished(self) -> bool:
         return self.state == "finished" and self.final is not None
+
+    @property
+    def stopped_early(self) -> bool:
+        """A hook ended it before its budget: a result (its final eval is the value at the stop)."""
+        return self.state == STOPPED_EARLY
+
+    @property
+    def result(self) -> bool:
+        """It enters the statistics: finished or stopped early, with a final value of the metric."""
+        return self.state in ("finished", STOPPED_EARLY) and self.final is not None
+
+    @property
+    def saved(self) -> int | None:
+        """Env steps a stop left of the budget (0 for other jobs; None: the budget is not known)."""
+        if not self.stopped_early:
+            return 0
+        return max(0, self.budget - self.global_step) if self.budget is not None else None
 
     @property
     def why(self) -> str:
@@ -108,7 +132,8 @@ def parse_threshold(text: str) -> tuple[str | None, float]:
 
 @dataclass
 class ThresholdStats:
-    """Steps to a threshold for each finished seed of a configuration (None: never reached)."""
+    """Steps to a threshold for each seed of a configuration with a result (finished or stopped
+    early; None: never reached)."""
 
     threshold: Threshold
     first: list[int | None]  # the first logged value at or above it
@@ -137,7 +162,13 @@ class ConfigStats:
 
     @property
     def n_unfinished(self) -> int:
-        return sum(not j.finished for j in self.jobs)
+        """Jobs out of the statistics: failed, killed, or finished without the metric."""
+        return sum(not j.result and not j.stopped_early for j in self.jobs)
+
+    @property
+    def n_stopped_early(self) -> int:
+        """Jobs a hook stopped (those with the metric are among the seeds, at their value then)."""
+        return sum(j.stopped_early for j in self.jobs)
 
 
 @dataclass(frozen=True)
@@ -175,6 +206,39 @@ class Sweep:
         """The job dirs of this sweep (all of them when the plan is unknown)."""
         extra = {id(j) for j in self.extra}
         return [j for j in self.jobs if id(j) not in extra]
+
+
+@dataclass(frozen=True)
+class BudgetSaved:
+    """Env steps that early stops left untrained, against the budget of every job dir."""
+
+    saved: int  # sum over stopped-early jobs of budget - steps done
+    total: int  # sum of the budgets of the job dirs whose budget is known
+    n_unknown: int  # job dirs whose budget is not known (no readable config): in neither sum
+
+    @property
+    def share(self) -> float:
+        return self.saved / self.total if self.total else math.nan
+
+    def describe(self) -> str:
+        """``49152 env steps, 37.5% of the sweep's 131072``, and what could not be counted."""
+        text = f"{self.saved} env steps, {_fmt(100 * self.share, 1)}% of the sweep's {self.total}"
+        if self.n_unknown:
+            text += f" ({self.n_unknown} job dir(s) without a readable budget not counted)"
+        return text
+
+
+def budget_saved(jobs: Iterable[Job]) -> BudgetSaved:
+    """What early stops saved: over stopped-early jobs, their budget less the steps they reached;
+    as a share of the summed budget of ``jobs`` (every job dir of the sweep)."""
+    saved = total = unknown = 0
+    for job in jobs:
+        if job.budget is None:
+            unknown += 1
+            continue
+        total += job.budget
+        saved += job.saved or 0
+    return BudgetSaved(saved, total, unknown)
 
 
 def _split(override: str) -> tuple[str, str]:
@@ -334,6 +398,7 @@ def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = (
         step = curve[-1][0] if curve else 0
     reason = status.get("reason") or ""
     return Job(
+        budget=read_budget(job_dir, problems),
         path=job_dir,
         overrides=overrides,
         seed=seed,
@@ -345,6 +410,39 @@ def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = (
         curves=curves,
         problems=problems,
     )
+
+
+def _budget_of(cfg: Any) -> int | None:
+    """``trainer.total_frames``, or ``trainer.iterations`` x ``frames_per_batch`` when set (as
+    ``rlexp.config.validate.total_frames`` for one process), from a plain config mapping."""
+    trainer = cfg.get("trainer") if isinstance(cfg, dict) else None
+    if not isinstance(trainer, dict):
+        return None
+    if trainer.get("iterations") is not None:
+        iterations, batch = _step(trainer.get("iterations")), _step(trainer.get("frames_per_batch"))
+        return iterations * batch if iterations is not None and batch is not None else None
+    return _step(trainer.get("total_frames"))
+
+
+def read_budget(job_dir: Path, problems: list[str]) -> int | None:
+    """The env steps a job was to train, from its ``config.yaml`` (the resolved config rlexp
+    writes) or else Hydra's ``.hydra/config.yaml``; None when neither says (a job that ended before
+    training writes neither)."""
+    import yaml
+
+    for name in ("config.yaml", ".hydra/config.yaml"):
+        path = job_dir / name
+        try:
+            cfg = yaml.load(_read_text(path), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+        except FileNotFoundError:
+            continue
+        except (OSError, yaml.YAMLError) as exc:
+            problems.append(f"{name}: not readable ({_first_line(exc)})")
+            continue
+        budget = _budget_of(cfg)
+        if budget is not None:
+            return budget
+    return None
 
 
 def find_jobs(
@@ -571,15 +669,15 @@ def threshold_stats(jobs: list[Job], threshold: Threshold) -> ThresholdStats:
 
 
 def summarize(jobs: list[Job], threshold: Threshold | None = None) -> list[ConfigStats]:
-    """Group jobs by configuration and compute the statistics over finished seeds (and their steps
-    to ``threshold``)."""
+    """Group jobs by configuration and compute the statistics over its results, finished and stopped
+    early seeds alike (and their steps to ``threshold``)."""
     common = set(common_overrides(jobs))
     groups: dict[tuple[str, ...], list[Job]] = {}
     for job in jobs:
         groups.setdefault(config_key(job), []).append(job)
     stats = []
     for key, members in groups.items():
-        done = [j for j in members if j.finished]
+        done = [j for j in members if j.result]
         finals = np.array([j.final for j in done], dtype=float)
         label = " ".join(o for o in key if o not in common) or "(all jobs)"
         nan2 = (math.nan, math.nan)
@@ -626,6 +724,8 @@ CSV_FIELDS = [
     "steps",
     "time_s",
     "n_unfinished",
+    "n_stopped_early",  # jobs a hook stopped; those with the metric are among n_seeds
+    "seeds_stopped_early",
 ]
 _ROW = f"_{IN_A_ROW}_in_a_row"
 #: Columns added after CSV_FIELDS when the report has a threshold (``n_seeds`` is the n of k/n).
@@ -669,7 +769,7 @@ def to_csv(stats: list[ConfigStats]) -> str:
             {
                 "configuration": s.label,
                 "n_seeds": len(s.finals),
-                "seeds": " ".join(str(j.seed) for j in s.jobs if j.finished),
+                "seeds": " ".join(str(j.seed) for j in s.jobs if j.result),
                 "final_mean": s.mean,
                 "final_std": s.std,
                 "iqm": s.iqm,
@@ -680,6 +780,8 @@ def to_csv(stats: list[ConfigStats]) -> str:
                 "steps": s.steps,
                 "time_s": s.time_s,
                 "n_unfinished": s.n_unfinished,
+                "n_stopped_early": s.n_stopped_early,
+                "seeds_stopped_early": " ".join(str(j.seed) for j in s.jobs if j.stopped_early),
                 **(_threshold_row(s.threshold) if s.threshold is not None else {}),
             }
         )
@@ -690,16 +792,18 @@ def _counts(sweep: Sweep) -> str:
     """The first line of the report: how many jobs were expected, started, finished, failed."""
     jobs, plan = sweep.jobs, sweep.plan
     n_done = sum(j.finished for j in jobs)
-    n_bad = len(jobs) - n_done
+    n_early = sum(j.stopped_early for j in jobs)
+    n_bad = len(jobs) - n_done - n_early
+    done = f"{n_done} finished, " + (f"{n_early} stopped early, " if n_early else "")
     if plan.jobs is None:
         text = (
             f"{len(jobs)} jobs (how many the sweep was to run is not known: {plan.source}), "
-            f"{n_done} finished, {n_bad} failed or unfinished."
+            f"{done}{n_bad} failed or unfinished."
         )
     else:
         text = (
             f"{len(plan.jobs)} jobs expected (multirun.yaml: {plan.source}), "
-            f"{len(jobs) - len(sweep.extra)} started, {n_done} finished, "
+            f"{len(jobs) - len(sweep.extra)} started, {done}"
             f"{n_bad} failed or unfinished, {len(sweep.never_started)} never started."
         )
     if sweep.extra:
@@ -711,15 +815,23 @@ def _counts(sweep: Sweep) -> str:
 
 
 def to_markdown(sweep_dir: Path, sweep: Sweep, stats: list[ConfigStats], metric: str) -> str:
-    """The human-readable report: configurations, failed or unfinished jobs, jobs that never
-    started, and the files that could only be read in part."""
+    """The human-readable report: configurations, jobs stopped early and the budget they saved,
+    failed or unfinished jobs, jobs that never started, and the files that could only be read in
+    part."""
     jobs = sweep.jobs
+    early = [j for j in jobs if j.stopped_early]
+    score = (
+        f"the last `{metric}` of each finished job, and of each job stopped early (its value at "
+        "the stop)"
+        if early
+        else f"the last `{metric}` of each finished job"
+    )
     lines = [
         f"# Sweep report: `{sweep_dir}`",
         "",
         _counts(sweep),
         "",
-        f"{len(stats)} configuration(s). Score: the last `{metric}` of each finished job. IQM: "
+        f"{len(stats)} configuration(s). Score: {score}. IQM: "
         "interquartile mean; CI: 95% percentile bootstrap over seeds. Time: seconds inside the "
         "training loop (collect + update + eval).",
         "",
@@ -727,21 +839,25 @@ def to_markdown(sweep_dir: Path, sweep: Sweep, stats: list[ConfigStats], metric:
     common = common_overrides(jobs)
     if common:
         lines += ["Shared overrides: `" + " ".join(common) + "`", ""]
+    # The "stopped early" column only in sweeps that have such jobs: others read as they always did.
     lines += [
-        "| configuration | seeds | final mean ± std | IQM [95% CI] | steps | time (s) | unfinished |",
-        "|---|---|---|---|---|---|---|",
+        "| configuration | seeds | final mean ± std | IQM [95% CI] | steps | time (s) | unfinished |"
+        + (" stopped early |" if early else ""),
+        "|---|---|---|---|---|---|---|" + ("---|" if early else ""),
     ]
     ranked = sorted(stats, key=lambda s: -s.iqm if not math.isnan(s.iqm) else math.inf)
     for s in ranked:
         lines.append(
             f"| `{s.label}` | {len(s.finals)} | {_fmt(s.mean)} ± {_fmt(s.std)} | {_fmt(s.iqm)} "
             f"[{_fmt(s.iqm_ci[0])}, {_fmt(s.iqm_ci[1])}] | {_fmt(s.steps, 0)} | {_fmt(s.time_s, 1)} "
-            f"| {s.n_unfinished} |"
+            f"| {s.n_unfinished} |" + (f" {s.n_stopped_early} |" if early else "")
         )
     with_threshold = [s for s in ranked if s.threshold is not None]
     if with_threshold:
         lines += ["", *threshold_markdown(with_threshold)]
-    bad = [j for j in jobs if not j.finished]
+    if early:
+        lines += ["", *stopped_early_markdown(sweep_dir, jobs, metric)]
+    bad = [j for j in jobs if not j.result and not j.stopped_early]
     lines += ["", f"## Unfinished or failed jobs ({len(bad)})", ""]
     if bad:
         lines += ["| job | overrides | state | step | reason |", "|---|---|---|---|---|"]
@@ -775,18 +891,53 @@ def to_markdown(sweep_dir: Path, sweep: Sweep, stats: list[ConfigStats], metric:
     return "\n".join(lines) + "\n"
 
 
+def stopped_early_markdown(sweep_dir: Path, jobs: list[Job], metric: str) -> list[str]:
+    """The jobs a hook stopped (dir, step reached, budget, value at the stop, reason) and the
+    budget they saved."""
+    early = [j for j in jobs if j.stopped_early]
+    saved = budget_saved(jobs)
+    lines = [
+        f"## Stopped early ({len(early)})",
+        "",
+        "Ended by a hook (`hooks.*`, e.g. the median stopping rule) before their budget: results, "
+        f"not failures. Their last `{metric}` (the value at the stop) is among the scores above.",
+        "",
+        f"| job | overrides | step | budget | final `{metric}` | reason |",
+        "|---|---|---|---|---|---|",
+    ]
+    for j in early:
+        budget = str(j.budget) if j.budget is not None else "n/a"
+        final = _fmt(j.final) if j.final is not None else "n/a"
+        lines.append(
+            f"| `{j.path.relative_to(sweep_dir)}` | `{' '.join(j.overrides)}` | {j.global_step} "
+            f"| {budget} | {final} | {_cell(j.why)} |"
+        )
+    lines += [
+        "",
+        f"Budget saved: {saved.describe()} (the summed budgets of its job dirs): over the jobs "
+        "stopped early, their budget less the steps they reached.",
+    ]
+    unknown = [j for j in early if j.budget is None]
+    if unknown:
+        lines.append(
+            f"{len(unknown)} job(s) stopped early have no readable budget (config.yaml): "
+            "not counted."
+        )
+    return lines
+
+
 def threshold_markdown(stats: list[ConfigStats]) -> list[str]:
-    """The steps-to-threshold section: per configuration, how many finished seeds reached the
+    """The steps-to-threshold section: per configuration, how many seeds with a result reached the
     threshold (k/n) and the median and IQM of their steps to it, once and IN_A_ROW in a row."""
     t = stats[0].threshold.threshold
     lines = [
         f"## Steps to threshold: `{t.metric}` >= {t.value:.15g}",
         "",
-        f"Per finished seed, in step order of its logged `{t.metric}` values: **first**, the "
-        f"step of the first value at or above {t.value:.15g}; **{IN_A_ROW} in a row**, the step of "
-        f"the first of the first {IN_A_ROW} consecutive values at or above it. Reached k/n: k of "
-        "the n finished seeds reached it; median and IQM are over those k only (n/a when none "
-        "did).",
+        f"Per finished (or stopped early) seed, in step order of its logged `{t.metric}` values: "
+        f"**first**, the step of the first value at or above {t.value:.15g}; **{IN_A_ROW} in a "
+        f"row**, the step of the first of the first {IN_A_ROW} consecutive values at or above it. "
+        "Reached k/n: k of the n seeds reached it; median and IQM are over those k only (n/a when "
+        "none did).",
         "",
         f"| configuration | reached | median step | IQM step | reached ({IN_A_ROW} in a row) "
         f"| median step ({IN_A_ROW} in a row) | IQM step ({IN_A_ROW} in a row) |",
@@ -813,9 +964,11 @@ def plot_curves(
 
     fig, ax = plt.subplots(figsize=(8, 5))
     for s in stats:
-        curves = [j.curve for j in s.jobs if j.finished and j.curve]
+        # A seed stopped early ends its curve at the stop: past it, the band is over the others.
+        curves = [j.curve for j in s.jobs if j.result and j.curve]
         if not curves:
             continue
+        early = sum(j.stopped_early for j in s.jobs if j.result and j.curve)
         steps = np.array(sorted({step for c in curves for step, _ in c}), dtype=float)
         # Seeds evaluate at the same steps unless configs differ; interpolate inside each seed's range.
         ys = np.full((len(curves), len(steps)), np.nan)
@@ -829,7 +982,8 @@ def plot_curves(
             warnings.simplefilter("ignore", RuntimeWarning)
             std = np.nanstd(ys, axis=0, ddof=1) if len(curves) > 1 else np.zeros_like(mean)
         half = np.where(n > 1, student_t.ppf(0.975, np.maximum(n - 1, 1)) * std / np.sqrt(n), 0.0)
-        (line,) = ax.plot(steps, mean, label=f"{s.label} (n={len(curves)})")
+        stopped = f", {early} stopped early" if early else ""
+        (line,) = ax.plot(steps, mean, label=f"{s.label} (n={len(curves)}{stopped})")
         ax.fill_between(steps, mean - half, mean + half, alpha=0.2, color=line.get_color())
     if threshold is not None:
         ax.axhline(

@@ -1,18 +1,22 @@
-"""The end of a sweep: which jobs finished, which failed and why, and the sweep's exit code.
+"""The end of a sweep: which jobs finished or stopped early, which failed and why, and the sweep's
+exit code.
 
 A Hydra callback, registered in ``conf/config.yaml`` (``hydra.callbacks.rlexp_sweep``). A sweep job
 that fails records ``failed`` and its reason in its own ``status.json`` and returns, so the launcher
 goes on with the other jobs (``rlexp.app._task``). When the sweeper is done, ``on_multirun_end``
 reads the job dirs against the jobs the sweep was to run (``rlexp.report``: the basic sweeper's
 grid, Optuna's ``n_trials``), logs one line, and exits with :data:`EXIT_JOBS_FAILED` when a job
-failed or never started. It runs in the process that launched the sweep (basic, joblib, submitit
-launchers alike). In a single run (no ``-m``) Hydra instantiates it too; it does nothing there.
+failed or never started. A job a hook ended early (``stopped_early``, e.g. the median stopping
+rule) is a result, not a failure: the line counts it as done, with its reason and the budget
+saved. It runs in the process that launched the sweep (basic, joblib, submitit launchers alike).
+In a single run (no ``-m``) Hydra instantiates it too; it does nothing there.
 """
 
 from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,9 +25,11 @@ from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger(__name__)
 
-#: The exit code of ``python train.py -m ...`` when a job failed or never started (0: all finished).
+#: The exit code of ``python train.py -m ...`` when a job failed or never started (0: every job
+#: finished or was stopped early by a hook).
 EXIT_JOBS_FAILED = 1
-#: Failed jobs named in the summary line; the rest are counted (``rlexp report`` lists them all).
+#: Failed (or stopped early) jobs named in the summary line; the rest are counted (``rlexp report``
+#: lists them all).
 MAX_NAMED = 10
 
 
@@ -35,25 +41,37 @@ def _config_loader() -> Any:
     return gh.config_loader() if gh.is_initialized() else None
 
 
+def _named(items: Sequence[Any], name: Callable[[Any], str]) -> str:
+    """The first MAX_NAMED items by ``name(item)``, and how many more there are."""
+    text = ", ".join(name(x) for x in items[:MAX_NAMED])
+    return text + (f" and {len(items) - MAX_NAMED} more" if len(items) > MAX_NAMED else "")
+
+
 def summarize_sweep(sweep_dir: Path, config: DictConfig) -> tuple[str, bool]:
-    """(one line on how the sweep's jobs ended, whether they all finished)."""
-    from rlexp.report import plan_from_config, read_sweep
+    """(one line on how the sweep's jobs ended, whether none failed or went missing)."""
+    from rlexp.report import budget_saved, plan_from_config, read_sweep
 
     plan = plan_from_config(config, _config_loader())
     sweep = read_sweep(sweep_dir, metric=None, plan=plan)
     jobs = sweep.planned
-    failed = [j for j in jobs if j.state != "finished"]
+    early = [j for j in jobs if j.stopped_early]
+    failed = [j for j in jobs if j.state != "finished" and not j.stopped_early]
     total = len(plan.jobs) if plan.jobs is not None else len(jobs)
-    line = f"sweep {sweep_dir}: {len(jobs) - len(failed)} of {total} jobs finished"
+    n_finished = len(jobs) - len(failed) - len(early)
+    if early:  # a hook's stop is a result: counted as done, with why and what it saved
+        line = (
+            f"sweep {sweep_dir}: {n_finished + len(early)} of {total} jobs done: {n_finished} "
+            f"finished, {len(early)} stopped early: "
+            f"{_named(early, lambda j: f'{j.path} ({j.why})')}; "
+            f"budget saved: {budget_saved(jobs).describe()}"
+        )
+    else:  # the line sweeps without hooks always had
+        line = f"sweep {sweep_dir}: {n_finished} of {total} jobs finished"
     if failed:
-        named = ", ".join(f"{j.path} ({j.why})" for j in failed[:MAX_NAMED])
-        more = f" and {len(failed) - MAX_NAMED} more" if len(failed) > MAX_NAMED else ""
-        line += f"; {len(failed)} failed: {named}{more}"
+        line += f"; {len(failed)} failed: {_named(failed, lambda j: f'{j.path} ({j.why})')}"
     never = sweep.never_started
     if never:
-        named = ", ".join(f"#{e.num} ({e.label})" for e in never[:MAX_NAMED])
-        more = f" and {len(never) - MAX_NAMED} more" if len(never) > MAX_NAMED else ""
-        line += f"; {len(never)} never started: {named}{more}"
+        line += f"; {len(never)} never started: {_named(never, lambda e: f'#{e.num} ({e.label})')}"
     ok = not failed and not never
     if not ok:
         line += f" (rlexp report {sweep_dir})"
@@ -100,7 +118,8 @@ class SweepSummary(Callback):
             log.warning("could not write multirun.yaml: %s", exc)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        """Log how the jobs ended; exit :data:`EXIT_JOBS_FAILED` if any failed or never started."""
+        """Log how the jobs ended; exit :data:`EXIT_JOBS_FAILED` if any failed or never started
+        (jobs stopped early by a hook are results: they don't)."""
         line, ok = summarize_sweep(Path(str(config.hydra.sweep.dir)), config)
         if ok:
             log.info("%s", line)
