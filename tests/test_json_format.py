@@ -703,8 +703,8 @@ BROKEN = [
     (
         "lr-range",
         "train",
-        ("set", "algorithm.cfg.learning_rate", 0),
-        "algorithm.cfg.learning_rate=0 is out of range: must be > 0",
+        ("set", "algorithm.cfg.learning_rate", -0.001),  # 0 is allowed: a baseline that does not learn
+        "algorithm.cfg.learning_rate=-0.001 is out of range: must be >= 0",
     ),
     (
         "batch-too-big",

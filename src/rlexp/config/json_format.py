@@ -727,7 +727,7 @@ def _map_algorithm(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
             'none; use policy "actor_critic" (or algorithm "grpo")'
         )
     ranges: dict[str, tuple[str, float | None, float | None]] = {  # kind, low, high (low None: > 0)
-        "learning_rate": ("number", None, None),
+        "learning_rate": ("number", 0.0, None),  # 0: a policy that does not learn (a baseline)
         "n_epochs": ("int", 1, None),
         "batch_size": ("int", 1, frames),
         "gamma": ("number", 0.0, 1.0),
