@@ -1,5 +1,10 @@
 """PPO: TorchRL's ``GAE`` and ``ClipPPOLoss``, Adam, epochs x minibatches, optional LR annealing.
 
+Options, all off by default (docs/ppo.md): reward scaling by the running std of the discounted
+return (``normalize_rewards``, ``normalize.py``) and reward clipping (``clip_rewards``), both applied
+to the rollout before GAE; rsl_rl's adaptive learning rate (``desired_kl``), adjusted before every
+minibatch step from the KL between the behaviour and the current Gaussian.
+
 Speed (docs/performance.md): the loss can run through ``torch.compile`` (``algorithm.compile``), Adam
 is the fused kernel where torch has one, and the per-minibatch statistics stay tensors until the end
 of the update. None of it changes the maths: ``tests/test_ppo_math.py`` checks a whole update
@@ -31,6 +36,7 @@ from rlexp.algorithms.base import (
     make_optimizer,
     parse_compile,
 )
+from rlexp.algorithms.normalize import ReduceSum, RewardNormalizer
 from rlexp.config.schema import AlgorithmConfig
 from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import POLICIES, ActorCritic
@@ -46,7 +52,9 @@ __all__ = [
     "PPO",
     "STAT_KEYS",
     "NonFiniteError",
+    "adaptive_learning_rate",
     "compile_unavailable",
+    "gaussian_kl",
     "make_algorithm",
     "make_gae",
     "make_optimizer",
@@ -64,6 +72,13 @@ AUTO_COMPILE_MIN_SAVING_S = 60.0
 #: 64 samples, 64x64 tanh) plus ~2 us per sample (72 vs 90 ms at 8192 samples, 256x256 relu).
 COMPILE_SAVING_PER_UPDATE_S = 1.0e-3
 COMPILE_SAVING_PER_SAMPLE_S = 2.0e-6
+#: rsl_rl's adaptive schedule (``algorithm.desired_kl``): the factor and the learning rate's bounds.
+ADAPTIVE_LR_FACTOR = 1.5
+ADAPTIVE_LR_MIN = 1e-5
+ADAPTIVE_LR_MAX = 1e-2
+#: Where the behaviour policy's Gaussian rides in the flattened rollout (renamed from ``loc`` /
+#: ``scale``, so that the loss's actor, which writes those keys, never meets them).
+BEHAVIOUR_LOC, BEHAVIOUR_SCALE = "behaviour_loc", "behaviour_scale"
 
 
 def make_gae(cfg: AlgorithmConfig, value_network=None) -> GAE:
@@ -80,6 +95,29 @@ def make_gae(cfg: AlgorithmConfig, value_network=None) -> GAE:
     )
 
 
+def gaussian_kl(
+    old_loc: torch.Tensor, old_scale: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor
+) -> torch.Tensor:
+    """KL(old || new) of diagonal Gaussians, summed over the action dims, mean over the batch: rsl_rl's
+    formula to the letter, its 1e-5 inside the log included (it adds ~1e-5 per action dim)."""
+    kl = (
+        torch.log(scale / old_scale + 1.0e-5)
+        + (old_scale.square() + (old_loc - loc).square()) / (2.0 * scale.square())
+        - 0.5
+    ).sum(-1)
+    return kl.mean()
+
+
+def adaptive_learning_rate(lr: float, kl: float, desired_kl: float) -> float:
+    """rsl_rl's ``schedule="adaptive"``: divide by 1.5 (not below 1e-5) when ``kl`` is above twice
+    the target, multiply by 1.5 (not above 1e-2) when it is below half of it (and above 0)."""
+    if kl > 2.0 * desired_kl:
+        return max(ADAPTIVE_LR_MIN, lr / ADAPTIVE_LR_FACTOR)
+    if 0.0 < kl < desired_kl / 2.0:
+        return min(ADAPTIVE_LR_MAX, lr * ADAPTIVE_LR_FACTOR)
+    return lr
+
+
 class PPO(MutableHyperparameters):
     """One PPO learner: ``update(batch)`` runs GAE then the clipped-surrogate epochs on a rollout."""
 
@@ -90,7 +128,11 @@ class PPO(MutableHyperparameters):
         total_iterations: int,
         nan_guard: bool = True,
         grad_sync: GradSync | None = None,
+        reduce_sum: ReduceSum | None = None,
     ) -> None:
+        """``grad_sync`` (distributed): averages gradients over ranks; ``reduce_sum`` sums the
+        reward normaliser's statistics over ranks, the process group's sum when left out and
+        ``grad_sync`` is given (the builder passes ``grad_sync`` exactly when distributed)."""
         if cfg.name != "ppo":
             raise ValueError(f"algorithm.name={cfg.name!r}; available: ['ppo']")
         if getattr(policy, "critic", None) is None:
@@ -103,6 +145,11 @@ class PPO(MutableHyperparameters):
         if cfg.loss_critic_type not in ("l1", "l2", "smooth_l1"):
             raise ValueError(
                 f"algorithm.loss_critic_type={cfg.loss_critic_type!r}; choose from ['l1', 'l2', 'smooth_l1']"
+            )
+        if cfg.desired_kl is not None and cfg.anneal_lr:
+            raise ValueError(
+                f"algorithm.desired_kl={cfg.desired_kl} and algorithm.anneal_lr=true both set the "
+                "learning rate; use one (algorithm.anneal_lr=false or algorithm.desired_kl=null)"
             )
         self.cfg = dataclasses.replace(cfg)  # its own copy: hooks may change its values
         self.policy = policy
@@ -144,6 +191,13 @@ class PPO(MutableHyperparameters):
         self._shuffle = torch.Generator()  # minibatch order (CPU: randperm indexes a CPU batch)
         self.iteration = 0
         self.reset_each_rollout = False  # GAE bootstraps across rollouts: episodes run on
+        # Reward scaling: statistics of this learner's (and, distributed, all ranks') returns.
+        self.reward_normalizer = RewardNormalizer(cfg.gamma) if cfg.normalize_rewards else None
+        if reduce_sum is None and grad_sync is not None:
+            from rlexp.launch.distributed import all_reduce_sum
+
+            reduce_sum = all_reduce_sum
+        self.reduce_sum = reduce_sum
 
     def learning_rate(self) -> float:
         """``lr``, annealed linearly to 0 over the run with ``anneal_lr``."""
@@ -175,12 +229,28 @@ class PPO(MutableHyperparameters):
         batch.set(("next", "state_value"), next_value)
         return self.gae(batch)
 
+    def scale_rewards(self, batch: TensorDictBase) -> TensorDictBase:
+        """The rollout with ``("next", "reward")`` normalised and/or clipped, as a shallow copy: the
+        caller's batch keeps the env's rewards (episode statistics, events)."""
+        reward = batch.get(("next", "reward"))
+        if self.reward_normalizer is not None:
+            reward = self.reward_normalizer.scale(
+                reward, batch.get(("next", "done")), self.reduce_sum
+            )
+        if self.cfg.clip_rewards is not None:
+            reward = reward.clamp(-self.cfg.clip_rewards, self.cfg.clip_rewards)
+        scaled = batch.copy()
+        scaled.set(("next", "reward"), reward)
+        return scaled
+
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """GAE over the rollout, then ``num_epochs`` passes of shuffled minibatches."""
         lr = self.learning_rate()
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+        self._set_lr(lr)
+        if self.reward_normalizer is not None or self.cfg.clip_rewards is not None:
+            batch = self.scale_rewards(batch)
         self.compute_advantages(batch)
+        adaptive = self.cfg.desired_kl is not None
         flat = batch.reshape(-1).select(
             "observation",
             "action",
@@ -188,8 +258,16 @@ class PPO(MutableHyperparameters):
             "advantage",
             "value_target",
             "state_value",
+            *(("loc", "scale") if adaptive else ()),
             strict=False,
         )
+        if adaptive:
+            if "loc" not in flat.keys() or "scale" not in flat.keys():
+                raise KeyError(
+                    "algorithm.desired_kl needs the behaviour policy's 'loc' and 'scale' in the "
+                    "rollout (the sampling policy writes them)"
+                )
+            flat.rename_key_("loc", BEHAVIOUR_LOC).rename_key_("scale", BEHAVIOUR_SCALE)
         n = flat.shape[0]
         mb = min(self.cfg.mini_batch_size, n)
         if not self._compile_decided:
@@ -207,6 +285,8 @@ class PPO(MutableHyperparameters):
             shuffled = flat[torch.randperm(n, generator=self._shuffle)]
             for start in range(0, n - mb + 1, mb):
                 minibatch = shuffled[start : start + mb]
+                if adaptive:  # rsl_rl: the KL before this step sets the step's learning rate
+                    self._adapt_learning_rate(minibatch)
                 out = self._loss_fn(minibatch)
                 if not keys:
                     keys = [k for k in STAT_KEYS if k == "grad_norm" or k in out.keys()]
@@ -242,10 +322,30 @@ class PPO(MutableHyperparameters):
             "loss/grad_norm": metrics["grad_norm"],
             "loss/clip_fraction": metrics["clip_fraction"],
             "loss/approx_kl": metrics["kl_approx"],
-            "loss/learning_rate": lr,
+            # adaptive: the rate the last step took and the next update starts from (as rsl_rl logs)
+            "loss/learning_rate": self.cfg.lr if adaptive else lr,
             "loss/log_std": float(self.policy.actor_net.log_std.detach().mean()),
         }
+        if self.reward_normalizer is not None:
+            out["loss/reward_std"] = self.reward_normalizer.std()
         return out
+
+    def _set_lr(self, lr: float) -> None:
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
+    @torch.no_grad()
+    def _adapt_learning_rate(self, minibatch: TensorDictBase) -> None:
+        """``algorithm.desired_kl``: the KL of the current policy to the behaviour policy on this
+        minibatch (averaged over ranks, so all ranks take the same rate) moves ``lr``; it lives in
+        ``self.cfg`` so that ``hyperparameters()`` and checkpoints carry it."""
+        loc, scale = self.policy.actor_net(minibatch.get("observation"))
+        kl = gaussian_kl(minibatch.get(BEHAVIOUR_LOC), minibatch.get(BEHAVIOUR_SCALE), loc, scale)
+        if self.grad_sync is not None:
+            kl = kl.reshape(1).clone()
+            self.grad_sync([kl])
+        self.cfg.lr = adaptive_learning_rate(self.cfg.lr, float(kl), self.cfg.desired_kl)
+        self._set_lr(self.cfg.lr)
 
     def _decide_compile(self, updates: int, mb: int) -> None:
         """Turn ``torch.compile`` of the loss on or off for this run (once, at the first update)."""
@@ -313,16 +413,36 @@ class PPO(MutableHyperparameters):
             self.loss.entropy_bonus = True  # built without the entropy term when it started at 0
 
     def state_dict(self) -> dict:
-        return {
+        sd = {
             "optimizer": self.optimizer.state_dict(),
             "iteration": self.iteration,
             "hyperparameters": self.hyperparameters(),
         }
+        if self.reward_normalizer is not None:
+            sd["reward_normalizer"] = self.reward_normalizer.state_dict()
+        return sd
 
     def load_state_dict(self, sd: dict) -> None:
         self.optimizer.load_state_dict(sd["optimizer"])
         self.iteration = int(sd["iteration"])
         self._load_hyperparameters(sd)
+        if self.reward_normalizer is not None:
+            saved = sd.get("reward_normalizer")
+            if saved is None:
+                log.warning(
+                    "[ppo] algorithm.normalize_rewards=true, but the checkpoint has no reward "
+                    "statistics (it was saved without it): they start afresh"
+                )
+            else:
+                # The checkpoint holds rank 0's running returns; other ranks' envs start new
+                # episodes on resume (Trainer.load_state_dict), so their returns start at 0.
+                self.reward_normalizer.load_state_dict(saved, keep_returns=_is_rank_zero())
+
+
+def _is_rank_zero() -> bool:
+    import torch.distributed as dist
+
+    return not (dist.is_available() and dist.is_initialized()) or dist.get_rank() == 0
 
 
 def compile_unavailable(device: torch.device | None) -> str | None:

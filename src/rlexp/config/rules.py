@@ -174,6 +174,11 @@ FIELD_RULES: dict[str, Rule] = {
     ),
     "algorithm.normalize_advantage": Rule(FLAG.check, "true or false; ppo only"),
     "algorithm.clip_value": optional(above(0.0), "no value clipping; ppo only"),
+    "algorithm.normalize_rewards": Rule(FLAG.check, "true or false; ppo only"),
+    "algorithm.clip_rewards": optional(above(0.0), "no reward clipping; ppo only"),
+    "algorithm.desired_kl": optional(
+        above(0.0), "a fixed learning rate; ppo only, not with anneal_lr"
+    ),
     "algorithm.kl_coeff": at_least(0.0, " (0: no reference policy); grpo only"),
     "algorithm.group_size": between(2, MAX_ENVS, ", a divisor of env.num_envs; grpo only"),
     "algorithm.epsilon": above(0.0, "; grpo only"),
