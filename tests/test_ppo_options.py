@@ -457,3 +457,21 @@ def test_train_py_with_the_options_on_adapts_the_learning_rate_and_resumes_bit_e
     for key, value in a["algorithm"]["reward_normalizer"].items():
         assert torch.equal(value, b["algorithm"]["reward_normalizer"][key]), key
     assert a["algorithm"]["reward_normalizer"]["count"] > 1024
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["algorithm.desired_kl=0.01", "algorithm.anneal_lr=true"], "both set the learning rate"),
+        (["algorithm.desired_kl=0.01", "hooks=lr_anneal"], "hooks.lr_anneal (a schedule of lr)"),
+    ],
+    ids=["anneal_lr", "lr-hook"],
+)
+def test_two_learning_rate_controllers_are_refused_before_the_run(overrides, message):
+    from conftest import compose
+    from rlexp.config.validate import ConfigError, to_root_config
+
+    import re
+
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        to_root_config(compose(overrides))

@@ -213,6 +213,12 @@ def validate(config: RootConfig) -> None:
             "algorithm.compile=true: GRPO's loss runs eager (torch.compile is PPO's); use "
             "algorithm.compile=auto or false"
         )
+    desired_kl = getattr(a, "desired_kl", None)
+    if desired_kl is not None and a.anneal_lr:
+        raise ConfigError(
+            f"algorithm.desired_kl={desired_kl} and algorithm.anneal_lr=true both set the learning "
+            "rate; use one: algorithm.anneal_lr=false or algorithm.desired_kl=null (docs/ppo.md)"
+        )
     if a.name == "ppo" and getattr(p, "critic", None) is None:
         raise ConfigError(
             f"algorithm=ppo needs a critic, but policy.name={p.name!r} has none; use "
@@ -318,6 +324,12 @@ def _check_hooks(config: RootConfig) -> None:
                 f"{where}.params.name={target!r} is not a mutable hyperparameter of "
                 f"algorithm={a.name}; choose from {mutable}"
                 + (f"; did you mean {close[0]!r}?" if close else "")
+            )
+        if target == "lr" and getattr(a, "desired_kl", None) is not None:
+            raise ConfigError(
+                f"algorithm.desired_kl={a.desired_kl} and {where} (a schedule of lr) both set the "
+                "learning rate; use one: drop the hook or set algorithm.desired_kl=null "
+                "(docs/ppo.md)"
             )
         if target == "lr" and a.anneal_lr:
             raise ConfigError(
