@@ -31,6 +31,7 @@ from rlexp.rundir import (
     EXIT_SIGNAL_BASE,
     HYDRA_JOB,
     RESUME_MAY_CHANGE,
+    Heartbeat,
     RunDirLock,
     check_run_dir,
     clean_temp_files,
@@ -213,7 +214,11 @@ def _run(
         return f"the last good checkpoint is {path}" if path else "no checkpoint was written"
 
     write_status(run_dir, "running", trainer.global_step)
+    # heartbeat.json while it trains: how `rlexp runs` tells a killed run from a live one
+    beat = Heartbeat(run_dir, lambda: _progress(trainer, total)) if trainer.dist.is_main else None
     try:
+        if beat is not None:
+            beat.start()
         if stops.requested and trainer.global_step == 0:
             raise StopRequested(stops.reason())  # a signal during the build: nothing to save yet
         _check_writable(trainer.ckpt_dir)  # now, not after the first hour of training
@@ -267,9 +272,25 @@ def _run(
         _try_write_status(run_dir, trainer, reason)
         raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
     finally:
+        if beat is not None:
+            beat.stop()  # status.json already says how it ended
         trainer.close()
     log.info("done: %d env steps; checkpoint %s", trainer.global_step, trainer.last_checkpoint)
     return trainer.last_eval
+
+
+def _progress(trainer: Any, total: int) -> dict[str, Any]:
+    """What the heartbeat records besides who and when (read from the heartbeat's thread)."""
+    cfg = trainer.config_dict
+    return {
+        "task": cfg["env"]["name"],  # with total: what `rlexp runs` shows without the config.yaml
+        "algorithm": cfg["algorithm"]["name"],
+        "global_step": trainer.global_step,
+        "total": total,
+        "best_metric": trainer.cfg.best_metric,
+        "best": trainer.best_metric,  # -inf until the first eval: written as null
+        "last_eval": dict(trainer.last_eval),
+    }
 
 
 def _save_at_safe_point(trainer: Any) -> bool:

@@ -1,9 +1,14 @@
-"""A run dir: one run at a time (a lock), ``status.json``, and the checks before a run writes in it.
+"""A run dir: one run at a time (a lock), ``status.json``, ``heartbeat.json``, and the checks before
+a run writes in it.
 
 A run takes an exclusive ``fcntl.flock`` on ``<run_dir>/.rlexp.lock`` for its whole life. The kernel
 drops the lock when the process dies (SIGKILL, a node crash on the same host, a SLURM requeue), so a
 lock file left behind never blocks a resume; a second live run on the same dir is refused with the
 holder's PID, host and start time. The lock file stays (removing it would race with a new holder).
+
+A running run also keeps ``heartbeat.json`` fresh (``Heartbeat``: host, PID and its start time, the
+time, the step, the best and last eval), so that ``rlexp runs`` can tell a run that is still going
+from one that a SIGKILL, an OOM kill or a lost node left saying ``running`` (docs/runs.md).
 """
 
 from __future__ import annotations
@@ -11,9 +16,12 @@ from __future__ import annotations
 import fcntl
 import json
 import logging
+import math
 import os
 import socket
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -271,3 +279,128 @@ def write_hydra_files(run_dir: Path) -> None:
     OmegaConf.save(cfg, out / "config.yaml")
     OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), out / "hydra.yaml")
     OmegaConf.save(hydra_cfg.overrides.task, out / "overrides.yaml")
+
+
+# -- heartbeat -------------------------------------------------------------------------------------
+HEARTBEAT_NAME = "heartbeat.json"
+#: Seconds between two heartbeats of a running run (the file records it for its readers).
+HEARTBEAT_INTERVAL_S = 10.0
+#: A heartbeat older than STALE_INTERVALS x its interval + STALE_MARGIN_S means its run is gone:
+#: a few missed beats, plus room for a loaded machine and a slow shared filesystem.
+STALE_INTERVALS = 3
+STALE_MARGIN_S = 30.0
+
+
+def stale_after(interval_s: float) -> float:
+    """Age in seconds past which a heartbeat written every ``interval_s`` is stale."""
+    return STALE_INTERVALS * interval_s + STALE_MARGIN_S
+
+
+def process_stat(pid: int) -> tuple[str, int] | None:
+    """(state letter, start time in clock ticks since boot) of process ``pid`` from
+    ``/proc/<pid>/stat`` (fields 3 and 22); None when it cannot be read (no such process, no
+    ``/proc``, or ``/proc`` hides other users' processes)."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = text[text.rfind(")") + 2 :].split()  # the name in (...) may hold spaces
+    return (fields[0], int(fields[19])) if len(fields) >= 20 else None
+
+
+def process_start_ticks(pid: int) -> int | None:
+    """When live process ``pid`` started (clock ticks since boot); None if unknown or a zombie."""
+    stat = process_stat(pid)
+    return stat[1] if stat is not None and stat[0] not in ("Z", "X") else None
+
+
+def boot_id() -> str | None:
+    """This boot of this host (a PID and its start ticks mean nothing after a reboot)."""
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        return None
+
+
+def read_heartbeat(run_dir: Path) -> dict[str, Any]:
+    """``heartbeat.json`` of a run dir ({} when there is none or it is not a JSON object)."""
+    try:
+        beat = json.loads((Path(run_dir) / HEARTBEAT_NAME).read_text())
+    except (OSError, ValueError):
+        return {}
+    return beat if isinstance(beat, dict) else {}
+
+
+def _json_safe(value: Any) -> Any:
+    """``value`` with every NaN/Inf float as None (strict JSON, as in ``metrics.jsonl``)."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+class Heartbeat:
+    """Writes ``heartbeat.json`` now and every ``interval_s`` from a daemon thread until ``stop``.
+
+    ``progress()`` gives what else the beat records (``global_step``, ``total``, ``best_metric``,
+    ``best``, ``last_eval``); it is called from the thread, so it must only read. The file stays
+    when the run ends (``status.json`` says how it ended); a write that fails is logged once and
+    retried at the next beat."""
+
+    def __init__(
+        self,
+        run_dir: Path,
+        progress: Callable[[], dict[str, Any]],
+        interval_s: float = HEARTBEAT_INTERVAL_S,
+    ) -> None:
+        self.path = Path(run_dir) / HEARTBEAT_NAME
+        self.progress = progress
+        self.interval_s = interval_s
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._warned = False
+        pid = os.getpid()
+        self._who = {
+            "host": socket.gethostname(),
+            "pid": pid,
+            "pid_start_ticks": process_start_ticks(pid),
+            "boot_id": boot_id(),
+            "interval_s": interval_s,
+        }
+
+    def beat(self) -> None:
+        """Write the heartbeat once, atomically."""
+        try:
+            extra = dict(self.progress())
+        except Exception as exc:  # never let the progress read break the beat itself
+            extra = {"progress_error": f"{type(exc).__name__}: {exc}"}
+        data = _json_safe({**self._who, "time": round(time.time(), 3), **extra})
+        tmp = self.path.with_name(f".{HEARTBEAT_NAME}.tmp-{os.getpid()}")
+        try:
+            tmp.write_text(json.dumps(data, allow_nan=False, default=str) + "\n")
+            os.replace(tmp, self.path)
+        except (OSError, ValueError) as exc:
+            if not self._warned:
+                log.warning("could not write %s: %s", self.path, exc)
+                self._warned = True
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            self.beat()
+
+    def start(self) -> Heartbeat:
+        """First beat now, then one every ``interval_s``."""
+        self.beat()
+        self._thread = threading.Thread(target=self._loop, name="rlexp-heartbeat", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop the thread and write a last beat (the final step and eval); idempotent."""
+        if self._thread is None:
+            return
+        self._stop.set()
+        self._thread.join()
+        self._thread = None
+        self.beat()
