@@ -1,5 +1,6 @@
 """``rlexp`` command: ``rlexp train [overrides]``, ``rlexp eval CHECKPOINT [--episodes N]``,
-``rlexp report SWEEP_DIR``, ``rlexp --version`` (also ``python -m rlexp ...``).
+``rlexp report SWEEP_DIR``, ``rlexp runs [DIR ...]``, ``rlexp compare DIR ...``, ``rlexp --version``
+(also ``python -m rlexp ...``).
 
 Bad input (an option out of range, a missing or unreadable checkpoint) is one line on stderr and
 exit 2; a checkpoint whose policy weights are NaN/Inf exits 3, like a run the NaN guard stopped.
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import re
 import sys
 import warnings
@@ -176,6 +178,109 @@ def train(argv: list[str], prog: str = "rlexp train") -> None:
     train_main(argv)
 
 
+def _add_runs_parsers(sub: Any) -> None:
+    """``rlexp runs`` and ``rlexp compare`` (docs/runs.md)."""
+    runs = sub.add_parser(
+        "runs",
+        help="list run dirs: status (killed runs show as died), task, steps, evals, provenance",
+    )
+    runs.add_argument("dirs", nargs="*", help="dirs to search (default: outputs/ and multirun/)")
+    runs.add_argument("--metric", default="eval/episode_return", help="the last/best eval metric")
+    runs.add_argument(
+        "--sort",
+        default="start,dir",
+        metavar="KEY[,KEY]",
+        help="a column (dir status task algo steps total progress last best wall start host git) "
+        "or a config key; -KEY sorts descending, e.g. --sort -best",
+    )
+    runs.add_argument(
+        "--where",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="only runs whose config key (or column) has this value (glob ok; KEY!=VALUE too); "
+        "repeatable, e.g. --where env.name=hopper",
+    )
+    runs.add_argument(
+        "--status",
+        action="append",
+        default=[],
+        help="only runs with this status (repeatable or comma-separated), e.g. --status died",
+    )
+    runs.add_argument("--json", action="store_true", help="one JSON list, for scripts")
+    cmp = sub.add_parser(
+        "compare",
+        help="compare runs or sweeps: config differences, git, final/best eval, IQM difference "
+        "and probability of improvement between configurations, curves",
+    )
+    cmp.add_argument("dirs", nargs="+", metavar="RUN_OR_SWEEP_DIR")
+    cmp.add_argument("--metric", default="eval/episode_return", help="score and curve metric")
+    cmp.add_argument(
+        "--threshold",
+        type=_threshold,
+        default=None,
+        metavar="[METRIC=]VALUE",
+        help="also the steps each run took to first reach VALUE in --metric (or METRIC)",
+    )
+    cmp.add_argument(
+        "--group-by",
+        action="append",
+        default=[],
+        metavar="KEY",
+        help="group runs by this config key (repeatable; default: by dir given and config less "
+        "the seed)",
+    )
+    cmp.add_argument("--plot", default=None, metavar="OUT.png", help="write the curves here")
+    cmp.add_argument("--json", action="store_true", help="one JSON object, for scripts")
+
+
+def _sort_values_joined(argv: list[str]) -> list[str]:
+    """``--sort -best`` as ``--sort=-best``: argparse takes a value starting with ``-`` for an
+    option."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1] == "--sort" and argv[:1] == ["runs"]:
+            out[-1] = f"--sort={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
+def _runs_commands(args: argparse.Namespace) -> None:
+    """Run ``rlexp runs`` / ``rlexp compare``; bad input is one line on stderr, exit 2."""
+    from rlexp.runs import RunsError
+
+    try:
+        if args.command == "runs":
+            from rlexp.runs import main as runs_main
+
+            runs_main(args.dirs, args.metric, args.sort, args.where, args.status, args.json)
+            return
+        from rlexp.extras import MissingExtra, require
+
+        try:
+            require("report", "rlexp compare", None if args.plot else ("scipy",))
+        except MissingExtra as exc:
+            raise RunsError(str(exc)) from None
+        from rlexp.compare import main as compare_main
+
+        threshold_metric, threshold = args.threshold or (None, None)
+        compare_main(
+            args.dirs,
+            args.metric,
+            threshold=threshold,
+            threshold_metric=threshold_metric,
+            group_by=args.group_by,
+            plot=args.plot,
+            as_json=args.json,
+        )
+    except RunsError as exc:
+        print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
+        sys.exit(2)
+    except BrokenPipeError:  # `rlexp runs | head`: the reader left; say nothing more
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
 def _version() -> str:
     from rlexp import __version__
 
@@ -230,9 +335,13 @@ def main(argv: list[str] | None = None) -> None:
         help="also the steps each seed took to reach VALUE (first time, and 3 logged values in "
         "a row) in --metric, or in METRIC: e.g. 475, or eval/success_rate=0.9",
     )
-    args = parser.parse_args(argv)
+    _add_runs_parsers(sub)
+    args = parser.parse_args(_sort_values_joined(argv))
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     log.setLevel(logging.INFO)  # rlexp's own progress; other libraries' INFO lines stay quiet
+    if args.command in ("runs", "compare"):
+        _runs_commands(args)
+        return
     if args.command == "report":
         from rlexp.extras import MissingExtra, require
         from rlexp.report import report

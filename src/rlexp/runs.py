@@ -1,0 +1,669 @@
+"""``rlexp runs [DIR ...]``: every run dir under ``outputs/`` and ``multirun/`` as one table row.
+
+A run dir is a dir holding ``status.json``, ``config.yaml`` or ``.hydra/``. Only small files are
+read (``status.json``, ``heartbeat.json``, ``provenance.json``, ``config.yaml``,
+``.hydra/overrides.yaml``; for a best eval the heartbeat has no answer to, at most the last
+TAIL_BYTES of ``metrics.jsonl``), so thousands of runs list in about a second. A run whose
+``status.json`` says ``running`` is checked against its heartbeat and its PID (``liveness``); the
+rules are in docs/runs.md.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import socket
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from functools import cached_property
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import yaml
+
+from rlexp.rundir import (
+    HEARTBEAT_INTERVAL_S,
+    boot_id,
+    process_start_ticks,
+    process_stat,
+    read_heartbeat,
+    read_status,
+    stale_after,
+)
+
+#: Searched when no dir is given, under the working dir.
+DEFAULT_DIRS = ("outputs", "multirun")
+#: rlexp.report's default metric (not imported from there: it pulls numpy in).
+DEFAULT_METRIC = "eval/episode_return"
+#: Any of these in a dir makes it a run dir (one with none was never started by rlexp).
+MARKERS = ("status.json", "config.yaml", ".hydra")
+#: Dirs inside a run dir that never hold another run.
+SKIP_DIRS = frozenset({"tensorboard", "checkpoints", "wandb", "__pycache__"})
+#: At most this much of the end of ``metrics.jsonl`` is read for a best eval (a run from before
+#: ``heartbeat.json``, or a metric other than ``trainer.best_metric``).
+TAIL_BYTES = 256 * 1024
+#: What the status column shows: status.json's states, and died | stalled | running? | unknown.
+STATES = tuple(
+    "running finished stopped_early interrupted stopped failed died stalled running? unknown".split()
+)
+_TIME_FORMAT = "%Y-%m-%dT%H:%M:%S%z"  # status.json and provenance.json
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+class RunsError(ValueError):
+    """Bad input to ``rlexp runs`` / ``rlexp compare``: one line naming the path or the key."""
+
+
+@dataclass
+class Run:
+    """What one run dir says about its run."""
+
+    path: Path
+    status: str  # status.json's state, or died | stalled | running? | unknown (docs/runs.md)
+    note: str = ""  # why a run shows died / stalled / running?, or what could not be read
+    task: str | None = None
+    algorithm: str | None = None
+    step: int | None = None
+    total: int | None = None
+    last: float | None = None
+    best: float | None = None
+    best_exact: bool = True  # False: the best over the tail of metrics.jsonl only (a lower bound)
+    wall_s: float | None = None
+    start: str | None = None
+    host: str | None = None
+    git: str | None = None
+    overrides: list[str] = field(default_factory=list)
+    resume: str | None = None  # the command that continues a died run
+
+    @cached_property
+    def config(self) -> dict[str, Any]:
+        """The flattened ``config.yaml``, read on first use (YAML costs ~0.5 ms a run)."""
+        return read_config(self.path)
+
+    def to_json(self) -> dict[str, Any]:
+        """The run as a JSON object for ``--json`` (the config is left out)."""
+        out = {k: v for k, v in vars(self).items() if k != "config"}
+        out["path"] = str(self.path)
+        return out
+
+
+# -- finding and reading run dirs ------------------------------------------------------------------
+def find_run_dirs(roots: list[Path]) -> list[Path]:
+    """Every run dir at or under ``roots`` (a run dir's own subdirs are not searched)."""
+    found: list[Path] = []
+    for root in roots:
+        if not root.is_dir():
+            raise RunsError(f"{root}: no such dir")
+        stack = [root]
+        while stack:
+            here = stack.pop()
+            try:
+                entries = list(os.scandir(here))
+            except OSError:
+                continue  # unreadable: nothing to list there
+            if any(e.name in MARKERS for e in entries):
+                found.append(here)
+                continue
+            stack += [
+                Path(e.path)
+                for e in entries
+                if e.is_dir(follow_symlinks=False)
+                and not e.name.startswith(".")
+                and e.name not in SKIP_DIRS
+            ]
+    return sorted(set(found))
+
+
+def _json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_bytes())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _yaml(path: Path) -> Any:
+    try:
+        return yaml.load(path.read_bytes(), Loader=_LOADER)
+    except (OSError, yaml.YAMLError):
+        return None
+
+
+def flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested config mapping as ``{dotted.key: leaf}`` (lists are leaves)."""
+    if not isinstance(tree, dict):
+        return {prefix[:-1]: tree} if prefix else {}
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        out.update(
+            flatten(value, f"{prefix}{key}.")
+            if isinstance(value, dict)
+            else {f"{prefix}{key}": value}
+        )
+    return out
+
+
+def read_config(run_dir: Path) -> dict[str, Any]:
+    """The run's resolved ``config.yaml`` (else Hydra's ``.hydra/config.yaml``), flattened."""
+    for name in ("config.yaml", ".hydra/config.yaml"):
+        cfg = _yaml(run_dir / name)
+        if isinstance(cfg, dict):
+            return flatten(cfg)
+    return {}
+
+
+def read_overrides(run_dir: Path) -> list[str]:
+    """``.hydra/overrides.yaml`` ([] when missing or not a list); plain ``- item`` lines are read
+    without the YAML parser."""
+    try:
+        text = (run_dir / ".hydra" / "overrides.yaml").read_text()
+    except (OSError, UnicodeDecodeError):
+        return []
+    lines = text.splitlines()
+    if all(ln.startswith("- ") and ln[2:3] not in "'\"&*!|>{[#" for ln in lines):
+        return [ln[2:].strip() for ln in lines]
+    data = _yaml(run_dir / ".hydra" / "overrides.yaml")
+    return [str(o) for o in data] if isinstance(data, list) else []
+
+
+def parse_time(text: Any) -> float | None:
+    """An rlexp timestamp (``2026-11-23T15:37:22+0000``) as epoch seconds; None if it is not one."""
+    try:
+        return datetime.strptime(str(text), _TIME_FORMAT).timestamp()
+    except ValueError:
+        return None
+
+
+_NUMBER = rb"(-?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)"
+_STEP = re.compile(rb'"step": (\d+)')
+_CKPT_STEP = re.compile(r"_step_(\d+)\.pt$")  # rlexp.checkpoint's names (not imported: torch)
+
+
+class Tail(NamedTuple):
+    """What the end of ``metrics.jsonl`` says: the metric's last and best value, whether that is
+    the whole file, and the last logged step."""
+
+    last: float | None
+    best: float | None
+    exact: bool
+    step: int | None
+
+
+def tail_metric(path: Path, metric: str) -> Tail:
+    """``Tail`` of ``metric`` over at most the last TAIL_BYTES of ``metrics.jsonl``, without
+    parsing its JSON."""
+    try:
+        with open(path, "rb") as f:
+            size = f.seek(0, os.SEEK_END)
+            f.seek(max(0, size - TAIL_BYTES))
+            data = f.read()
+    except OSError:
+        return Tail(None, None, True, None)
+    pattern = re.compile(b'"' + re.escape(metric.encode()) + b'": ' + _NUMBER)
+    values = [float(m) for m in pattern.findall(data)]
+    steps = _STEP.findall(data)
+    step = int(steps[-1]) if steps else None
+    if not values:
+        return Tail(None, None, size <= TAIL_BYTES, step)
+    return Tail(values[-1], max(values), size <= TAIL_BYTES, step)
+
+
+def newest_checkpoint_step(run_dir: Path) -> int | None:
+    """The step of the newest ``*_step_N.pt`` in ``checkpoints/`` (what a resume continues from
+    if that file is good), from the names alone."""
+    try:
+        names = os.listdir(run_dir / "checkpoints")
+    except OSError:
+        return None
+    steps = [int(m.group(1)) for n in names if (m := _CKPT_STEP.search(n))]
+    return max(steps, default=None)
+
+
+# -- is a "running" run still running? -------------------------------------------------------------
+@dataclass(frozen=True)
+class Here:
+    """This host, as the liveness rules compare it with a run's."""
+
+    host: str
+    boot: str | None
+    boot_time: float | None  # epoch seconds at boot (/proc/stat btime)
+    ticks_per_s: int
+
+    @classmethod
+    def now(cls) -> Here:
+        btime = None
+        try:
+            for line in Path("/proc/stat").read_text().splitlines():
+                if line.startswith("btime "):
+                    btime = float(line.split()[1])
+        except OSError:
+            pass
+        return cls(socket.gethostname(), boot_id(), btime, os.sysconf("SC_CLK_TCK"))
+
+
+def _pid_gone(pid: int, ticks: int | None) -> str:
+    """Why ``pid`` is not the run's process ("" when it may be): gone, a zombie, or started at
+    other ``ticks`` (None: the start is not known)."""
+    if pid <= 0:
+        return f"PID {pid} is not a process"
+    try:
+        os.kill(pid, 0)  # signal 0: only asks whether the process exists
+    except ProcessLookupError:
+        return f"PID {pid} is gone"
+    except PermissionError:
+        pass  # it exists, another user's
+    stat = process_stat(pid)  # None: no /proc, or /proc hides it: the PID exists, that is all
+    if stat is not None and stat[0] in ("Z", "X"):
+        return f"PID {pid} is gone"
+    if stat is not None and ticks is not None and stat[1] != ticks:
+        return f"PID {pid} is now another process"
+    return ""
+
+
+def _age(seconds: float) -> str:
+    return format_duration(max(0.0, seconds))
+
+
+def _by_heartbeat(beat: dict[str, Any], now: float, here: Here) -> tuple[str, str]:
+    host, pid = beat.get("host"), beat.get("pid")
+    interval = beat.get("interval_s")
+    limit = stale_after(interval if isinstance(interval, (int, float)) else HEARTBEAT_INTERVAL_S)
+    beat_time = beat.get("time")
+    age = now - beat_time if isinstance(beat_time, (int, float)) else float("inf")
+    stale = f"no heartbeat for {_age(age)} (stale after {limit:.0f} s)"
+    if host == here.host and isinstance(pid, int):
+        if beat.get("boot_id") and here.boot and beat["boot_id"] != here.boot:
+            return "died", f"host {host} rebooted since its last heartbeat"
+        gone = _pid_gone(pid, beat.get("pid_start_ticks"))
+        if gone:
+            return "died", gone
+        if age > limit:  # the process lives but does not beat: hung or stopped (SIGSTOP)
+            return "stalled", f"PID {pid} is alive but {stale}"
+        return "running", ""
+    if age > limit:
+        return "died", f"{stale}, on host {host}"
+    return "running", ""
+
+
+def _by_pid(status: dict[str, Any], here: Here) -> tuple[str, str]:
+    """A run from before heartbeat.json: the PID rule, on this host only."""
+    pid = status.get("pid")
+    if status.get("host") != here.host or not isinstance(pid, int):
+        return "running?", f"no heartbeat, and it ran on host {status.get('host')}: cannot tell"
+    gone = _pid_gone(pid, None)
+    if gone:
+        return "died", gone
+    ticks, since = process_start_ticks(pid), parse_time(status.get("time"))
+    if ticks is not None and here.boot_time is not None and since is not None:
+        # A PID reused by a later process started after the run wrote "running".
+        if here.boot_time + ticks / here.ticks_per_s > since + 2:
+            return "died", f"PID {pid} is now another process"
+    return "running", ""
+
+
+def liveness(
+    status: dict[str, Any], beat: dict[str, Any], now: float, here: Here
+) -> tuple[str, str]:
+    """(status to show, why): a ``running`` status.json checked against heartbeat and PID."""
+    state = status.get("state")
+    if not isinstance(state, str):
+        return "unknown", "no readable status.json (not started, or it ended before training)"
+    if state != "running":
+        return state, ""
+    same_attempt = not (isinstance(status.get("pid"), int) and beat.get("pid") != status["pid"])
+    if beat and same_attempt:
+        return _by_heartbeat(beat, now, here)
+    return _by_pid(status, here)
+
+
+# -- one run ---------------------------------------------------------------------------------------
+def resume_command(run_dir: Path, overrides: list[str], argv: Any) -> str:
+    """``python train.py [--config-json F] OVERRIDES hydra.run.dir=DIR``: continues a run from its
+    newest good checkpoint (``trainer.resume=auto``, the default)."""
+    args = [str(a) for a in argv[1:]] if isinstance(argv, list) else []
+    flags: list[str] = []
+    for i, arg in enumerate(args):  # the JSON file and --distributed are not Hydra overrides
+        if arg in ("--config-json", "--config") and i + 1 < len(args):
+            flags += [arg, args[i + 1]]
+        elif arg.startswith(("--config-json=", "--config=")) or arg == "--distributed":
+            flags.append(arg)
+    keep = []
+    for o in overrides:
+        key = o.partition("=")[0].lstrip("+~")
+        if key in ("trainer.resume", "hydra.run.dir") or (
+            flags and o == "+experiment=json_experiment"
+        ):
+            continue  # json_entry adds +experiment itself
+        keep.append(o)
+    changed = any(o.partition("=")[0].lstrip("+~") == "trainer.resume" for o in overrides)
+    tail = ["trainer.resume=auto"] if changed else []
+    return shlex.join(["python", "train.py", *flags, *keep, *tail, f"hydra.run.dir={run_dir}"])
+
+
+def _budget(config: dict[str, Any]) -> int | None:
+    iterations, batch = config.get("trainer.iterations"), config.get("trainer.frames_per_batch")
+    if isinstance(iterations, int) and isinstance(batch, int):
+        return iterations * batch
+    total = config.get("trainer.total_frames")
+    return total if isinstance(total, int) else None
+
+
+def _int(*values: Any) -> int | None:
+    ints = [v for v in values if isinstance(v, int) and not isinstance(v, bool)]
+    return max(ints) if ints else None
+
+
+def _number(value: Any) -> float | None:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def _evals(run: Run, status: dict, beat: dict, metric: str) -> None:
+    """Last and best eval: status.json's final eval, the heartbeat's, else the metrics tail."""
+    final = status.get("final_eval") if run.status != "running" else None
+    last = _number((final or {}).get(metric)) if isinstance(final, dict) else None
+    if last is None and isinstance(beat.get("last_eval"), dict):
+        last = _number(beat["last_eval"].get(metric))
+    best = _number(beat.get("best")) if beat.get("best_metric") == metric else None
+    if best is None or last is None or status.get("state") == "running":
+        tail = tail_metric(run.path / "metrics.jsonl", metric)
+        last = last if last is not None else tail.last
+        if best is None:
+            best, run.best_exact = tail.best, tail.exact
+        run.step = _int(run.step, tail.step)  # newer than a heartbeat up to 10 s old
+    if last is not None:
+        best = last if best is None else max(best, last)
+    run.last, run.best = last, best
+
+
+def _wall(run: Run, status: dict, beat: dict, start: float | None, now: float) -> None:
+    if run.status == "running":
+        end: float | None = now
+    elif run.status in ("died", "stalled"):
+        times = [_number(beat.get("time"))]
+        try:
+            times.append((run.path / "metrics.jsonl").stat().st_mtime)
+        except OSError:
+            pass
+        end = max((t for t in times if t is not None), default=None)
+    else:
+        end = parse_time(status.get("time"))
+    if start is not None and end is not None and end >= start:
+        run.wall_s = end - start
+
+
+def read_run(
+    run_dir: Path, metric: str = DEFAULT_METRIC, here: Here | None = None, now: float | None = None
+) -> Run:
+    """One run dir's row (``here``/``now``: this host and time, for the liveness rules)."""
+    here, now = here or Here.now(), time.time() if now is None else now
+    status, beat = read_status(run_dir), read_heartbeat(run_dir)
+    prov = _json(run_dir / "provenance.json")
+    shown, note = liveness(status, beat, now, here)
+    project = prov.get("project") if isinstance(prov.get("project"), dict) else {}
+    commit = project.get("git_commit") or prov.get("git_commit")
+    dirty = project.get("git_dirty") if project.get("git_commit") else prov.get("git_dirty")
+    run = Run(
+        path=run_dir,
+        status=shown,
+        note=note,
+        step=_int(status.get("global_step"), beat.get("global_step")),
+        start=prov.get("start_time"),
+        host=prov.get("host") or status.get("host") or beat.get("host"),
+        git=(str(commit)[:8] + ("+dirty" if dirty else "")) if commit else None,
+        overrides=read_overrides(run_dir),
+    )
+    # The heartbeat names task, algorithm and budget; older runs: their config.yaml.
+    run.task = beat.get("task") or run.config.get("env.name")
+    run.algorithm = beat.get("algorithm") or run.config.get("algorithm.name")
+    run.total = _int(beat.get("total")) or _budget(run.config)
+    _evals(run, status, beat, metric)
+    _wall(run, status, beat, parse_time(run.start), now)
+    if shown == "died":
+        run.resume = resume_command(run_dir.resolve(), run.overrides, prov.get("argv"))
+        ckpt = newest_checkpoint_step(run_dir)
+        run.note += f"; resumes from step {ckpt}" if ckpt is not None else "; no checkpoint yet"
+    return run
+
+
+def read_runs(roots: list[Path], metric: str = DEFAULT_METRIC) -> list[Run]:
+    """Every run under ``roots``, read once with one view of this host and time."""
+    here, now = Here.now(), time.time()
+    return [read_run(d, metric, here, now) for d in find_run_dirs(roots)]
+
+
+def format_duration(seconds: float) -> str:
+    """``45s``, ``3m12s``, ``1h02m``, ``2d03h``."""
+    s = int(seconds)
+    if s < 60:
+        return f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}s"
+    if s < 86400:
+        return f"{s // 3600}h{s % 3600 // 60:02d}m"
+    return f"{s // 86400}d{s % 86400 // 3600:02d}h"
+
+
+# -- the table: columns, filters, sorting ----------------------------------------------------------
+def _si(n: int | None) -> str:
+    if n is None:
+        return "?"
+    for size, suffix in ((10**9, "G"), (10**6, "M"), (10**3, "k")):
+        if abs(n) >= size:
+            return f"{n / size:.3g}{suffix}"
+    return str(n)
+
+
+def format_number(x: float | None) -> str:
+    """A score for a table cell: ``-`` when missing."""
+    if x is None:
+        return "-"
+    return f"{x:,.0f}" if abs(x) >= 1000 else f"{x:.2f}" if abs(x) >= 1 else f"{x:.3g}"
+
+
+def _rel(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
+#: The table's columns (``--sort`` takes these, ``total``, ``progress``, or any config key).
+COLUMNS = tuple("dir status task algo steps last best wall start host git overrides".split())
+NUMERIC = ("steps", "last", "best", "wall")
+
+
+def cells(r: Run) -> list[str]:
+    """One table row, in COLUMNS order."""
+    best = ("" if r.best_exact or r.best is None else ">=") + format_number(r.best)
+    return [
+        _rel(r.path),
+        r.status,
+        r.task or "-",
+        r.algorithm or "-",
+        f"{_si(r.step)}/{_si(r.total)}",
+        format_number(r.last),
+        best,
+        "-" if r.wall_s is None else format_duration(r.wall_s),
+        (r.start or "-")[:16].replace("T", " "),
+        r.host or "-",
+        r.git or "-",
+        " ".join(r.overrides),
+    ]
+
+
+def _value(r: Run, key: str) -> Any:
+    """What ``--sort`` / ``--where`` compare for ``key``: a column's value or the config's."""
+    values = {
+        "dir": str(r.path),
+        "status": r.status,
+        "task": r.task,
+        "algo": r.algorithm,
+        "steps": r.step,
+        "total": r.total,
+        "last": r.last,
+        "best": r.best,
+        "wall": r.wall_s,
+        "start": parse_time(r.start),
+        "host": r.host,
+        "git": r.git,
+        "overrides": " ".join(r.overrides),
+        "progress": r.step / r.total if r.step is not None and r.total else None,
+    }
+    values |= {"env.name": r.task, "algorithm.name": r.algorithm}  # no config.yaml to read
+    return values[key] if key in values else r.config.get(key)
+
+
+def _close(key: str, choices: list[str]) -> str:
+    import difflib
+
+    near = difflib.get_close_matches(key, choices, n=1)
+    return f"; did you mean {near[0]!r}?" if near else ""
+
+
+def check_key(key: str, runs: list[Run], what: str) -> None:
+    columns = (*COLUMNS, "total", "progress")
+    if key in columns or any(key in r.config for r in runs) or not runs:
+        return
+    known = sorted({*columns, *(k for r in runs for k in r.config)})
+    raise RunsError(
+        f"{what} {key!r}: not a column ({', '.join(COLUMNS)}) nor a config key of any run"
+        + _close(key, known)
+    )
+
+
+def _matches(value: Any, wanted: str) -> bool:
+    """``--where`` equality: the YAML value (``true``, ``[64,64]``, ``3e-4``) or a text glob."""
+    if value is None:
+        return False
+    try:
+        parsed = yaml.load(wanted, Loader=_LOADER)
+    except yaml.YAMLError:
+        parsed = wanted
+    if isinstance(value, (int, float)) and isinstance(parsed, str):
+        try:
+            parsed = float(parsed)
+        except ValueError:
+            pass
+    from fnmatch import fnmatchcase
+
+    return parsed == value or fnmatchcase(str(value), wanted)
+
+
+def select(runs: list[Run], where: list[str] = (), statuses: list[str] = ()) -> list[Run]:
+    """The runs that pass every ``KEY=VALUE`` / ``KEY!=VALUE`` and have one of ``statuses``."""
+    out = runs
+    for cond in where:
+        neg = "!=" in cond
+        key, sep, wanted = cond.partition("!=" if neg else "=")
+        key = key.strip()
+        if not sep or not key:
+            raise RunsError(
+                f"--where {cond!r}: write KEY=VALUE or KEY!=VALUE (e.g. env.name=hopper)"
+            )
+        check_key(key, runs, "--where")
+        out = [r for r in out if _matches(_value(r, key), wanted.strip()) != neg]
+    wanted_states = {s.strip() for group in statuses for s in group.split(",") if s.strip()}
+    if wanted_states:
+        out = [r for r in out if r.status in wanted_states]
+    return out
+
+
+def _orderable(value: Any) -> tuple:
+    """Numbers before text, so that a config key holding both still sorts."""
+    if isinstance(value, (int, float)):
+        return (0, float(value), "")
+    return (1, 0.0, str(value))
+
+
+def sort_runs(runs: list[Run], spec: str) -> list[Run]:
+    """Sort by ``KEY[,KEY...]`` (``-KEY``: descending); runs without a value go last either way."""
+    out = list(runs)
+    for part in reversed([p.strip() for p in spec.split(",") if p.strip()]):
+        key, desc = part.lstrip("-"), part.startswith("-")
+        check_key(key, runs, "--sort")
+        values = {id(r): _value(r, key) for r in out}
+        have = sorted(
+            (r for r in out if values[id(r)] is not None),
+            key=lambda r: _orderable(values[id(r)]),
+            reverse=desc,
+        )
+        out = have + [r for r in out if values[id(r)] is None]
+    return out
+
+
+def print_table(
+    headers: list[str],
+    rows: list[list[str]],
+    right: set[int] = frozenset(),
+    title: str | None = None,
+) -> None:
+    """An aligned table: rich's on a terminal, plain text (pipes, files, tests) otherwise."""
+    import sys
+
+    if sys.stdout.isatty():
+        from rich import box
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=title, box=box.SIMPLE_HEAD, title_justify="left")
+        for i, h in enumerate(headers):
+            table.add_column(h, justify="right" if i in right else "left", overflow="fold")
+        for row in rows:
+            table.add_row(*row)
+        Console().print(table)
+        return
+    widths = [max([len(h)] + [len(r[i]) for r in rows]) for i, h in enumerate(headers)]
+    if title:
+        print(title)
+    for row in [headers, *rows]:
+        cells = [
+            c.rjust(w) if i in right else c.ljust(w)
+            for i, (c, w) in enumerate(zip(row, widths, strict=True))
+        ]
+        print("  ".join(cells).rstrip())
+
+
+def print_runs(runs: list[Run]) -> None:
+    """The table, a count per status, and for each died run why and how to resume it."""
+    right = {i for i, k in enumerate(COLUMNS) if k in NUMERIC}
+    print_table(list(COLUMNS), [cells(r) for r in runs], right)
+    counts: dict[str, int] = {}
+    for r in runs:
+        counts[r.status] = counts.get(r.status, 0) + 1
+    print(f"\n{len(runs)} run(s): " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())))
+    if any(not r.best_exact for r in runs):
+        print(
+            f">=: best over the last {TAIL_BYTES // 1024} KiB of metrics.jsonl only "
+            "(a run without heartbeat.json)"
+        )
+    for r in runs:
+        if r.status in ("died", "stalled", "running?"):
+            print(f"\n{r.status}: {_rel(r.path)}: {r.note}")
+        if r.resume:
+            print(f"  resume: {r.resume}")
+
+
+def main(
+    dirs: list[str],
+    metric: str = DEFAULT_METRIC,
+    sort: str = "start,dir",
+    where: list[str] = (),
+    statuses: list[str] = (),
+    as_json: bool = False,
+) -> None:
+    """``rlexp runs``: RunsError (one line) for a missing dir or an unknown key."""
+    for s in (s.strip() for group in statuses for s in group.split(",")):
+        if s and s not in STATES:
+            raise RunsError(f"--status {s!r}: choose from {', '.join(STATES)}" + _close(s, STATES))
+    roots = [Path(d) for d in dirs] or [Path(d) for d in DEFAULT_DIRS if Path(d).is_dir()]
+    runs = sort_runs(select(read_runs(roots, metric), list(where), list(statuses)), sort)
+    if as_json:
+        print(json.dumps([r.to_json() for r in runs], indent=2))
+    elif not runs:
+        searched = ", ".join(str(r) for r in roots) or " and ".join(f"{d}/" for d in DEFAULT_DIRS)
+        print(f"no runs under {searched}")
+    else:
+        print_runs(runs)
