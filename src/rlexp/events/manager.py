@@ -104,9 +104,8 @@ def _choices_hint(value: str, choices: list[str]) -> str:
 
 
 def resolve_event_func(name: str, where: str) -> Callable[..., Any]:
-    """A registered name, or a dotted path inside the allowlist."""
-    from rlexp.events import builtin  # noqa: F401  (registers the built-in events)
-
+    """A registered name, or a dotted path inside the allowlist (the built-in events are registered
+    when the package ``rlexp.events`` is imported, which any import of this module does first)."""
     if name in EVENT_FUNCS:
         return EVENT_FUNCS[name]
     if "." in name:
