@@ -1,4 +1,13 @@
-"""Deterministic evaluation episodes: what the Trainer's ``eval_once`` and ``rlexp eval`` both run."""
+"""Deterministic evaluation episodes: what the Trainer's ``eval_once`` and ``rlexp eval`` both run.
+
+Two loops give the same numbers (tested). The lean one, for rlexp's envs with rlexp's sampling policy
+on CPU (``rlexp.collector.supports_fast_rollout``), is the collector's: the deterministic sampler on
+plain tensors, the env's own ``step_action`` / ``autoreset_observation``. TorchRL's
+``step_and_maybe_reset`` loop serves everything else (transformed envs, other policies) and callers
+that need each step's tensordict (``on_step``: the eval events of mode step / interval, e.g. the eval
+video). Episodes are spread over the env's copies; more copies share the per-step Python and network
+cost (docs/performance.md, "Evaluation").
+"""
 
 from __future__ import annotations
 
@@ -9,6 +18,58 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
+from rlexp.collector import supports_fast_rollout
+
+
+class EpisodeTally:
+    """Per-copy running returns, lengths and success, kept for each copy's first ``quota`` episodes
+    (the copies' quotas sum to ``episodes`` and differ by at most one), so copies whose episodes
+    end early do not contribute more of them."""
+
+    def __init__(self, num_copies: int, episodes: int) -> None:
+        n = num_copies
+        self.quota = np.full(n, episodes // n)
+        self.quota[: episodes % n] += 1
+        self.done_count = np.zeros(n, dtype=np.int64)
+        self.ep_ret = np.zeros(n)
+        self.ep_len = np.zeros(n, dtype=np.int64)
+        self.ep_success = np.zeros(n)
+        self.returns: list[float] = []
+        self.lengths: list[int] = []
+        self.successes: list[float] = []
+
+    @property
+    def finished(self) -> bool:
+        """Every copy has completed its quota."""
+        return bool((self.done_count >= self.quota).all())
+
+    def add(self, reward: np.ndarray, done: np.ndarray, success: np.ndarray | None) -> None:
+        """One step of every copy: ``reward``, ``done`` (and ``success`` where the env reports it),
+        each of shape [num_copies]."""
+        self.ep_ret += reward
+        self.ep_len += 1
+        if success is not None:
+            np.maximum(self.ep_success, success, out=self.ep_success)
+        if not done.any():
+            return
+        for i in np.flatnonzero(done):
+            if self.done_count[i] < self.quota[i]:
+                self.returns.append(float(self.ep_ret[i]))
+                self.lengths.append(int(self.ep_len[i]))
+                self.successes.append(float(self.ep_success[i]))
+                self.done_count[i] += 1
+            self.ep_ret[i], self.ep_len[i], self.ep_success[i] = 0.0, 0, 0.0
+
+    def metrics(self) -> dict[str, float]:
+        """Mean/std return, mean length, success rate and the number of episodes counted."""
+        return {
+            "eval/episode_return": float(np.mean(self.returns)),
+            "eval/episode_return_std": float(np.std(self.returns)),
+            "eval/episode_length": float(np.mean(self.lengths)),
+            "eval/success_rate": float(np.mean(self.successes)),
+            "eval/episodes": float(len(self.returns)),
+        }
+
 
 @torch.no_grad()
 def run_episodes(
@@ -17,47 +78,70 @@ def run_episodes(
     episodes: int,
     on_step: Callable[[TensorDictBase], None] | None = None,
     on_reset: Callable[[TensorDictBase], TensorDictBase] | None = None,
+    lean: bool | None = None,
 ) -> dict[str, float]:
     """Run ``episodes`` episodes spread evenly over the env's copies (each copy's first ones, so
     short episodes are not favoured); returns mean/std return, mean length and success rate.
 
     ``on_reset`` sees (and may replace) the first tensordict after the env's reset; ``on_step``
-    sees each step's tensordict after the policy acted, before the env steps.
+    sees each step's tensordict after the policy acted, before the env steps (it needs TorchRL's
+    loop). ``lean``: None picks the lean loop where it applies; False forces TorchRL's loop (the
+    reference the lean one is tested against); True insists on the lean loop.
     """
-    n = int(env.batch_size.numel())
-    quota = np.full(n, episodes // n)
-    quota[: episodes % n] += 1
-    returns: list[float] = []
-    lengths: list[int] = []
-    successes: list[float] = []
-    ep_ret = np.zeros(n)
-    ep_len = np.zeros(n, dtype=np.int64)
-    ep_success = np.zeros(n)
-    done_count = np.zeros(n, dtype=np.int64)
+    usable = on_step is None and supports_fast_rollout(env, policy)
+    if lean and not usable:
+        raise ValueError(
+            "run_episodes(lean=True) needs an rlexp env without transforms, rlexp's sampling "
+            "policy on CPU and no on_step callback"
+        )
+    tally = EpisodeTally(int(env.batch_size.numel()), episodes)
     td = env.reset()
     if on_reset is not None:
         td = on_reset(td)
-    while (done_count < quota).any():
+    if usable if lean is None else lean:
+        _lean_loop(env, policy, td.get("observation"), tally)
+    else:
+        _torchrl_loop(env, policy, td, tally, on_step)
+    return tally.metrics()
+
+
+def _lean_loop(env: EnvBase, policy, obs: torch.Tensor, tally: EpisodeTally) -> None:
+    """The collector's fast path: deterministic actions from plain tensors, the env's own step."""
+    sample = policy.sampler()  # the parameters do not change during a round: built once
+    n = len(tally.quota)
+    success_key = None
+    first = True
+    while not tally.finished:
+        action = sample(obs)[2]
+        nxt = env.step_action(action)
+        if first:  # an env's step output always has the same keys
+            first = False
+            metrics = nxt.get("metrics", None)
+            if metrics is not None and "success" in metrics.keys():
+                success_key = ("metrics", "success")
+        success = None if success_key is None else nxt.get(success_key).numpy().reshape(n)
+        tally.add(nxt.get("reward").numpy().reshape(n), nxt.get("done").numpy().reshape(n), success)
+        obs = env.autoreset_observation(nxt)
+
+
+def _torchrl_loop(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    td: TensorDictBase,
+    tally: EpisodeTally,
+    on_step: Callable[[TensorDictBase], None] | None,
+) -> None:
+    """TorchRL's ``step_and_maybe_reset`` loop: any env, any policy, each step's tensordict."""
+    n = len(tally.quota)
+    while not tally.finished:
         td = policy(td)
         if on_step is not None:
             on_step(td)
         out, td = env.step_and_maybe_reset(td)
         nxt = out["next"]
-        ep_ret += nxt["reward"].reshape(n).cpu().numpy()
-        ep_len += 1
+        success = None
         if "metrics" in nxt.keys() and "success" in nxt["metrics"].keys():
-            ep_success = np.maximum(ep_success, nxt["metrics", "success"].reshape(n).cpu().numpy())
-        for i in np.flatnonzero(nxt["done"].reshape(n).cpu().numpy()):
-            if done_count[i] < quota[i]:
-                returns.append(float(ep_ret[i]))
-                lengths.append(int(ep_len[i]))
-                successes.append(float(ep_success[i]))
-                done_count[i] += 1
-            ep_ret[i], ep_len[i], ep_success[i] = 0.0, 0, 0.0
-    return {
-        "eval/episode_return": float(np.mean(returns)),
-        "eval/episode_return_std": float(np.std(returns)),
-        "eval/episode_length": float(np.mean(lengths)),
-        "eval/success_rate": float(np.mean(successes)),
-        "eval/episodes": float(len(returns)),
-    }
+            success = nxt["metrics", "success"].reshape(n).cpu().numpy()
+        tally.add(
+            nxt["reward"].reshape(n).cpu().numpy(), nxt["done"].reshape(n).cpu().numpy(), success
+        )

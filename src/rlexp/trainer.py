@@ -282,12 +282,15 @@ class Trainer:
             events.fire("step", self._ctx(env, tensordict=td, phase="action"))
             events.fire("interval", self._ctx(env, tensordict=td))
 
+        # Step / interval events (the eval video, noise) see each step's tensordict: TorchRL's loop.
+        # Without them run_episodes takes the collector's lean loop (the same numbers, faster).
+        per_step = on_step if events.has("step", "interval") else None
         policy = self.policy.sampling_policy(deterministic=True)
         # Fresh episodes from the same seed every round: rounds compare like with like, and a resumed
         # run evaluates exactly as an uninterrupted one (no eval episode spans two rounds).
         env.set_seed(self.eval_seed)
         with one_torch_thread():
-            metrics = run_episodes(env, policy, self.cfg.eval_episodes, on_step, on_reset)
+            metrics = run_episodes(env, policy, self.cfg.eval_episodes, per_step, on_reset)
         episodes = int(metrics.pop("eval/episodes"))
         self.last_eval = metrics
         events.finalize(self._ctx(env))
