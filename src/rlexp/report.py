@@ -23,7 +23,6 @@ import io
 import json
 import logging
 import math
-import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1002,15 +1001,57 @@ def optuna_markdown(sweep_dir: Path) -> list[str]:
     return lines
 
 
+#: Steps bootstrapped in one call in ``curve_band`` (memory: rows x 5000 resamples x seeds).
+BAND_ROWS = 200
+
+
+def curve_band(ys: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per step (a column of ``ys``: seeds x steps, NaN where a seed has no value there): the IQM
+    over the seeds that have a value and its 95% percentile-bootstrap interval, computed as the
+    table's (``iqm``, ``bootstrap_ci``: same resamples, same seed), so the band at a step is the
+    interval the table gives for those values. A percentile interval of the IQM never leaves the
+    values' range; with one seed, or all seeds equal, the band is that value."""
+    from scipy.stats import bootstrap
+
+    n_steps = ys.shape[1]
+    center, low, high = (np.full(n_steps, np.nan) for _ in range(3))
+    have = ~np.isnan(ys)
+    by_seeds: dict[bytes, list[int]] = {}  # steps that the same seeds logged: one bootstrap
+    for j in range(n_steps):
+        by_seeds.setdefault(have[:, j].tobytes(), []).append(j)
+    for cols in map(np.array, by_seeds.values()):
+        x = ys[have[:, cols[0]]][:, cols].T  # steps x seeds
+        if x.shape[1] == 0:
+            continue
+        center[cols] = iqm(x, axis=-1)
+        low[cols] = high[cols] = x[:, 0]
+        spread = (x.shape[1] > 1) & ~np.all(x == x[:, :1], axis=1)
+        for start in range(0, int(spread.sum()), BAND_ROWS):
+            rows = np.flatnonzero(spread)[start : start + BAND_ROWS]
+            res = bootstrap(
+                (x[rows],),
+                iqm,
+                confidence_level=0.95,
+                n_resamples=5000,
+                method="percentile",
+                vectorized=True,
+                axis=-1,
+                random_state=np.random.default_rng(seed),
+            )
+            low[cols[rows]] = res.confidence_interval.low
+            high[cols[rows]] = res.confidence_interval.high
+    return center, low, high
+
+
 def plot_curves(
     stats: list[ConfigStats], path: Path, metric: str, threshold: float | None = None
 ) -> None:
-    """Mean learning curve per configuration with a 95% t-interval band over seeds."""
+    """IQM learning curve per configuration with its 95% bootstrap band over seeds: the statistic
+    of the table (``curve_band``), so the band at the last step is the table's IQM interval."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from scipy.stats import t as student_t
 
     fig, ax = plt.subplots(figsize=(8, 5))
     for s in stats:
@@ -1026,15 +1067,10 @@ def plot_curves(
             cs, cv = np.array(c, dtype=float).T
             inside = (steps >= cs[0]) & (steps <= cs[-1])
             ys[i, inside] = np.interp(steps[inside], cs, cv)
-        n = np.sum(~np.isnan(ys), axis=0)
-        mean = np.nanmean(ys, axis=0)
-        with warnings.catch_warnings():  # a step only one seed logged: no spread (the band is 0)
-            warnings.simplefilter("ignore", RuntimeWarning)
-            std = np.nanstd(ys, axis=0, ddof=1) if len(curves) > 1 else np.zeros_like(mean)
-        half = np.where(n > 1, student_t.ppf(0.975, np.maximum(n - 1, 1)) * std / np.sqrt(n), 0.0)
+        center, low, high = curve_band(ys)
         stopped = f", {early} stopped early" if early else ""
-        (line,) = ax.plot(steps, mean, label=f"{s.label} (n={len(curves)}{stopped})")
-        ax.fill_between(steps, mean - half, mean + half, alpha=0.2, color=line.get_color())
+        (line,) = ax.plot(steps, center, label=f"{s.label} (n={len(curves)}{stopped})")
+        ax.fill_between(steps, low, high, alpha=0.2, color=line.get_color())
     if threshold is not None:
         ax.axhline(
             threshold,
@@ -1045,7 +1081,7 @@ def plot_curves(
         )
     ax.set_xlabel("env steps")
     ax.set_ylabel(metric)
-    ax.set_title("mean over seeds, 95% CI")
+    ax.set_title("IQM over seeds, 95% percentile bootstrap CI (as in report.md)")
     ax.grid(alpha=0.3)
     if ax.lines:
         ax.legend(fontsize="small")
