@@ -10,7 +10,7 @@ from rlexp.config.native_task import Number, OrNull, Part
 from rlexp.envs.native.registry import Registry
 
 if TYPE_CHECKING:
-    from rlexp.envs.native.env import NativeEnv
+    from rlexp.envs.native.state import SimState
 
 ACTIONS: Registry = Registry("action term")
 
@@ -28,7 +28,7 @@ class DeltaQposTerm:
     control ranges. The target is taken from the measured joint positions, not the previous target.
     """
 
-    def __init__(self, env: NativeEnv, scale: float = 0.1, part_name: str | None = None) -> None:
+    def __init__(self, env: SimState, scale: float = 0.1, part_name: str | None = None) -> None:
         self.scale = float(scale)
         self.actuators = env.actuators_of_part(part_name)  # actuator ids, in action order
         self.joint_qpos_adr = env.actuator_qpos_adr[self.actuators]
@@ -41,7 +41,7 @@ class DeltaQposTerm:
     def action_dim(self) -> int:
         return len(self.actuators)
 
-    def __call__(self, env: NativeEnv, action: np.ndarray, ctrl: np.ndarray) -> None:
+    def __call__(self, env: SimState, action: np.ndarray, ctrl: np.ndarray) -> None:
         """Write the controls for ``action`` [N, A] (already clipped to [-1, 1]) into ``ctrl`` [N, nu]."""
         target = env.qpos[:, self.joint_qpos_adr] + self.scale * action
         np.clip(target, self.low, self.high, out=target)

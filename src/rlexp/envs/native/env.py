@@ -12,11 +12,8 @@ mask only hands back the cached post-reset observation for those envs. A plain `
 
 from __future__ import annotations
 
-import inspect
 import logging
 import os
-from dataclasses import asdict, is_dataclass
-from importlib import resources
 from typing import Any
 
 import mujoco
@@ -27,87 +24,23 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from rlexp.config.native_task import (
-    NativeTaskConfig,
-    Number,
-    ParamRule,
-    Unchecked,
-    Vector,
-    check_params,
-    plain,
-)
-from rlexp.envs.native.actions import ACTIONS
-from rlexp.envs.native.events import EVENTS
-from rlexp.envs.native.kinematics import SerialChainFK
-from rlexp.envs.native.observations import OBSERVATIONS
-from rlexp.envs.native.registry import unknown_name_message
-from rlexp.envs.native.rewards import REWARDS
+from rlexp.config.native_task import NativeTaskConfig, plain
+from rlexp.envs.native.scene import load_model
+from rlexp.envs.native.state import SimState
 from rlexp.envs.native.tasks import TaskSpec, get_task
+from rlexp.envs.native.terms import (
+    TERM_ERRORS,
+    as_dict,
+    build_action_terms,
+    build_event_terms,
+    build_observation_terms,
+    build_reward_terms,
+    named_error,
+)
 
 log = logging.getLogger(__name__)
 
-EVENT_MODES = ("startup", "reset", "interval")
-OBSERVATION_MODES = ("add", "modify")
-REWARD_MODES = ("add", "replace")
 ROBOT_OBSERVATIONS = ("robot/qpos", "robot/qvel", "robot/qf")  # every observation starts from these
-
-
-def _as_dict(cfg: Any) -> dict[str, Any]:
-    """A term entry (dataclass or mapping) as a plain dict."""
-    if is_dataclass(cfg):
-        return asdict(cfg)
-    return dict(cfg)
-
-
-def _check_params(
-    func: Any, params: dict[str, Any], where: str, skip: int, env: Any = None
-) -> None:
-    """Fail at build time, naming the config key, if ``params`` do not fit ``func``: its rules
-    (``PARAMS``, set by the registries: types, lengths, ranges, and with ``env`` the names and joint
-    indices they refer to), else at least its signature."""
-    target = func.__init__ if isinstance(func, type) else func
-    sig = inspect.signature(target)
-    names = list(sig.parameters)[skip:]
-    required = [n for n in names if sig.parameters[n].default is inspect.Parameter.empty]
-    rules = getattr(func, "PARAMS", None)
-    if rules is None:
-        rules = {n: Unchecked() for n in names}
-    check_params(func.__name__, params, rules, f"{where}.params", required, env)
-
-
-def _friction_ok(value: Any, where: str) -> None:
-    values = value if isinstance(value, (list, tuple)) else [value]
-    if not 1 <= len(values) <= 3:
-        raise ValueError(
-            f"{where}={value!r} must be 1 to 3 numbers >= 0 (sliding, torsional, rolling)"
-        )
-    for i, v in enumerate(values):
-        Number(ge=0).check(v, f"{where}[{i}]" if isinstance(value, (list, tuple)) else where)
-
-
-#: Rules of the scene overrides of a rigid object ``<uid>_<attr>`` (init_qpos: in _setup_indices).
-SCENE_RULES: dict[str, ParamRule] = {
-    "init_pos": Vector(note="m, world frame"),
-    "size": Vector(gt=0, note="m, full edge lengths"),
-    "mass": Number(gt=0, note=" (kg)"),
-}
-
-
-_TERM_ERRORS = (KeyError, ValueError, TypeError)
-
-
-def _named(exc: Exception, where: str) -> Exception:
-    """A term's KeyError / ValueError / TypeError with its config key in front of the message
-    (``raise _named(exc, where) from exc`` in an ``except _TERM_ERRORS``: free when nothing fails)."""
-    msg = str(exc.args[0] if exc.args else exc)
-    kind = next(k for k in _TERM_ERRORS if isinstance(exc, k))
-    return kind(msg if msg.startswith(where) else f"{where}: {msg}")
-
-
-def _choose(value: str, choices: tuple[str, ...], where: str) -> str:
-    if value not in choices:
-        raise ValueError(unknown_name_message("mode", value, choices, where))
-    return value
 
 
 def default_num_threads(num_envs: int) -> int:
@@ -118,53 +51,7 @@ def default_num_threads(num_envs: int) -> int:
     return 0 if num_envs < 4 or cores < 2 else min(cores, 16, num_envs)
 
 
-def load_model(task: TaskSpec, scene: dict[str, Any]) -> tuple[mujoco.MjModel, dict[str, Any]]:
-    """Compile the task's MJCF with the ``scene`` overrides; returns the model and the unused ones."""
-    path = resources.files("rlexp.envs.native") / "assets" / task.asset
-    spec = mujoco.MjSpec.from_file(str(path))
-    rest = {}
-    for key, value in scene.items():
-        uid, _, attr = key.partition("_")
-        if key == "init_qpos":
-            rest[key] = value
-        elif uid in task.objects and attr in ("init_pos", "size", "mass", "friction"):
-            if attr == "friction":
-                _friction_ok(value, f"env.native.scene.{key}")
-            else:
-                SCENE_RULES[attr].check(value, f"env.native.scene.{key}")
-            body = spec.body(task.objects[uid])
-            geom = body.first_geom()
-            if attr == "init_pos":
-                body.pos = np.asarray(value, float)
-            elif attr == "size":  # full edge lengths, as the task files give them
-                geom.size = 0.5 * np.asarray(value, float)
-            elif attr == "mass":
-                geom.mass = float(value)
-            else:
-                fr = np.atleast_1d(np.asarray(value, float))
-                geom.friction = np.concatenate([fr, geom.friction[len(fr) :]])
-        else:
-            choices = ["init_qpos"] + [
-                f"{u}_{a}" for u in task.objects for a in ("init_pos", "size", "mass", "friction")
-            ]
-            raise KeyError(unknown_name_message("scene override", key, choices, "env.native.scene"))
-    return spec.compile(), rest
-
-
-class _StepVars:
-    """Per-step scalars and caches, kept off the env: EnvBase/nn.Module attribute writes are slow."""
-
-    def __init__(self) -> None:
-        self.version = 0  # bumped whenever the physics state changes; invalidates cached kinematics
-        self.fk_version = -1
-        self.fk_cache: tuple[np.ndarray, np.ndarray] | None = None
-        self.current_obs: np.ndarray | None = (
-            None  # every env's observation now (post-reset for reset envs)
-        )
-        self.interval_count = 0
-
-
-class NativeEnv(EnvBase):
+class NativeEnv(EnvBase, SimState):
     """A batched MuJoCo task (``batch_size=[num_envs]``) built from a term configuration."""
 
     def __init__(
@@ -181,7 +68,7 @@ class NativeEnv(EnvBase):
         cfg = (
             task_cfg
             if isinstance(task_cfg, NativeTaskConfig)
-            else NativeTaskConfig(**_as_dict(task_cfg))
+            else NativeTaskConfig(**as_dict(task_cfg))
         )
         self.task_spec: TaskSpec = get_task(cfg.task)
         self.task_cfg = cfg
@@ -196,6 +83,7 @@ class NativeEnv(EnvBase):
 
         self.model, scene = load_model(self.task_spec, plain(cfg.scene or {}))
         self._setup_indices(scene)
+        self._setup_state()
         self._setup_physics(num_threads)
         self._setup_terms(cfg)
 
@@ -210,8 +98,8 @@ class NativeEnv(EnvBase):
         for key, func, _, _, params in self._reward_terms:
             try:
                 func(self, **params)
-            except _TERM_ERRORS as exc:
-                raise _named(exc, f"rewards.{key}") from exc
+            except TERM_ERRORS as exc:
+                raise named_error(exc, f"rewards.{key}") from exc
         self.observation_layout = self._layout(obs)
         self.obs_dim = self.observation_layout[-1][2] if self.observation_layout else 0
         self._v.current_obs = self._flatten(obs)
@@ -223,188 +111,39 @@ class NativeEnv(EnvBase):
 
     # ------------------------------------------------------------------ setup
 
-    def _setup_indices(self, scene: dict[str, Any]) -> None:
-        m, task = self.model, self.task_spec
-        self.robot_joint_ids = np.array([m.joint(j).id for j in task.robot_joints])
-        self.robot_qpos_adr = m.jnt_qposadr[self.robot_joint_ids]
-        self.robot_dof_adr = m.jnt_dofadr[self.robot_joint_ids]
-        self.num_robot_joints = len(self.robot_joint_ids)
-        limited = m.jnt_limited[self.robot_joint_ids].astype(bool)
-        self.robot_joint_limits = np.where(
-            limited[:, None], m.jnt_range[self.robot_joint_ids], [-np.inf, np.inf]
-        )
-        raw = scene.get("init_qpos", task.init_qpos)
-        if isinstance(raw, (list, tuple)) and len(raw) != self.num_robot_joints:
-            raise ValueError(
-                f"env.native.scene.init_qpos has {len(raw)} values; {task.name} has "
-                f"{self.num_robot_joints} robot joints {list(task.robot_joints)}"
-            )
-        Vector(names=tuple(task.robot_joints)).check(list(raw), "env.native.scene.init_qpos")
-        init_qpos = np.asarray(raw, float)
-        low, high = self.robot_joint_limits[:, 0], self.robot_joint_limits[:, 1]
-        outside = np.flatnonzero((init_qpos < low) | (init_qpos > high))
-        if outside.size:
-            j = int(outside[0])
-            raise ValueError(
-                f"env.native.scene.init_qpos={init_qpos.tolist()}: {task.robot_joints[j]}="
-                f"{init_qpos[j]:g} is outside the joint's range [{low[j]:g}, {high[j]:g}]"
-            )
-        self.robot_init_qpos = init_qpos
-        # actuators: joint transmission only, fixed gain, affine or no bias (position servos, motors)
-        if not (m.actuator_trntype == mujoco.mjtTrn.mjTRN_JOINT).all():
-            raise ValueError(f"{task.asset}: every actuator must drive a joint")
-        if (
-            not (m.actuator_dyntype == mujoco.mjtDyn.mjDYN_NONE).all()
-            or not (m.actuator_gaintype == mujoco.mjtGain.mjGAIN_FIXED).all()
-        ):
-            raise ValueError(f"{task.asset}: actuators must have no dynamics and a fixed gain")
-        act_joint = m.actuator_trnid[:, 0]
-        self.actuator_qpos_adr = m.jnt_qposadr[act_joint]
-        self._act_dof_adr = m.jnt_dofadr[act_joint]
-        self._act_gear = m.actuator_gear[:, 0].copy()
-        self._act_gain = m.actuator_gainprm[:, 0].copy()
-        self._act_bias = m.actuator_biasprm[:, :3].copy()
-        limited = m.actuator_forcelimited.astype(bool)
-        self._act_force_low = np.where(limited, m.actuator_forcerange[:, 0], -np.inf)
-        self._act_force_high = np.where(limited, m.actuator_forcerange[:, 1], np.inf)
-        # robot dof -> column in the robot's qf observation, for each actuator (-1: not a robot joint)
-        dof_to_robot = {int(d): i for i, d in enumerate(self.robot_dof_adr)}
-        cols = np.array([dof_to_robot.get(int(d), -1) for d in self._act_dof_adr])
-        if len(set(cols[cols >= 0])) != int((cols >= 0).sum()):
-            raise ValueError(f"{task.asset}: at most one actuator per robot joint")
-        self._act_robot_valid = cols >= 0
-        self._act_robot_col_valid = cols[cols >= 0]
-        # rigid objects: free joints
-        self._object_qpos_adr: dict[str, int] = {}
-        self._object_dof_adr: dict[str, int] = {}
-        for uid, body in task.objects.items():
-            b = m.body(body)
-            j = int(m.body_jntadr[b.id])
-            if j < 0 or m.jnt_type[j] != mujoco.mjtJoint.mjJNT_FREE:
-                raise ValueError(f"{task.asset}: object {uid!r} (body {body!r}) needs a free joint")
-            self._object_qpos_adr[uid] = int(m.jnt_qposadr[j])
-            self._object_dof_adr[uid] = int(m.jnt_dofadr[j])
-        self._fk = SerialChainFK(m, task.ee_site) if task.ee_site else None
-
     def _setup_physics(self, num_threads: int | None) -> None:
+        """The rollout thread pool and its buffers, the reset / restore flags, the render caches."""
         m, n = self.model, self.num_envs
         self.substeps = self.task_spec.substeps
-        self._nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        # the full physics state begins with time, qpos, qvel, act (checked against mj_getState)
-        self._sl_qpos = slice(1, 1 + m.nq)
-        self._sl_qvel = slice(1 + m.nq, 1 + m.nq + m.nv)
-        self._sl_act = slice(1 + m.nq + m.nv, 1 + m.nq + m.nv + m.na)
-        data = mujoco.MjData(m)
-        data.time, data.qpos[:], data.qvel[:] = 0.25, np.arange(m.nq) + 0.5, np.arange(m.nv) + 0.75
-        probe = np.empty(self._nstate)
-        mujoco.mj_getState(m, data, probe, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        if (
-            probe[0] != 0.25
-            or not np.array_equal(probe[self._sl_qpos], data.qpos)
-            or not np.array_equal(probe[self._sl_qvel], data.qvel)
-        ):
-            raise RuntimeError("unexpected mjSTATE_FULLPHYSICS layout in this MuJoCo version")
-        mujoco.mj_resetData(m, data)
-        mujoco.mj_getState(m, data, probe, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        self._init_state = probe.copy()
-        self._init_state[self._sl_qpos][self.robot_qpos_adr] = self.robot_init_qpos
-        self._init_ctrl = np.zeros(m.nu)
-        self._init_ctrl[:] = self._init_state[self._sl_qpos][self.actuator_qpos_adr]
-
-        self._state = np.tile(self._init_state, (n, 1))  # [N, nstate]: the envs' physics state
-        self._ctrl = np.tile(self._init_ctrl, (n, 1))  # [N, nu]
-        self._control = np.zeros(
-            (n, self.substeps, m.nu)
-        )  # rollout input: ctrl held over the substeps
+        # rollout input: ctrl held over the substeps
+        self._control = np.zeros((n, self.substeps, m.nu))
         self._traj = np.zeros((n, self.substeps, self._nstate))  # rollout output
         self._sensordata = np.zeros((n, self.substeps, m.nsensordata))
-        self.qpos = self._state[:, self._sl_qpos]  # views into the state
-        self.qvel = self._state[:, self._sl_qvel]
         self.num_threads = default_num_threads(n) if num_threads is None else int(num_threads)
         self._pool = rollout.Rollout(nthread=self.num_threads)
         self._datas = [mujoco.MjData(m) for _ in range(max(1, self.num_threads))]
         self._models = [m] * n
         self._chunk = max(1, n // (max(1, self.num_threads) * 4))
-        self._v = _StepVars()
 
-        self.episode_step = np.zeros(n, dtype=np.int64)  # steps taken in the current episode
-        self.success = np.zeros(n, dtype=bool)
-        self.terminated = np.zeros(n, dtype=bool)
-        self.truncated = np.zeros(n, dtype=bool)
-        self._pending_reset = np.zeros(
-            n, dtype=bool
-        )  # reset inside _step, not yet handed out by _reset
-        self._targets: dict[str, np.ndarray] = {}
-        self._restored = (
-            False  # set by load_env_state: the next full reset hands back the restored state
-        )
+        # reset inside _step, not yet handed out by _reset
+        self._pending_reset = np.zeros(n, dtype=bool)
+        # set by load_env_state: the next full reset hands back the restored state
+        self._restored = False
         self.last_reset_was_restore = False
         self._render_data: mujoco.MjData | None = None
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
 
     def _setup_terms(self, cfg: NativeTaskConfig) -> None:
+        """The term tables (``rlexp.envs.native.terms``) and the action arrays."""
         n = self.num_envs
-        # actions
-        if not cfg.actions:
-            raise ValueError(
-                "env.native.actions is empty; add an action term such as DeltaQposTerm"
-            )
-        self._action_terms = []
-        dim = 0
-        for key, term in cfg.actions.items():
-            t = _as_dict(term)
-            cls = ACTIONS.get(t["func"], f"actions.{key}")
-            params = plain(t.get("params") or {})
-            _check_params(cls, params, f"actions.{key}", skip=2, env=self)
-            try:
-                inst = cls(self, **params)
-            except _TERM_ERRORS as exc:
-                raise _named(exc, f"actions.{key}") from exc
-            self._action_terms.append((slice(dim, dim + inst.action_dim), inst))
-            dim += inst.action_dim
-        self.action_dim = dim
-        self.action = np.zeros((n, dim))  # the current (clipped) action
-        self.prev_action = np.zeros((n, dim))  # the previous step's action
-        # events
-        self._startup_events, self._reset_events, self._interval_events = [], [], []
-        for key, term in (cfg.events or {}).items():
-            t = _as_dict(term)
-            func = EVENTS.get(t["func"], f"events.{key}")
-            mode = _choose(t.get("mode", "reset"), EVENT_MODES, f"events.{key}.mode")
-            params = plain(t.get("params") or {})
-            _check_params(func, params, f"events.{key}", skip=2, env=self)
-            every = t.get("interval_step", 1)
-            Number(ge=1, integer=True).check(every, f"events.{key}.interval_step")
-            entry = (key, func, params, int(every))
-            {
-                "startup": self._startup_events,
-                "reset": self._reset_events,
-                "interval": self._interval_events,
-            }[mode].append(entry)
-        # observations
-        self._observation_terms = []
-        for key, term in (cfg.observations or {}).items():
-            t = _as_dict(term)
-            func = OBSERVATIONS.get(t["func"], f"observations.{key}")
-            mode = _choose(t.get("mode", "add"), OBSERVATION_MODES, f"observations.{key}.mode")
-            name = t.get("name")
-            if not name or name == "???" or name.strip("/") != name or "//" in name:
-                raise ValueError(f"observations.{key}.name must be 'group/key', got {name!r}")
-            params = plain(t.get("params") or {})
-            skip = 2 if mode == "modify" else 1
-            _check_params(func, params, f"observations.{key}", skip=skip, env=self)
-            self._observation_terms.append((key, func, mode, name, params))
-        # rewards
-        self._reward_terms = []
-        for key, term in (cfg.rewards or {}).items():
-            t = _as_dict(term)
-            func = REWARDS.get(t["func"], f"rewards.{key}")
-            mode = _choose(t.get("mode", "add"), REWARD_MODES, f"rewards.{key}.mode")
-            params = plain(t.get("params") or {})
-            _check_params(func, params, f"rewards.{key}", skip=1, env=self)
-            weight = t.get("weight", 1.0)
-            Number().check(weight, f"rewards.{key}.weight")
-            self._reward_terms.append((key, func, mode, float(weight), params))
+        self._action_terms, self.action_dim = build_action_terms(cfg.actions, self)
+        self.action = np.zeros((n, self.action_dim))  # the current (clipped) action
+        self.prev_action = np.zeros((n, self.action_dim))  # the previous step's action
+        self._startup_events, self._reset_events, self._interval_events = build_event_terms(
+            cfg.events, self
+        )
+        self._observation_terms = build_observation_terms(cfg.observations, self)
+        self._reward_terms = build_reward_terms(cfg.rewards, self)
         self.reward_names = [k for k, *_ in self._reward_terms]
 
     def _make_specs(self) -> None:
@@ -432,118 +171,14 @@ class NativeEnv(EnvBase):
             device=dev,
         )
 
-    # ------------------------------------------------------------------ accessors for the terms
-
-    def robot_qpos(self) -> np.ndarray:
-        """Robot joint positions [N, k] (a copy)."""
-        return self.qpos[:, self.robot_qpos_adr]
-
-    def robot_qvel(self) -> np.ndarray:
-        """Robot joint velocities [N, k] (a copy)."""
-        return self.qvel[:, self.robot_dof_adr]
-
-    def robot_qf(self) -> np.ndarray:
-        """Actuator forces on the robot joints [N, k], as ``qfrc_actuator`` after ``mj_forward``."""
-        length = self._act_gear * self.qpos[:, self.actuator_qpos_adr]
-        velocity = self._act_gear * self.qvel[:, self._act_dof_adr]
-        force = self._act_gain * self._ctrl + self._act_bias[:, 0] + self._act_bias[:, 1] * length
-        force += self._act_bias[:, 2] * velocity
-        np.minimum(force, self._act_force_high, out=force)
-        np.maximum(force, self._act_force_low, out=force)
-        out = np.zeros((self.num_envs, self.num_robot_joints))
-        out[:, self._act_robot_col_valid] = (self._act_gear * force)[:, self._act_robot_valid]
-        return out
-
-    def ee_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """End-effector site position [N, 3] and rotation [N, 3, 3] (cached until the state changes)."""
-        if self._fk is None:
-            raise ValueError(f"task {self.task_spec.name!r} has no end-effector site")
-        v = self._v
-        if v.fk_version != v.version:
-            v.fk_cache = self._fk(self.qpos)
-            v.fk_version = v.version
-        return v.fk_cache  # type: ignore[return-value]
-
-    def object_pose(self, uid: str) -> tuple[np.ndarray, np.ndarray]:
-        """Position [N, 3] and quaternion [N, 4] (w, x, y, z) of rigid object ``uid`` (views)."""
-        try:
-            adr = self._object_qpos_adr[uid]
-        except KeyError:
-            raise KeyError(
-                unknown_name_message("rigid object uid", uid, self._object_qpos_adr)
-            ) from None
-        return self.qpos[:, adr : adr + 3], self.qpos[:, adr + 3 : adr + 7]
-
-    def object_initial_pose(self, uid: str) -> tuple[np.ndarray, np.ndarray]:
-        """The object's initial position [3] and quaternion [4] (from the scene)."""
-        self.object_pose(uid)  # validates uid
-        adr = self._object_qpos_adr[uid]
-        q0 = self._init_state[self._sl_qpos]
-        return q0[adr : adr + 3].copy(), q0[adr + 3 : adr + 7].copy()
-
-    def target(self, key: str) -> np.ndarray:
-        """A stored target position [N, 3] (set by a ``randomize_target_pose`` event)."""
-        try:
-            return self._targets[key]
-        except KeyError:
-            raise KeyError(
-                f"target pose {key!r} is not stored; add a randomize_target_pose event with "
-                f"store_key={key!r} (stored: {sorted(self._targets)})"
-            ) from None
-
-    def set_target(self, key: str, env_ids: np.ndarray, pos: np.ndarray) -> None:
-        if key not in self._targets:
-            self._targets[key] = np.zeros((self.num_envs, 3))
-        self._targets[key][env_ids] = pos
-
-    def set_object_pose(
-        self, uid: str, env_ids: np.ndarray, pos: np.ndarray, quat: np.ndarray
-    ) -> None:
-        """Place object ``uid`` in envs ``env_ids`` at rest."""
-        self.object_pose(uid)
-        qa, da = self._object_qpos_adr[uid], self._object_dof_adr[uid]
-        self.qpos[env_ids, qa : qa + 3] = pos
-        self.qpos[env_ids, qa + 3 : qa + 7] = quat
-        self.qvel[env_ids, da : da + 6] = 0.0
-        self._v.version += 1
-
-    def set_robot_state(
-        self, env_ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray | None = None
-    ) -> None:
-        """Set robot joint positions (and velocities) in envs ``env_ids``; servo targets follow."""
-        rows = np.asarray(env_ids)[:, None]
-        self.qpos[rows, self.robot_qpos_adr] = qpos
-        self.qvel[rows, self.robot_dof_adr] = 0.0 if qvel is None else qvel
-        self._ctrl[rows, np.arange(self.model.nu)] = self.qpos[rows, self.actuator_qpos_adr]
-        self._v.version += 1
-
-    def part_joint_ids(self, part_name: str) -> list[int]:
-        """Indices (into the robot's joints) of the joints of control part ``part_name``."""
-        self.check_part(part_name)
-        return [self.task_spec.robot_joints.index(j) for j in self.task_spec.parts[part_name]]
-
-    def check_part(self, part_name: str | None) -> None:
-        if part_name is not None and part_name not in self.task_spec.parts:
-            raise KeyError(unknown_name_message("control part", part_name, self.task_spec.parts))
-
-    def actuators_of_part(self, part_name: str | None) -> np.ndarray:
-        """Actuator ids driving the joints of ``part_name`` (all actuators if None)."""
-        if part_name is None:
-            return np.arange(self.model.nu)
-        self.check_part(part_name)
-        joints = {self.model.joint(j).id for j in self.task_spec.parts[part_name]}
-        return np.array(
-            [a for a in range(self.model.nu) if int(self.model.actuator_trnid[a, 0]) in joints]
-        )
-
     # ------------------------------------------------------------------ the MDP
 
     def _fire(self, events: list, env_ids: np.ndarray) -> None:
         for key, func, params, _ in events:
             try:
                 func(self, env_ids, **params)
-            except _TERM_ERRORS as exc:
-                raise _named(exc, f"events.{key}") from exc
+            except TERM_ERRORS as exc:
+                raise named_error(exc, f"events.{key}") from exc
 
     def _reset_envs(self, env_ids: np.ndarray) -> None:
         """Put envs ``env_ids`` back to their initial state and fire the reset events (batched)."""
@@ -569,8 +204,8 @@ class NativeEnv(EnvBase):
                     )
                 try:
                     obs[name] = func(self, obs[name], **params)
-                except _TERM_ERRORS as exc:
-                    raise _named(exc, f"observations.{key}") from exc
+                except TERM_ERRORS as exc:
+                    raise named_error(exc, f"observations.{key}") from exc
             else:
                 if name in obs:
                     raise KeyError(
@@ -578,8 +213,8 @@ class NativeEnv(EnvBase):
                     )
                 try:
                     obs[name] = func(self, **params)
-                except _TERM_ERRORS as exc:
-                    raise _named(exc, f"observations.{key}") from exc
+                except TERM_ERRORS as exc:
+                    raise named_error(exc, f"observations.{key}") from exc
         return obs
 
     def _layout(self, obs: dict[str, np.ndarray]) -> list[tuple[str, int, int, tuple[int, ...]]]:
@@ -622,8 +257,8 @@ class NativeEnv(EnvBase):
                 if self._v.interval_count % every == 0:
                     try:
                         func(self, np.arange(n), **params)
-                    except _TERM_ERRORS as exc:
-                        raise _named(exc, f"events.{key}") from exc
+                    except TERM_ERRORS as exc:
+                        raise named_error(exc, f"events.{key}") from exc
         for sl, term in self._action_terms:
             term(self, self.action[:, sl], self._ctrl)
 
@@ -840,7 +475,9 @@ class NativeEnv(EnvBase):
         mujoco.mj_forward(self.model, d)
         cam = self.task_spec.camera
         return render_frame(
-            self,
+            self.model,
+            self._renderers,
+            self.task_spec.asset,
             d,
             width,
             height,

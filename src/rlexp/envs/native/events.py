@@ -17,12 +17,12 @@ from rlexp.config.native_task import Box, Entity, Flag, Interval, JointIds, OrNu
 from rlexp.envs.native.registry import Registry
 
 if TYPE_CHECKING:
-    from rlexp.envs.native.env import NativeEnv
+    from rlexp.envs.native.state import SimState
 
 EVENTS: Registry = Registry("event func")
 
 
-def _uniform(env: NativeEnv, n: int, position_range: Sequence[Sequence[float]]) -> np.ndarray:
+def _uniform(env: SimState, n: int, position_range: Sequence[Sequence[float]]) -> np.ndarray:
     low, high = np.asarray(position_range[0], float), np.asarray(position_range[1], float)
     return env.rng.uniform(low, high, size=(n, 3))
 
@@ -44,7 +44,7 @@ TARGET_POSE_PARAMS = {
 
 @EVENTS.register(params=OBJECT_POSE_PARAMS)
 def randomize_rigid_object_pose(
-    env: NativeEnv,
+    env: SimState,
     env_ids: np.ndarray,
     entity_cfg: dict[str, Any],
     position_range: Sequence[Sequence[float]],
@@ -70,7 +70,7 @@ def randomize_rigid_object_pose(
 
 @EVENTS.register(params=TARGET_POSE_PARAMS)
 def randomize_target_pose(
-    env: NativeEnv,
+    env: SimState,
     env_ids: np.ndarray,
     position_range: Sequence[Sequence[float]],
     relative_position: bool = False,
@@ -91,7 +91,7 @@ def randomize_target_pose(
     }
 )
 def randomize_joint_positions(
-    env: NativeEnv,
+    env: SimState,
     env_ids: np.ndarray,
     position_range: Sequence[float],
     joint_ids: Sequence[int] | None = None,

@@ -18,7 +18,7 @@ from rlexp.envs.native.kinematics import quat_to_mat
 from rlexp.envs.native.registry import Registry
 
 if TYPE_CHECKING:
-    from rlexp.envs.native.env import NativeEnv
+    from rlexp.envs.native.state import SimState
 
 OBSERVATIONS: Registry = Registry("observation func")
 
@@ -44,7 +44,7 @@ def _pose(pos: np.ndarray, rot: np.ndarray, to_matrix: bool) -> np.ndarray:
     }
 )
 def normalize_robot_joint_data(
-    env: NativeEnv,
+    env: SimState,
     data: np.ndarray,
     joint_ids: Sequence[int] | None = None,
     limit: str = "qpos_limits",
@@ -76,7 +76,7 @@ def normalize_robot_joint_data(
     }
 )
 def get_robot_eef_pose(
-    env: NativeEnv,
+    env: SimState,
     part_name: str | None = None,
     position_only: bool = False,
     to_matrix: bool = True,
@@ -89,7 +89,7 @@ def get_robot_eef_pose(
 
 @OBSERVATIONS.register(params={"entity_cfg": Entity(), "to_matrix": Flag()})
 def get_rigid_object_pose(
-    env: NativeEnv, entity_cfg: dict[str, Any], to_matrix: bool = True
+    env: SimState, entity_cfg: dict[str, Any], to_matrix: bool = True
 ) -> np.ndarray:
     """World pose of a rigid object: [N, 4, 4] by default, [N, 7] (pos, quat wxyz) otherwise."""
     pos, quat = env.object_pose(entity_cfg["uid"])
@@ -99,13 +99,13 @@ def get_rigid_object_pose(
 
 
 @OBSERVATIONS.register(params={"target_pose_key": Text()})
-def target_position(env: NativeEnv, target_pose_key: str = "goal_pose") -> np.ndarray:
+def target_position(env: SimState, target_pose_key: str = "goal_pose") -> np.ndarray:
     """A target position [N, 3] stored by a ``randomize_target_pose`` event."""
     return env.target(target_pose_key).copy()
 
 
 @OBSERVATIONS.register(params={"joint_ids": OrNull(JointIds(), "all robot joints")})
-def get_robot_joint_velocity(env: NativeEnv, joint_ids: Sequence[int] | None = None) -> np.ndarray:
+def get_robot_joint_velocity(env: SimState, joint_ids: Sequence[int] | None = None) -> np.ndarray:
     """Robot joint velocities [N, k] (all robot joints by default)."""
     qvel = env.robot_qvel()
     return qvel if joint_ids is None else qvel[:, list(joint_ids)]

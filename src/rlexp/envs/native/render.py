@@ -20,8 +20,6 @@ import numpy as np
 if TYPE_CHECKING:
     import mujoco
 
-    from rlexp.envs.native.env import NativeEnv
-
 
 def choose_gl_backend() -> str | None:
     """Set ``MUJOCO_GL`` (if unset) to egl, else osmesa, whichever library is installed."""
@@ -76,24 +74,32 @@ def gl_problem(rendering: bool = True) -> str | None:
     return None
 
 
-def _renderer(env: NativeEnv, width: int, height: int) -> mujoco.Renderer:
+def _renderer(
+    model: mujoco.MjModel,
+    renderers: dict[tuple[int, int], mujoco.Renderer],
+    width: int,
+    height: int,
+) -> mujoco.Renderer:
+    """The renderer of ``width`` x ``height`` frames, made once and kept in ``renderers``."""
     import mujoco
 
     key = (width, height)
-    if key not in env._renderers:
+    if key not in renderers:
         try:
-            env._renderers[key] = mujoco.Renderer(env.model, height=height, width=width)
+            renderers[key] = mujoco.Renderer(model, height=height, width=width)
         except Exception as exc:  # GL context creation failures come as several types
             raise RuntimeError(
                 f"offscreen rendering failed with MUJOCO_GL={os.environ.get('MUJOCO_GL')!r}: {exc}. "
                 "Install libegl1 + libegl-mesa0 (MUJOCO_GL=egl) or libosmesa6 (MUJOCO_GL=osmesa) and "
                 "set MUJOCO_GL before anything imports mujoco."
             ) from exc
-    return env._renderers[key]
+    return renderers[key]
 
 
 def render_frame(
-    env: NativeEnv,
+    model: mujoco.MjModel,
+    renderers: dict[tuple[int, int], mujoco.Renderer],
+    asset: str,
     data: mujoco.MjData,
     width: int,
     height: int,
@@ -103,18 +109,21 @@ def render_frame(
     fovy: float | None,
     intrinsics: tuple[float, float, float, float] | None,
 ) -> np.ndarray:
-    """Render ``data`` (already forwarded) from ``eye`` towards ``target``; returns (H, W, 3) uint8."""
+    """Render ``data`` (already forwarded) from ``eye`` towards ``target``; returns (H, W, 3) uint8.
+
+    ``renderers``: the caller's cache of ``mujoco.Renderer`` by frame size (it closes them);
+    ``asset``: the model's MJCF file, named when the frame exceeds its offscreen buffer.
+    """
     import mujoco
 
     if fovy is not None and intrinsics is not None:
         raise ValueError("render: give fovy or intrinsics, not both")
-    model = env.model
     if width > model.vis.global_.offwidth or height > model.vis.global_.offheight:
         raise ValueError(
             f"render: {width}x{height} exceeds the offscreen buffer "
-            f"{model.vis.global_.offwidth}x{model.vis.global_.offheight} of {env.task_spec.asset}"
+            f"{model.vis.global_.offwidth}x{model.vis.global_.offheight} of {asset}"
         )
-    renderer = _renderer(env, width, height)
+    renderer = _renderer(model, renderers, width, height)
     eye_a, target_a = np.asarray(eye, float), np.asarray(target, float)
     forward = target_a - eye_a
     dist = float(np.linalg.norm(forward))

@@ -16,7 +16,7 @@ from rlexp.config.native_task import Entity, Flag, JointIds, Number, OrNull, Par
 from rlexp.envs.native.registry import Registry
 
 if TYPE_CHECKING:
-    from rlexp.envs.native.env import NativeEnv
+    from rlexp.envs.native.state import SimState
 
 REWARDS: Registry = Registry("reward func")
 
@@ -32,7 +32,7 @@ REWARDS: Registry = Registry("reward func")
     }
 )
 def reaching_behind_object(
-    env: NativeEnv,
+    env: SimState,
     object_cfg: dict[str, Any],
     target_pose_key: str = "goal_pose",
     behind_offset: float = 0.015,
@@ -61,7 +61,7 @@ def reaching_behind_object(
     }
 )
 def distance_to_target(
-    env: NativeEnv,
+    env: SimState,
     source_entity_cfg: dict[str, Any],
     target_pose_key: str = "target_pose",
     exponential: bool = False,
@@ -78,7 +78,7 @@ def distance_to_target(
 
 
 @REWARDS.register(params={})
-def action_smoothness_penalty(env: NativeEnv) -> np.ndarray:
+def action_smoothness_penalty(env: SimState) -> np.ndarray:
     """-|a_t - a_{t-1}| (L2 norm of the clipped actions); 0 on the first step of an episode."""
     delta = env.action - env.prev_action
     penalty = -np.sqrt(np.einsum("ij,ij->i", delta, delta))
@@ -87,7 +87,7 @@ def action_smoothness_penalty(env: NativeEnv) -> np.ndarray:
 
 
 @REWARDS.register(params={})
-def success_reward(env: NativeEnv) -> np.ndarray:
+def success_reward(env: SimState) -> np.ndarray:
     """1 where the task reports success this step, else 0."""
     return env.success.astype(np.float64)
 
@@ -100,7 +100,7 @@ def success_reward(env: NativeEnv) -> np.ndarray:
     }
 )
 def joint_velocity_penalty(
-    env: NativeEnv,
+    env: SimState,
     robot_uid: str | None = None,
     joint_ids: Sequence[int] | None = None,
     part_name: str | None = None,
@@ -115,7 +115,7 @@ def joint_velocity_penalty(
 
 
 @REWARDS.register(params={"joint_ids": JointIds()})
-def upright_reward(env: NativeEnv, joint_ids: Sequence[int] = (1,)) -> np.ndarray:
+def upright_reward(env: SimState, joint_ids: Sequence[int] = (1,)) -> np.ndarray:
     """cos of the hinge angle(s) (mean over ``joint_ids``): 1 with the pole upright, 0 when horizontal.
 
     Not in the users' CartPole file (it has only ``joint_velocity_penalty``, which alone teaches
@@ -125,6 +125,6 @@ def upright_reward(env: NativeEnv, joint_ids: Sequence[int] = (1,)) -> np.ndarra
 
 
 @REWARDS.register(params={})
-def alive_bonus(env: NativeEnv) -> np.ndarray:
+def alive_bonus(env: SimState) -> np.ndarray:
     """1 for every step that does not end the episode by termination."""
     return (~env.terminated).astype(np.float64)

@@ -25,7 +25,7 @@ from rlexp.config.native_task import (
 from rlexp.envs.native.registry import Registry
 
 if TYPE_CHECKING:
-    from rlexp.envs.native.env import NativeEnv
+    from rlexp.envs.native.state import SimState
 
 
 @dataclass(frozen=True)
@@ -44,9 +44,9 @@ class TaskSpec:
     substeps: int = 1  # physics steps per env step
     max_episode_steps: int = 100  # time limit (truncation) unless the config overrides it
     # per-env flags computed after each step, in this order: success, terminated, truncated (besides the time limit)
-    success: Callable[[NativeEnv], np.ndarray] | None = None
-    terminated: Callable[[NativeEnv], np.ndarray] | None = None
-    truncated: Callable[[NativeEnv], np.ndarray] | None = None
+    success: Callable[[SimState], np.ndarray] | None = None
+    terminated: Callable[[SimState], np.ndarray] | None = None
+    truncated: Callable[[SimState], np.ndarray] | None = None
     extensions: dict[str, Any] = field(default_factory=dict)  # defaults for env.extensions
     # rules of the extensions the task reads (other keys of env.extensions are free values)
     extension_rules: dict[str, ParamRule] = field(default_factory=dict)
@@ -64,14 +64,14 @@ TASKS: Registry = Registry("native task")
 # --- PushCube --------------------------------------------------------------------------------------
 
 
-def _push_cube_success(env: NativeEnv) -> np.ndarray:
+def _push_cube_success(env: SimState) -> np.ndarray:
     """The cube's centre is within ``success_threshold`` of the goal in xy."""
     cube, _ = env.object_pose("cube")
     d = cube[:, :2] - env.target("goal_pose")[:, :2]
     return np.einsum("ij,ij->i", d, d) < float(env.extensions["success_threshold"]) ** 2
 
 
-def _push_cube_fell(env: NativeEnv) -> np.ndarray:
+def _push_cube_fell(env: SimState) -> np.ndarray:
     """The cube left the table (fell below ``cube_min_z``): the episode cannot go on, so truncate."""
     cube, _ = env.object_pose("cube")
     return cube[:, 2] < float(env.extensions["cube_min_z"])
@@ -115,7 +115,7 @@ TASKS.register("push_cube")(PUSH_CUBE)
 # --- CartPole --------------------------------------------------------------------------------------
 
 
-def _cart_pole_failed(env: NativeEnv) -> np.ndarray:
+def _cart_pole_failed(env: SimState) -> np.ndarray:
     """The pole fell past ``pole_angle_limit`` or the cart left ``+- track_limit``."""
     q = env.robot_qpos()
     return (np.abs(q[:, 1]) > float(env.extensions["pole_angle_limit"])) | (
@@ -123,7 +123,7 @@ def _cart_pole_failed(env: NativeEnv) -> np.ndarray:
     )
 
 
-def _cart_pole_success(env: NativeEnv) -> np.ndarray:
+def _cart_pole_success(env: SimState) -> np.ndarray:
     """Balanced until the time limit: the last step of an episode that was not terminated."""
     return (env.episode_step >= env.max_episode_steps) & ~_cart_pole_failed(env)
 
