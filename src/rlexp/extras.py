@@ -72,7 +72,7 @@ def check_config(config: RootConfig) -> None:
         require("wandb", "logger.wandb.enabled=true (logger=wandb)")
     for manager in ("train", "eval"):
         for name, event in getattr(config.events, manager).items():
-            if event.func in ("record_video", "rlexp.events.builtin.record_video"):
+            if event.func in ("record_video", "rlexp.events.builtin.RecordVideo"):
                 require("video", f"events.{manager}.{name} (record_video)")
 
 
