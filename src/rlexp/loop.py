@@ -1,5 +1,6 @@
 """Small helpers of the training loop: one torch thread while envs step, crossing a multiple of a
-step count, the base env under transforms, and a digest of a module's parameters."""
+step count, the base env under transforms, a digest of a module's parameters, and the NaN guard's
+check of a rollout."""
 
 from __future__ import annotations
 
@@ -7,7 +8,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import torch
+from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
+
+from rlexp.algorithms.base import NonFiniteError
+from rlexp.launch.distributed import DistInfo, all_reduce_sum
 
 
 def base_env(env: EnvBase | None) -> EnvBase | None:
@@ -46,3 +51,26 @@ def one_torch_thread() -> Iterator[None]:
 def crossed(before: int, after: int, every: int) -> bool:
     """True when the step count went past a multiple of ``every`` (not only on exact equality)."""
     return every > 0 and after // every > before // every
+
+
+def check_rollout_finite(
+    batch: TensorDictBase, dist: DistInfo, device: torch.device, step: int
+) -> None:
+    """``NonFiniteError`` naming the key (and, distributed, the ranks) when a rollout's next
+    observations or rewards hold a NaN or Inf. Distributed, every rank must call it: the flags are
+    summed over ranks so that all raise together (one alone would block the others)."""
+    keys = (("next", "observation"), ("next", "reward"))
+    bad = [(dist.rank, k) for k in keys if not torch.isfinite(batch[k]).all()]
+    if dist.enabled:
+        flags = torch.zeros(dist.world_size, len(keys), device=device)
+        for rank, k in bad:
+            flags[rank, keys.index(k)] = 1.0
+        bad = [(r, keys[i]) for r, i in all_reduce_sum(flags).nonzero().tolist()]
+    if not bad:
+        return
+    key = bad[0][1]
+    where = ""
+    if dist.enabled:
+        ranks = [str(r) for r, k in bad if k == key]
+        where = f" on rank{'s' if len(ranks) > 1 else ''} {', '.join(ranks)}"
+    raise NonFiniteError(f"non-finite {'/'.join(key)} from the env{where} at step {step}")

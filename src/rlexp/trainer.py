@@ -31,7 +31,13 @@ from rlexp.events.transform import EventTransform
 from rlexp.hooks import HookManager, HookState
 from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
 from rlexp.logging import MetricLogger
-from rlexp.loop import base_env, crossed, one_torch_thread, parameter_digest
+from rlexp.loop import (
+    base_env,
+    check_rollout_finite,
+    crossed,
+    one_torch_thread,
+    parameter_digest,
+)
 from rlexp.policies.actor_critic import GaussianPolicy
 from rlexp.progress import Progress
 
@@ -95,18 +101,14 @@ class Trainer:
         self._event_transform: EventTransform | None = None
         self._resume_rng: dict[str, Any] | None = None
         self._resume_obs: torch.Tensor | None = None  # what the policy acts on next, on resume
-        self.stop_reason: str | None = (
-            None  # set by request_stop (e.g. from a SLURM signal handler)
-        )
+        self.stop_reason: str | None = None  # set by request_stop (a signal handler)
         self.hooks = hooks or HookManager({})  # user code at the loop's hook points (docs/hooks.md)
         self.stopped_early: str | None = None  # why a hook ended the run (status stopped_early)
         self.total_steps = 0
         self._last_losses: dict[str, float] = {}
         self._last_metrics: dict[str, float] = {}
         self._hparams_set: dict[str, float] = {}  # set by hooks since the last log (logged)
-        if event_manager.has(
-            "step", "reset"
-        ):  # only then: runs without such events pay nothing per step
+        if event_manager.has("step", "reset"):  # only then: others pay nothing per step
             self._event_transform = EventTransform(event_manager, run_dir)
             self.env = TransformedEnv(env, self._event_transform)
         self.progress: Progress | None = None
@@ -119,9 +121,7 @@ class Trainer:
         if self.global_step == 0:
             self.event_manager.fire("startup", self._ctx())
         self._start_collector()
-        if (
-            self._resume_rng is not None
-        ):  # after the collector's construction, which draws from torch's RNG
+        if self._resume_rng is not None:  # after the collector's construction (it draws)
             set_rng_state(self._resume_rng)
             self._resume_rng = None
         self.progress = Progress(total_timesteps, enabled=self.cfg.progress, start=self.global_step)
@@ -195,24 +195,9 @@ class Trainer:
         self.global_step += batch.numel() * self.dist.world_size  # every rank collected as much
         if self._event_transform is not None:
             self._event_transform.global_step = self.global_step
-        if self.cfg.nan_guard:
-            keys = (("next", "observation"), ("next", "reward"))
-            bad = [(self.dist.rank, k) for k in keys if not torch.isfinite(batch[k]).all()]
-            if self.dist.enabled:  # all ranks raise together: one alone would block the others
-                device = next(self.policy.parameters()).device  # where the backend reduces
-                flags = torch.zeros(self.dist.world_size, len(keys), device=device)
-                for rank, k in bad:
-                    flags[rank, keys.index(k)] = 1.0
-                bad = [(r, keys[i]) for r, i in all_reduce_sum(flags).nonzero().tolist()]
-            if bad:
-                key = bad[0][1]
-                where = ""
-                if self.dist.enabled:
-                    ranks = [str(r) for r, k in bad if k == key]
-                    where = f" on rank{'s' if len(ranks) > 1 else ''} {', '.join(ranks)}"
-                raise NonFiniteError(
-                    f"non-finite {'/'.join(key)} from the env{where} at step {self.global_step}"
-                )
+        if self.cfg.nan_guard:  # every rank checks, and all raise together
+            device = next(self.policy.parameters()).device  # where the backend reduces
+            check_rollout_finite(batch, self.dist, device, self.global_step)
         self._track_episodes(batch)
         return batch
 
@@ -271,10 +256,8 @@ class Trainer:
 
         def on_reset(td: TensorDictBase) -> TensorDictBase:
             events.fire("reset", self._ctx(env, env_ids=np.arange(n)))
-            base = base_env(env)
-            if events.has("reset") and hasattr(
-                base, "current_tensordict"
-            ):  # objects may have moved
+            base = base_env(env)  # reset events may have moved objects: observe again
+            if events.has("reset") and hasattr(base, "current_tensordict"):
                 td.set("observation", base.current_tensordict().get("observation"))
             return td
 
