@@ -4,8 +4,8 @@ A run dir is a dir holding ``status.json``, ``config.yaml`` or ``.hydra/``. Only
 read (``status.json``, ``heartbeat.json``, ``provenance.json``, ``config.yaml``,
 ``.hydra/overrides.yaml``; for a best eval the heartbeat has no answer to, at most the last
 TAIL_BYTES of ``metrics.jsonl``), so thousands of runs list in about a second. A run whose
-``status.json`` says ``running`` is checked against its heartbeat and its PID (``liveness``); the
-rules are in docs/runs.md.
+``status.json`` says ``running`` is checked against its heartbeat and its PID (``rlexp.liveness``);
+the rules are in docs/runs.md.
 """
 
 from __future__ import annotations
@@ -14,30 +14,21 @@ import json
 import os
 import re
 import shlex
-import socket
 import time
 from dataclasses import dataclass, field
-from datetime import datetime
 from functools import cached_property
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import yaml
 
-from rlexp.rundir import (
-    HEARTBEAT_INTERVAL_S,
-    boot_id,
-    process_start_ticks,
-    process_stat,
-    read_heartbeat,
-    read_status,
-    stale_after,
-)
+from rlexp.liveness import Here, liveness, parse_time
+from rlexp.reporting.jobs import DEFAULT_METRIC, json_number
+from rlexp.rundir import read_heartbeat, read_status
+from rlexp.table import format_count, format_duration, format_number, print_table
 
 #: Searched when no dir is given, under the working dir.
 DEFAULT_DIRS = ("outputs", "multirun")
-#: rlexp.report's default metric (not imported from there: it pulls numpy in).
-DEFAULT_METRIC = "eval/episode_return"
 #: Any of these in a dir makes it a run dir (one with none was never started by rlexp).
 MARKERS = ("status.json", "config.yaml", ".hydra")
 #: Dirs inside a run dir that never hold another run.
@@ -49,7 +40,6 @@ TAIL_BYTES = 256 * 1024
 STATES = tuple(
     "running finished stopped_early interrupted stopped failed died stalled running? unknown".split()
 )
-_TIME_FORMAT = "%Y-%m-%dT%H:%M:%S%z"  # status.json and provenance.json
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
@@ -169,14 +159,6 @@ def read_overrides(run_dir: Path) -> list[str]:
     return [str(o) for o in data] if isinstance(data, list) else []
 
 
-def parse_time(text: Any) -> float | None:
-    """An rlexp timestamp (``2026-11-23T15:37:22+0000``) as epoch seconds; None if it is not one."""
-    try:
-        return datetime.strptime(str(text), _TIME_FORMAT).timestamp()
-    except ValueError:
-        return None
-
-
 _NUMBER = rb"(-?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)"
 _STEP = re.compile(rb'"step": (\d+)')
 _CKPT_STEP = re.compile(r"_step_(\d+)\.pt$")  # rlexp.checkpoint's names (not imported: torch)
@@ -222,103 +204,6 @@ def newest_checkpoint_step(run_dir: Path) -> int | None:
     return max(steps, default=None)
 
 
-# -- is a "running" run still running? -------------------------------------------------------------
-@dataclass(frozen=True)
-class Here:
-    """This host, as the liveness rules compare it with a run's."""
-
-    host: str
-    boot: str | None
-    boot_time: float | None  # epoch seconds at boot (/proc/stat btime)
-    ticks_per_s: int
-
-    @classmethod
-    def now(cls) -> Here:
-        btime = None
-        try:
-            for line in Path("/proc/stat").read_text().splitlines():
-                if line.startswith("btime "):
-                    btime = float(line.split()[1])
-        except OSError:
-            pass
-        return cls(socket.gethostname(), boot_id(), btime, os.sysconf("SC_CLK_TCK"))
-
-
-def _pid_gone(pid: int, ticks: int | None) -> str:
-    """Why ``pid`` is not the run's process ("" when it may be): gone, a zombie, or started at
-    other ``ticks`` (None: the start is not known)."""
-    if pid <= 0:
-        return f"PID {pid} is not a process"
-    try:
-        os.kill(pid, 0)  # signal 0: only asks whether the process exists
-    except ProcessLookupError:
-        return f"PID {pid} is gone"
-    except PermissionError:
-        pass  # it exists, another user's
-    stat = process_stat(pid)  # None: no /proc, or /proc hides it: the PID exists, that is all
-    if stat is not None and stat[0] in ("Z", "X"):
-        return f"PID {pid} is gone"
-    if stat is not None and ticks is not None and stat[1] != ticks:
-        return f"PID {pid} is now another process"
-    return ""
-
-
-def _age(seconds: float) -> str:
-    return format_duration(max(0.0, seconds))
-
-
-def _by_heartbeat(beat: dict[str, Any], now: float, here: Here) -> tuple[str, str]:
-    host, pid = beat.get("host"), beat.get("pid")
-    interval = beat.get("interval_s")
-    limit = stale_after(interval if isinstance(interval, (int, float)) else HEARTBEAT_INTERVAL_S)
-    beat_time = beat.get("time")
-    age = now - beat_time if isinstance(beat_time, (int, float)) else float("inf")
-    stale = f"no heartbeat for {_age(age)} (stale after {limit:.0f} s)"
-    if host == here.host and isinstance(pid, int):
-        if beat.get("boot_id") and here.boot and beat["boot_id"] != here.boot:
-            return "died", f"host {host} rebooted since its last heartbeat"
-        gone = _pid_gone(pid, beat.get("pid_start_ticks"))
-        if gone:
-            return "died", gone
-        if age > limit:  # the process lives but does not beat: hung or stopped (SIGSTOP)
-            return "stalled", f"PID {pid} is alive but {stale}"
-        return "running", ""
-    if age > limit:
-        return "died", f"{stale}, on host {host}"
-    return "running", ""
-
-
-def _by_pid(status: dict[str, Any], here: Here) -> tuple[str, str]:
-    """A run from before heartbeat.json: the PID rule, on this host only."""
-    pid = status.get("pid")
-    if status.get("host") != here.host or not isinstance(pid, int):
-        return "running?", f"no heartbeat, and it ran on host {status.get('host')}: cannot tell"
-    gone = _pid_gone(pid, None)
-    if gone:
-        return "died", gone
-    ticks, since = process_start_ticks(pid), parse_time(status.get("time"))
-    if ticks is not None and here.boot_time is not None and since is not None:
-        # A PID reused by a later process started after the run wrote "running".
-        if here.boot_time + ticks / here.ticks_per_s > since + 2:
-            return "died", f"PID {pid} is now another process"
-    return "running", ""
-
-
-def liveness(
-    status: dict[str, Any], beat: dict[str, Any], now: float, here: Here
-) -> tuple[str, str]:
-    """(status to show, why): a ``running`` status.json checked against heartbeat and PID."""
-    state = status.get("state")
-    if not isinstance(state, str):
-        return "unknown", "no readable status.json (not started, or it ended before training)"
-    if state != "running":
-        return state, ""
-    same_attempt = not (isinstance(status.get("pid"), int) and beat.get("pid") != status["pid"])
-    if beat and same_attempt:
-        return _by_heartbeat(beat, now, here)
-    return _by_pid(status, here)
-
-
 # -- one run ---------------------------------------------------------------------------------------
 def resume_command(run_dir: Path, overrides: list[str], argv: Any) -> str:
     """``python train.py [--config-json F] OVERRIDES hydra.run.dir=DIR``: continues a run from its
@@ -356,17 +241,13 @@ def _int(*values: Any) -> int | None:
     return max(ints) if ints else None
 
 
-def _number(value: Any) -> float | None:
-    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
-
-
 def _evals(run: Run, status: dict, beat: dict, metric: str) -> None:
     """Last and best eval: status.json's final eval, the heartbeat's, else the metrics tail."""
     final = status.get("final_eval") if run.status != "running" else None
-    last = _number((final or {}).get(metric)) if isinstance(final, dict) else None
+    last = json_number((final or {}).get(metric)) if isinstance(final, dict) else None
     if last is None and isinstance(beat.get("last_eval"), dict):
-        last = _number(beat["last_eval"].get(metric))
-    best = _number(beat.get("best")) if beat.get("best_metric") == metric else None
+        last = json_number(beat["last_eval"].get(metric))
+    best = json_number(beat.get("best")) if beat.get("best_metric") == metric else None
     if best is None or last is None or status.get("state") == "running":
         tail = tail_metric(run.path / "metrics.jsonl", metric)
         last = last if last is not None else tail.last
@@ -382,7 +263,7 @@ def _wall(run: Run, status: dict, beat: dict, start: float | None, now: float) -
     if run.status == "running":
         end: float | None = now
     elif run.status in ("died", "stalled"):
-        times = [_number(beat.get("time"))]
+        times = [json_number(beat.get("time"))]
         try:
             times.append((run.path / "metrics.jsonl").stat().st_mtime)
         except OSError:
@@ -434,35 +315,7 @@ def read_runs(roots: list[Path], metric: str = DEFAULT_METRIC) -> list[Run]:
     return [read_run(d, metric, here, now) for d in find_run_dirs(roots)]
 
 
-def format_duration(seconds: float) -> str:
-    """``45s``, ``3m12s``, ``1h02m``, ``2d03h``."""
-    s = int(seconds)
-    if s < 60:
-        return f"{s}s"
-    if s < 3600:
-        return f"{s // 60}m{s % 60:02d}s"
-    if s < 86400:
-        return f"{s // 3600}h{s % 3600 // 60:02d}m"
-    return f"{s // 86400}d{s % 86400 // 3600:02d}h"
-
-
 # -- the table: columns, filters, sorting ----------------------------------------------------------
-def _si(n: int | None) -> str:
-    if n is None:
-        return "?"
-    for size, suffix in ((10**9, "G"), (10**6, "M"), (10**3, "k")):
-        if abs(n) >= size:
-            return f"{n / size:.3g}{suffix}"
-    return str(n)
-
-
-def format_number(x: float | None) -> str:
-    """A score for a table cell: ``-`` when missing."""
-    if x is None:
-        return "-"
-    return f"{x:,.0f}" if abs(x) >= 1000 else f"{x:.2f}" if abs(x) >= 1 else f"{x:.3g}"
-
-
 def _rel(path: Path) -> str:
     try:
         return str(path.resolve().relative_to(Path.cwd().resolve()))
@@ -483,7 +336,7 @@ def cells(r: Run) -> list[str]:
         r.status,
         r.task or "-",
         r.algorithm or "-",
-        f"{_si(r.step)}/{_si(r.total)}",
+        f"{format_count(r.step)}/{format_count(r.total)}",
         format_number(r.last),
         best,
         "-" if r.wall_s is None else format_duration(r.wall_s),
@@ -592,38 +445,6 @@ def sort_runs(runs: list[Run], spec: str) -> list[Run]:
         )
         out = have + [r for r in out if values[id(r)] is None]
     return out
-
-
-def print_table(
-    headers: list[str],
-    rows: list[list[str]],
-    right: set[int] = frozenset(),
-    title: str | None = None,
-) -> None:
-    """An aligned table: rich's on a terminal, plain text (pipes, files, tests) otherwise."""
-    import sys
-
-    if sys.stdout.isatty():
-        from rich import box
-        from rich.console import Console
-        from rich.table import Table
-
-        table = Table(title=title, box=box.SIMPLE_HEAD, title_justify="left")
-        for i, h in enumerate(headers):
-            table.add_column(h, justify="right" if i in right else "left", overflow="fold")
-        for row in rows:
-            table.add_row(*row)
-        Console().print(table)
-        return
-    widths = [max([len(h)] + [len(r[i]) for r in rows]) for i, h in enumerate(headers)]
-    if title:
-        print(title)
-    for row in [headers, *rows]:
-        cells = [
-            c.rjust(w) if i in right else c.ljust(w)
-            for i, (c, w) in enumerate(zip(row, widths, strict=True))
-        ]
-        print("  ".join(cells).rstrip())
 
 
 def print_runs(runs: list[Run]) -> None:
