@@ -23,24 +23,21 @@ from typing import Any
 
 import numpy as np
 
-from rlexp.report import (
+from rlexp.liveness import Here
+from rlexp.reporting.jobs import read_histories
+from rlexp.runs import Run, RunsError, check_key, find_run_dirs, read_run
+from rlexp.stats import (
     IN_A_ROW,
+    _poi_rows,
     bootstrap_ci,
     iqm,
+    iqm_band,
+    probability_of_improvement,
     reached_stats,
-    read_histories,
     steps_to_threshold,
+    stratified_bootstrap,
 )
-from rlexp.runs import (
-    Here,
-    Run,
-    RunsError,
-    check_key,
-    find_run_dirs,
-    format_number,
-    print_table,
-    read_run,
-)
+from rlexp.table import format_number, print_table
 
 #: Config keys that say how a run ran, not what it trains: left out of the default grouping.
 NOT_CONFIGURATION = (
@@ -55,8 +52,6 @@ NOT_CONFIGURATION = (
 )
 #: Runs shown side by side in the differences table; more are summarised per value.
 SIDE_BY_SIDE = 6
-#: Bootstrap resamples (percentile intervals; seeded, so the output is reproducible).
-N_BOOT = 5000
 RESULT_STATES = ("finished", "stopped_early")
 
 
@@ -91,36 +86,7 @@ class Group:
         return np.array([m.final for m in self.members if m.result], dtype=float)
 
 
-# -- statistics ------------------------------------------------------------------------------------
-def probability_of_improvement(x: np.ndarray, y: np.ndarray) -> float:
-    """rliable's P(X > Y): the mean over all pairs (x_i, y_j) of 1[x_i > y_j] + 1[x_i = y_j] / 2."""
-    x, y = np.asarray(x, float)[:, None], np.asarray(y, float)[None, :]
-    return float(np.mean((x > y) + 0.5 * (x == y)))
-
-
-def _poi_rows(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """P(X > Y) for each row pair of two (resamples, runs) arrays, through the Mann-Whitney U
-    (average ranks count a tie as one half): U_x / (m n)."""
-    from scipy.stats import rankdata
-
-    m, n = xs.shape[1], ys.shape[1]
-    ranks = rankdata(np.concatenate([xs, ys], axis=1), axis=1)
-    return (ranks[:, :m].sum(axis=1) - m * (m + 1) / 2) / (m * n)
-
-
-def stratified_bootstrap(
-    x: np.ndarray, y: np.ndarray, statistic: Any, seed: int = 0
-) -> tuple[float, float]:
-    """95% percentile interval of ``statistic(xs, ys)`` (row-wise over resamples) when the runs of
-    each sample are resampled with replacement, each sample on its own (rliable's stratified
-    bootstrap for one task)."""
-    rng = np.random.default_rng(seed)
-    xs = x[rng.integers(0, len(x), (N_BOOT, len(x)))]
-    ys = y[rng.integers(0, len(y), (N_BOOT, len(y)))]
-    low, high = np.percentile(statistic(xs, ys), [2.5, 97.5])
-    return float(low), float(high)
-
-
+# -- statistics (the arithmetic is rlexp.stats') ---------------------------------------------------
 def compare_pair(a: Group, b: Group) -> dict[str, Any]:
     """IQM(a) - IQM(b) and P(a > b), each with its stratified bootstrap CI."""
     x, y = a.finals, b.finals
@@ -413,29 +379,6 @@ def plot_curves(
         raise RunsError(f"{path}: cannot write the plot ({exc.strerror or exc})") from None
     finally:
         plt.close(fig)
-
-
-def iqm_band(
-    curves: list[list[tuple[int, float]]], n_boot: int = 1000, seed: int = 0
-) -> tuple[np.ndarray, ...]:
-    """(steps, IQM, CI low, CI high) over curves interpolated on the union of their steps, each
-    only inside its own range; at each step over the runs that cover it."""
-    steps = np.array(sorted({s for c in curves for s, _ in c}), dtype=float)
-    ys = np.full((len(curves), len(steps)), np.nan)
-    for i, c in enumerate(curves):
-        cs, cv = np.array(c, dtype=float).T
-        inside = (steps >= cs[0]) & (steps <= cs[-1])
-        ys[i, inside] = np.interp(steps[inside], cs, cv)
-    centre, low, high = (np.full(len(steps), np.nan) for _ in range(3))
-    rng = np.random.default_rng(seed)
-    present = ~np.isnan(ys)
-    for pattern in {tuple(col) for col in present.T}:  # the steps covered by the same runs
-        cols = np.all(present.T == pattern, axis=1)
-        sub = ys[np.array(pattern)][:, cols]
-        centre[cols] = iqm(sub, axis=0)
-        boot = iqm(sub[rng.integers(0, len(sub), (n_boot, len(sub)))], axis=1)
-        low[cols], high[cols] = np.percentile(boot, [2.5, 97.5], axis=0)
-    return steps, centre, low, high
 
 
 def main(
