@@ -171,6 +171,7 @@ RESUME_MAY_CHANGE = (
     "trainer.strict_device",
     "algorithm.compile",  # how the loss runs, not what it computes
     "logger.console",  # the summary lines on the console
+    "env.num_eval_envs",  # evaluation copies (the Gymnasium default went from 1 to 10)
     "env.vectorization",  # removed (it never did anything); older run dirs still hold it
 )
 
