@@ -1,0 +1,150 @@
+"""The package stays a house a newcomer can find their way in: no import cycle among rlexp's modules
+(every import counts, lazy ones inside functions too; only ``if TYPE_CHECKING:`` blocks are left
+out) and no module over 500 lines."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from conftest import REPO
+
+SRC = REPO / "src"
+PACKAGE = SRC / "rlexp"
+MAX_LINES = 500
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(SRC).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _imports(path: Path, name: str, modules: dict[str, Path]) -> set[str]:
+    """The rlexp modules ``name`` imports, anywhere in its code except ``if TYPE_CHECKING:``."""
+    tree = ast.parse(path.read_text())
+    is_package = path.name == "__init__.py"
+    found: set[str] = set()
+
+    def resolve(target: str) -> str | None:
+        while target and target not in modules:
+            target = target.rpartition(".")[0]
+        return target or None
+
+    def visit(node: ast.AST) -> None:
+        if isinstance(node, ast.If) and _is_type_checking(node):
+            for child in node.orelse:
+                visit(child)
+            return
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("rlexp"):
+                    found.add(resolve(alias.name) or alias.name)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:  # relative: from its package
+                base = name if is_package else name.rpartition(".")[0]
+                for _ in range(node.level - 1):
+                    base = base.rpartition(".")[0]
+                module = f"{base}.{node.module}" if node.module else base
+            else:
+                module = node.module or ""
+            if module.startswith("rlexp"):
+                for alias in node.names:  # `from pkg import submodule` imports the submodule
+                    sub = f"{module}.{alias.name}"
+                    found.add(sub if sub in modules else resolve(module) or module)
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+
+    visit(tree)
+    found.discard(name)
+    return {m for m in found if m in modules}
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    return {name: _imports(path, name, modules) for name, path in modules.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+    counter = [0]
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph[v]:
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            strong(v)
+    return out
+
+
+def _package_reexport(cycle: list[str]) -> bool:
+    """A package's ``__init__`` re-exporting its own submodules, which import names from it: how
+    Python packages work, not a circle (as ../shared/tools/structure.py counts). Any member outside
+    the package makes it a real cycle."""
+    packages = [m for m in cycle if _modules()[m].name == "__init__.py"]
+    return any(all(m == p or m.startswith(p + ".") for m in cycle) for p in packages)
+
+
+def test_no_import_cycle_among_rlexp_modules():
+    cycles = [c for c in _cycles(_graph()) if not _package_reexport(c)]
+    assert not cycles, f"import cycles (every import counts, lazy ones too): {cycles}"
+
+
+def test_the_cycle_finder_finds_a_lazy_cycle(tmp_path):
+    """The check itself: a circle closed by an import inside a function is found."""
+    modules = {"rlexp.a": tmp_path / "a.py", "rlexp.b": tmp_path / "b.py"}
+    modules["rlexp.a"].write_text("from rlexp import b\n")
+    modules["rlexp.b"].write_text("def f():\n    from rlexp.a import x\n")
+    typed = tmp_path / "c.py"
+    typed.write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from rlexp.a import x\n"
+    )
+    graph = {n: _imports(p, n, modules) for n, p in modules.items()}
+    assert _cycles(graph) == [["rlexp.a", "rlexp.b"]]
+    assert _imports(typed, "rlexp.c", modules) == set()
+
+
+def test_no_module_over_500_lines():
+    long = {
+        str(p.relative_to(REPO)): n
+        for p in PACKAGE.rglob("*.py")
+        if (n := len(p.read_text().splitlines())) > MAX_LINES
+    }
+    assert not long, f"modules over {MAX_LINES} lines: {long}"
