@@ -123,7 +123,7 @@ def _plan_with_rlexp_configs(cfg: DictConfig) -> Plan | None:
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from rlexp.app import CONF_DIR
+    from rlexp.paths import CONF_DIR
     from rlexp.config.schema import register_configs
 
     if GlobalHydra.instance().is_initialized():
