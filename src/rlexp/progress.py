@@ -11,18 +11,11 @@ from __future__ import annotations
 
 import logging
 import sys
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
-from rich.console import Console
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
-from rich.progress import Progress as RichProgress
-from rich.text import Text
+if TYPE_CHECKING:  # rich is imported when a bar is shown (runs off a terminal never load it)
+    from rich.console import Console
+    from rich.progress import Progress as RichProgress
 
 
 class ConsoleStream:
@@ -34,6 +27,8 @@ class ConsoleStream:
         self._partial = ""
 
     def write(self, text: str) -> int:
+        from rich.text import Text
+
         self._partial += text
         *lines, self._partial = self._partial.split("\n")
         for line in lines:
@@ -91,6 +86,16 @@ class Progress:
 
     def __enter__(self) -> Progress:
         if self.enabled:
+            from rich.console import Console
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
+            from rich.progress import Progress as RichProgress
+
             self.console = self.console or Console(file=sys.stderr)
             self._bar = RichProgress(
                 TextColumn("[bold]train"),
