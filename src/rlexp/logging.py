@@ -2,7 +2,8 @@
 
 ``MetricLogger.log(metrics, step)`` fans a flat ``{"group/name": float}`` dict out to every enabled
 backend; ``close()`` flushes them all. Metric names follow ``train/episode_return``, ``loss/policy``,
-``eval/success_rate``, ``perf/sps``.
+``eval/success_rate``, ``perf/sps``. The TensorBoard backend also writes the run's hyperparameters in
+the HParams plugin's format, so ``tensorboard --logdir <sweep dir>`` compares a sweep's jobs.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import json
 import logging
 import math
 import os
+import struct
 import time
 from pathlib import Path
 from typing import Protocol
@@ -26,21 +28,248 @@ class Backend(Protocol):
     def close(self) -> None: ...
 
 
-class TensorBoardBackend:
-    """TensorBoard event files under ``<run_dir>/tensorboard``."""
+#: What the HParams dashboard shows for each job besides its hyperparameters. The dashboard reads a
+#: metric as the last scalar of that tag in the job's run, so these are the final values, and
+#: ``best/eval_episode_return`` is the best eval return so far (logged whenever it improves).
+BEST_EVAL_RETURN = "best/eval_episode_return"
+HPARAMS_METRICS = (
+    "eval/episode_return",
+    "eval/success_rate",
+    "train/episode_return",
+    "train/episode_length",
+    BEST_EVAL_RETURN,
+)
+#: Config sections that are tables of named terms (hooks, events, task terms): listed by name in
+#: the HParams table; a key a job overrides inside one still gets its own column.
+TERM_TABLES = frozenset(
+    {
+        "hooks",
+        "events.train",
+        "events.eval",
+        "env.native.events",
+        "env.native.observations",
+        "env.native.rewards",
+        "env.native.actions",
+    }
+)
+#: How the run writes metrics is no hyperparameter.
+NOT_HPARAMS = frozenset({"logger"})
+MAX_HPARAM_TEXT = 200  # characters of a list or string value the table shows
 
-    def __init__(self, run_dir: Path) -> None:
+
+def hparams_of(config: dict, overrides: list[str] | None = None) -> dict[str, float | bool | str]:
+    """The run's config as the HParams table's columns: dotted keys, scalar values (a list as its
+    text, a table of named terms as its names, ``None`` left out), plus each overridden key and the
+    job's overrides as one ``overrides`` string."""
+    out: dict[str, float | bool | str] = {}
+
+    def walk(node: dict, prefix: str) -> None:
+        for key, value in node.items():
+            name = f"{prefix}{key}"
+            if name in NOT_HPARAMS:
+                continue
+            if name in TERM_TABLES and isinstance(value, dict):
+                out[name] = _brief(", ".join(str(k) for k in value))
+            elif isinstance(value, dict):
+                walk(value, name + ".")
+            elif value is not None:
+                out[name] = _scalar(value)
+
+    walk(config, "")
+    for override in overrides or []:
+        key = override.split("=", 1)[0].lstrip("+~")
+        value = _lookup(config, key)
+        if value is not None and not isinstance(value, dict):
+            out.setdefault(key, _scalar(value))  # e.g. env.native.rewards.success_bonus.weight
+    if overrides:
+        out["overrides"] = _brief(" ".join(overrides))
+    return out
+
+
+def _scalar(value: object) -> float | bool | str:
+    if isinstance(value, (bool, int, float)):
+        return value
+    if isinstance(value, (list, tuple)):
+        return _brief(json.dumps(value, default=str))
+    return _brief(str(value))
+
+
+def _brief(text: str) -> str:
+    return text if len(text) <= MAX_HPARAM_TEXT else text[: MAX_HPARAM_TEXT - 3] + "..."
+
+
+def _lookup(config: dict, dotted: str) -> object:
+    node: object = config
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _job_overrides(run_dir: Path) -> list[str]:
+    """The Hydra overrides of this job (``.hydra/overrides.yaml``; none for ``--config-json``)."""
+    path = run_dir / ".hydra" / "overrides.yaml"
+    if not path.is_file():
+        return []
+    from omegaconf import OmegaConf
+
+    try:
+        overrides = OmegaConf.to_container(OmegaConf.load(path))
+    except Exception as exc:  # a hand-edited file: the columns from the config still come
+        log.warning("TensorBoard HParams: cannot read %s (%s)", path, exc)
+        return []
+    return [str(o) for o in overrides] if isinstance(overrides, list) else []
+
+
+def _hparams_summary(tag: str, data: object):
+    """One summary of the HParams plugin, as TensorBoard's own (TensorFlow) writer makes it."""
+    from tensorboard.compat.proto.summary_pb2 import Summary
+    from tensorboard.plugins.hparams import metadata
+
+    return Summary(
+        value=[
+            Summary.Value(
+                tag=tag,
+                metadata=metadata.create_summary_metadata(data),
+                tensor=metadata.NULL_TENSOR,
+            )
+        ]
+    )
+
+
+def _last_logged(files: list[Path], tag: str) -> float | None:
+    """The last value of scalar ``tag`` in the newest of ``files`` that has it (each process
+    carries the best over into its own file, so the newest one holding the tag knows it)."""
+    from tensorboard.compat.proto.event_pb2 import Event
+
+    needle = tag.encode()
+    for path in reversed(files):
+        try:
+            data = path.read_bytes()
+        except OSError:
+            continue
+        if needle not in data:
+            continue
+        last = None
+        pos = 0
+        while pos + 12 <= len(data):  # TFRecord framing: length, its CRC, the event, its CRC
+            (size,) = struct.unpack_from("<Q", data, pos)
+            record = data[pos + 12 : pos + 12 + size]
+            pos += 16 + size
+            if pos > len(data):
+                break  # a record torn by a crash
+            if needle in record:
+                for value in Event.FromString(record).summary.value:
+                    if value.tag == tag:
+                        last = value.simple_value
+        if last is not None:
+            return last
+    return None
+
+
+class TensorBoardBackend:
+    """TensorBoard event files under ``<run_dir>/tensorboard``, with the run's hyperparameters in
+    the HParams plugin's format there too (one run per job in the HParams dashboard, not the
+    sub-run torch's ``add_hparams`` makes)."""
+
+    def __init__(self, run_dir: Path, config: dict | None = None) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
-        self.writer = SummaryWriter(log_dir=str(run_dir / "tensorboard"))
+        self.run_dir = run_dir
+        log_dir = run_dir / "tensorboard"
+        earlier = sorted(log_dir.glob("events.out.tfevents.*")) if log_dir.is_dir() else []
+        self.writer = SummaryWriter(log_dir=str(log_dir))
+        self.hparams = config is not None
+        self.best = _last_logged(earlier, BEST_EVAL_RETURN) if self.hparams and earlier else None
+        self._carry_best = self.best is not None  # a resumed run goes on from the earlier best
+        if self.hparams:
+            try:
+                self._write_session_start(hparams_of(config, _job_overrides(run_dir)))
+            except Exception as exc:  # the table is a convenience; training goes on without it
+                log.warning("TensorBoard HParams: not written (%s)", exc)
+                self.hparams = False
+
+    def _write_session_start(self, hparams: dict[str, float | bool | str]) -> None:
+        """The experiment (columns: hyperparameters and metrics) and this job's values, at the start,
+        so a running job is in the dashboard and a killed one stays there."""
+        from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
+
+        start = plugin_data_pb2.SessionStartInfo(start_time_secs=time.time())
+        infos = []
+        for key, value in hparams.items():
+            if isinstance(value, bool):
+                start.hparams[key].bool_value = value
+                kind = api_pb2.DATA_TYPE_BOOL
+            elif isinstance(value, (int, float)):
+                start.hparams[key].number_value = value
+                kind = api_pb2.DATA_TYPE_FLOAT64
+            else:
+                start.hparams[key].string_value = value
+                kind = api_pb2.DATA_TYPE_STRING
+            # No domain: the dashboard takes one job's experiment for the whole sweep, and a
+            # discrete domain of this job's value alone would filter the other jobs out.
+            infos.append(api_pb2.HParamInfo(name=key, type=kind))
+        experiment = api_pb2.Experiment(
+            hparam_infos=infos,
+            metric_infos=[
+                api_pb2.MetricInfo(name=api_pb2.MetricName(tag=tag)) for tag in HPARAMS_METRICS
+            ],
+        )
+        file_writer = self.writer.file_writer
+        for tag, data in (
+            (metadata.EXPERIMENT_TAG, plugin_data_pb2.HParamsPluginData(experiment=experiment)),
+            (
+                metadata.SESSION_START_INFO_TAG,
+                plugin_data_pb2.HParamsPluginData(session_start_info=start),
+            ),
+        ):
+            file_writer.add_summary(_hparams_summary(tag, data))
 
     def log(self, metrics: dict[str, float], step: int) -> None:
         for key, value in metrics.items():
             self.writer.add_scalar(key, value, global_step=step)
+        if not self.hparams:
+            return
+        value = metrics.get("eval/episode_return")
+        improved = (
+            value is not None and math.isfinite(value) and (self.best is None or value > self.best)
+        )
+        if improved:
+            self.best = value
+        if improved or self._carry_best:
+            self.writer.add_scalar(BEST_EVAL_RETURN, self.best, global_step=step)
+            self._carry_best = False
 
     def close(self) -> None:
-        self.writer.flush()
-        self.writer.close()
+        try:
+            if self.hparams:
+                self._write_session_end()
+        finally:
+            self.writer.flush()
+            self.writer.close()
+
+    def _write_session_end(self) -> None:
+        """How the job ended, from ``status.json`` (written before the logger closes). Only for an
+        end that stays: TensorBoard keeps the first session end of a run, and an interrupted or
+        preempted run is resumed."""
+        from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
+
+        from rlexp.rundir import read_status
+
+        status = {
+            "finished": api_pb2.STATUS_SUCCESS,
+            "stopped_early": api_pb2.STATUS_SUCCESS,
+        }.get(str(read_status(self.run_dir).get("state")))
+        if status is None:
+            return
+        end = plugin_data_pb2.SessionEndInfo(status=status, end_time_secs=time.time())
+        self.writer.file_writer.add_summary(
+            _hparams_summary(
+                metadata.SESSION_END_INFO_TAG,
+                plugin_data_pb2.HParamsPluginData(session_end_info=end),
+            )
+        )
 
 
 class JsonlBackend:
@@ -202,7 +431,7 @@ def make_logger(
     if cfg.jsonl:
         backends.append(JsonlBackend(run_dir))
     if cfg.tensorboard.enabled:
-        backends.append(TensorBoardBackend(run_dir))
+        backends.append(TensorBoardBackend(run_dir, config))
     if cfg.wandb.enabled:
         backends.append(WandbBackend(run_dir, cfg, run_name, config, wandb_run_id(run_dir), group))
     return MetricLogger(backends)
