@@ -77,3 +77,29 @@ def test_push_cube_reaches_success_0_8_within_6m_steps(tmp_path):
     run_train(["+experiment=push_cube_ppo", "seed=0"], cwd=tmp_path, timeout=3600)
     evals = _evals(tmp_path)
     assert max(s for _, _, s in evals) >= 0.8, f"eval (step, return, success): {evals}"
+
+
+@pytest.mark.slow
+def test_grpo_cart_pole_is_solved_within_2_5m_steps(tmp_path):
+    """GRPO with the users' CartPole settings (+experiment=cart_pole_grpo: 64 envs x 1024 steps,
+    actor-only 256x256 ReLU, lr 1e-4, minibatch 8192, entropy 0.01, no KL, groups of 4) reaches the
+    solved level (eval >= 475 of 500). Measured here (docs/grpo.md), 2M-step runs: seed 0 first
+    reached it at 1.77M steps (499.95), seed 1 at 1.97M (499.89); seed 2 was at 394 at 1.97M. 2.5M
+    steps (39 iterations) is seed 0's 1.77M with ~40% margin; 3-6 min on the 2-core VM (load-dependent)."""
+    run_train(
+        [
+            "+experiment=cart_pole_grpo",
+            "seed=0",
+            "trainer.total_frames=2500000",
+            "trainer.save_every=0",
+        ],
+        cwd=tmp_path,
+        timeout=3600,
+    )
+    rows = [
+        json.loads(x) for x in (only_run_dir(tmp_path) / "metrics.jsonl").read_text().splitlines()
+    ]
+    evals = [(r["step"], r["eval/episode_return"]) for r in rows if "eval/episode_return" in r]
+    masks = [r["grpo/mask_fraction"] for r in rows if "grpo/mask_fraction" in r]
+    assert masks and all(0.0 < m <= 500 / 1024 for m in masks), f"mask fractions: {masks}"
+    assert evals and max(r for _, r in evals) >= 475, f"eval returns by step: {evals}"
