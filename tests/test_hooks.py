@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -232,7 +233,7 @@ def test_both_ranks_stop_at_the_same_iteration(tmp_path):
 def test_a_bad_hook_is_one_line_and_exit_2_before_the_run_dir(tmp_path, overrides, message):
     run_dir = tmp_path / "run"
     proc = subprocess.run(
-        ["python", str(Path(__file__).parents[1] / "train.py"), *TINY, *overrides,
+        [sys.executable, str(Path(__file__).parents[1] / "train.py"), *TINY, *overrides,
          f"hydra.run.dir={run_dir}"],
         cwd=tmp_path, capture_output=True, text=True, timeout=120,
     )  # fmt: skip

@@ -379,7 +379,16 @@ def _task(cfg: DictConfig) -> float | None:
             raise  # StopRequested: SLURM preemption, the launcher requeues the job (launch/slurm.py)
         log.exception("job failed")  # the traceback goes to the job's log; the sweep goes on
         return _failed(run_dir, f"{type(exc).__name__}: {first_line(exc)}", EXIT_FAILED, True, exc)
+    if not multirun:
+        _exit_if_distributed(0)  # (a torchrun rank's teardown can abort: see _exit)
     return metrics.get("eval/episode_return")
+
+
+def _exit_if_distributed(code: int) -> None:
+    from rlexp.launch import distributed
+
+    if distributed.info().enabled:
+        _exit(code)
 
 
 def _join_distributed() -> None:
@@ -394,8 +403,9 @@ def _join_distributed() -> None:
 
 def _exit(code: int) -> None:
     """``sys.exit(code)``; a distributed rank leaves with ``os._exit`` once its logs are flushed:
-    after a failure its gloo threads can abort the interpreter's teardown ("terminate called
-    without an active exception", exit -6 instead of the code), seen on a loaded 2-core machine."""
+    its gloo threads can abort the interpreter's teardown ("terminate called without an active
+    exception", exit -6 instead of the code), seen on a loaded 2-core machine after a failure and
+    after a finished run alike."""
     from rlexp.launch import distributed
 
     if not distributed.info().enabled:
