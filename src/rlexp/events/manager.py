@@ -23,8 +23,6 @@ the closest one), ``REQUIRED``, ``MODES`` and ``MANAGERS`` (``train`` / ``eval``
 
 from __future__ import annotations
 
-import difflib
-import importlib
 import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -34,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from rlexp.config.native_task import EventTermConfig, ParamRule, Unchecked, check_params, plain
+from rlexp.registry import choices_hint, resolve
 
 MODES = ("startup", "reset", "interval", "step", "trigger")
 #: The modes each manager fires (the evaluation manager has no startup) and the trigger signals it
@@ -98,31 +97,17 @@ class EventContext:
     event: str | None = None  # the dotted config key of the event being called (for its errors)
 
 
-def _choices_hint(value: str, choices: list[str]) -> str:
-    close = difflib.get_close_matches(value, choices, n=1)
-    return f"; choose from {sorted(choices)}" + (f"; did you mean {close[0]!r}?" if close else "")
-
-
 def resolve_event_func(name: str, where: str) -> Callable[..., Any]:
     """A registered name, or a dotted path inside the allowlist (the built-in events are registered
     when the package ``rlexp.events`` is imported, which any import of this module does first)."""
-    if name in EVENT_FUNCS:
-        return EVENT_FUNCS[name]
-    if "." in name:
-        if not any(name.startswith(p) for p in _ALLOWED_MODULES):
-            raise ValueError(
-                f"{where}.func={name!r}: dotted paths must be inside {_ALLOWED_MODULES} "
-                "(a config may not import arbitrary code); register the function with "
-                "rlexp.events.register_event or allow its module with allow_event_module"
-            )
-        module, _, attr = name.rpartition(".")
-        try:
-            return getattr(importlib.import_module(module), attr)
-        except (ImportError, AttributeError) as exc:
-            raise ValueError(f"{where}.func={name!r} cannot be imported: {exc}") from exc
-    raise ValueError(
-        f"{where}.func={name!r} is not a known event function"
-        + _choices_hint(name, list(EVENT_FUNCS))
+    return resolve(
+        name,
+        where,
+        EVENT_FUNCS,
+        _ALLOWED_MODULES,
+        "event function",
+        "register the function with rlexp.events.register_event or allow its module with "
+        "allow_event_module",
     )
 
 
@@ -132,7 +117,7 @@ def check_event(ev: EventTermConfig, where: str) -> Callable[..., Any]:
     func = resolve_event_func(ev.func, where)
     if ev.mode not in MODES:
         raise ValueError(
-            f"{where}.mode={ev.mode!r} is not a mode" + _choices_hint(ev.mode, list(MODES))
+            f"{where}.mode={ev.mode!r} is not a mode" + choices_hint(ev.mode, list(MODES))
         )
     step = ev.interval_step
     if isinstance(step, bool) or not isinstance(step, int):
@@ -187,7 +172,7 @@ def check_event_params(func: Callable[..., Any], ev: EventTermConfig, where: str
         if signal not in signals:
             raise ValueError(
                 f"{where}.params.signal={signal!r} is never sent"
-                + _choices_hint(str(signal), list(signals))
+                + choices_hint(str(signal), list(signals))
             )
     elif signal is not None:
         raise ValueError(

@@ -24,7 +24,6 @@ as ``hook(state, control)``; it may keep state (``state_dict`` / ``load_state_di
 from __future__ import annotations
 
 import difflib
-import importlib
 import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -33,6 +32,7 @@ from types import MappingProxyType
 from typing import Any
 
 from rlexp.config.native_task import ParamRule, Unchecked, check_params, plain
+from rlexp.registry import resolve
 
 #: The hook points, in the order the Trainer fires them.
 POINTS = ("train_start", "rollout_end", "update_end", "log", "eval_end", "checkpoint", "train_end")
@@ -144,24 +144,14 @@ class HookControl:
 
 def resolve_hook_func(name: str, where: str) -> Callable[..., Any]:
     """A registered name, or a dotted path inside the allowlist."""
-    if name in HOOK_FUNCS:
-        return HOOK_FUNCS[name]
-    if "." in name:
-        if not any(name.startswith(p) for p in _ALLOWED_MODULES):
-            raise ValueError(
-                f"{where}.func={name!r}: dotted paths must be inside {_ALLOWED_MODULES} "
-                "(a config may not import arbitrary code); register the hook with "
-                "rlexp.hooks.register_hook or allow its module with allow_hook_module"
-            )
-        module, _, attr = name.rpartition(".")
-        try:
-            return getattr(importlib.import_module(module), attr)
-        except (ImportError, AttributeError) as exc:
-            raise ValueError(f"{where}.func={name!r} cannot be imported: {exc}") from exc
-    close = difflib.get_close_matches(name, list(HOOK_FUNCS), n=1)
-    raise ValueError(
-        f"{where}.func={name!r} is not a known hook; choose from {sorted(HOOK_FUNCS)}"
-        + (f"; did you mean {close[0]!r}?" if close else "")
+    return resolve(
+        name,
+        where,
+        HOOK_FUNCS,
+        _ALLOWED_MODULES,
+        "hook",
+        "register the hook with rlexp.hooks.register_hook or allow its module with "
+        "allow_hook_module",
     )
 
 

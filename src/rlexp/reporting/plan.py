@@ -123,8 +123,8 @@ def _plan_with_rlexp_configs(cfg: DictConfig) -> Plan | None:
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from rlexp.paths import CONF_DIR
     from rlexp.config.schema import register_configs
+    from rlexp.paths import CONF_DIR
 
     if GlobalHydra.instance().is_initialized():
         return None
