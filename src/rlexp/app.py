@@ -461,3 +461,19 @@ def main() -> None:
         sys.exit(EXIT_CONFIG)
     sys.argv = [sys.argv[0], *rest]
     hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")(_task)()
+    if not any(a in ("-m", "--multirun") for a in rest):
+        _prompt_exit()
+
+
+def _prompt_exit() -> None:
+    """A single run that finished has written everything (checkpoint, status, closed loggers): run
+    the atexit handlers (W&B, TensorBoard and logging flush theirs there), then leave without the
+    interpreter's teardown of torch, TorchRL and MuJoCo modules, ~1 s of destructors the user waits
+    for and that write nothing."""
+    import atexit
+
+    atexit._run_exitfuncs()
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
