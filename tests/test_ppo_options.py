@@ -468,10 +468,10 @@ def test_train_py_with_the_options_on_adapts_the_learning_rate_and_resumes_bit_e
     ids=["anneal_lr", "lr-hook"],
 )
 def test_two_learning_rate_controllers_are_refused_before_the_run(overrides, message):
+    import re
+
     from conftest import compose
     from rlexp.config.validate import ConfigError, to_root_config
-
-    import re
 
     with pytest.raises(ConfigError, match=re.escape(message)):
         to_root_config(compose(overrides))

@@ -65,11 +65,19 @@ class MutableHyperparameters:
     resumed run continues with what hooks set."""
 
     cfg: Any
+    iteration: int
+    total_iterations: int
 
     def mutable(self) -> tuple[str, ...]:
         from rlexp.config.rules import MUTABLE_HYPERPARAMETERS
 
         return MUTABLE_HYPERPARAMETERS[self.cfg.name]
+
+    def learning_rate(self) -> float:
+        """``lr``, annealed linearly to 0 over ``total_iterations`` with ``anneal_lr``."""
+        if not self.cfg.anneal_lr:
+            return self.cfg.lr
+        return self.cfg.lr * max(0.0, 1.0 - self.iteration / self.total_iterations)
 
     def hyperparameters(self) -> dict[str, float]:
         return {name: float(getattr(self.cfg, name)) for name in self.mutable()}

@@ -141,12 +141,6 @@ class GRPO(MutableHyperparameters):
         self._shuffle = torch.Generator()  # minibatch order (CPU: randperm indexes a CPU batch)
         self.iteration = 0
 
-    def learning_rate(self) -> float:
-        """``lr``, annealed linearly to 0 over the run with ``anneal_lr``."""
-        if not self.cfg.anneal_lr:
-            return self.cfg.lr
-        return self.cfg.lr * max(0.0, 1.0 - self.iteration / self.total_iterations)
-
     @torch.no_grad()
     def prepare(self, batch: TensorDictBase) -> tuple[TensorDictBase, torch.Tensor]:
         """The rollout flattened to [N*T] with ``advantage``, ``mask`` and (with a reference)

@@ -199,12 +199,6 @@ class PPO(MutableHyperparameters):
             reduce_sum = all_reduce_sum
         self.reduce_sum = reduce_sum
 
-    def learning_rate(self) -> float:
-        """``lr``, annealed linearly to 0 over the run with ``anneal_lr``."""
-        if not self.cfg.anneal_lr:
-            return self.cfg.lr
-        return self.cfg.lr * max(0.0, 1.0 - self.iteration / self.total_iterations)
-
     @torch.no_grad()
     def compute_advantages(self, batch: TensorDictBase) -> TensorDictBase:
         """Writes ``state_value``, ``("next", "state_value")``, ``advantage`` and ``value_target``

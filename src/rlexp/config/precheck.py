@@ -208,8 +208,7 @@ def _variant_key_message(exc: BaseException) -> str | None:
     class ``GRPOConfig`` lacks it."""
     import re
 
-    from rlexp.config.schema import VARIANTS
-    from rlexp.config.validate import GROUP_OF_VARIANT
+    from rlexp.config.schema import VARIANT_OPTIONS, VARIANTS
 
     while exc is not None:
         found = re.search(r"Key '(\w+)' not in '(\w+)'", str(exc))
@@ -218,13 +217,13 @@ def _variant_key_message(exc: BaseException) -> str | None:
                 if found and found.group(2) == cls.__name__:
                     key = found.group(1)
                     have = [
-                        f"{section}={GROUP_OF_VARIANT[section][n]}"
+                        f"{section}={VARIANT_OPTIONS[section][n]}"
                         for n, c in variants.items()
                         if key in {f.name for f in dataclasses.fields(c)}
                     ]
                     fields = sorted(f.name for f in dataclasses.fields(cls))
                     return (
-                        f"{section}.{key} is not a key of {section}={GROUP_OF_VARIANT[section][name]} "
+                        f"{section}.{key} is not a key of {section}={VARIANT_OPTIONS[section][name]} "
                         f"(it has {fields})"
                         + (f"; {section}.{key} belongs to {' and '.join(have)}" if have else "")
                     )

@@ -252,6 +252,11 @@ VARIANTS: dict[str, dict[str, type]] = {
     "policy": {"actor_critic": PolicyConfig, "actor_only": ActorOnlyConfig},
     "algorithm": {"ppo": AlgorithmConfig, "grpo": GRPOConfig},
 }
+#: group -> {``name`` value: the conf/ group option that selects its schema}.
+VARIANT_OPTIONS: dict[str, dict[str, str]] = {
+    "policy": {"actor_critic": "mlp", "actor_only": "actor_only"},
+    "algorithm": {"ppo": "ppo", "grpo": "grpo"},
+}
 #: ConfigStore names of the variants that are not their group's first schema (GROUP_SCHEMAS).
 VARIANT_SCHEMAS: dict[str, tuple[str, type]] = {
     "actor_only_schema": ("policy", ActorOnlyConfig),

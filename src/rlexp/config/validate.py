@@ -23,14 +23,15 @@ from rlexp.config.rules import (
     get,
     is_safe_name,
 )
-from rlexp.config.schema import VARIANTS, GRPOConfig, HookConfig, RootConfig
+from rlexp.config.schema import (
+    VARIANT_OPTIONS,
+    VARIANTS,
+    GRPOConfig,
+    HookConfig,
+    RootConfig,
+)
 
 _ABSENT = object()
-#: section -> variant name -> the group option that selects it.
-GROUP_OF_VARIANT = {
-    "policy": {"actor_critic": "mlp", "actor_only": "actor_only"},
-    "algorithm": {"ppo": "ppo", "grpo": "grpo"},
-}
 
 
 class ConfigError(ValueError):
@@ -258,7 +259,7 @@ def _check_variants(config: RootConfig) -> None:
         expected = next((n for n, cls in VARIANTS[section].items() if type(node) is cls), None)
         if name == expected:
             continue
-        options = GROUP_OF_VARIANT[section]
+        options = VARIANT_OPTIONS[section]
         if name in VARIANTS[section]:
             raise ConfigError(
                 f"{section}.name={name!r}, but the {section} section was composed for {expected!r}: "

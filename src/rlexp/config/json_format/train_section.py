@@ -11,15 +11,13 @@ from typing import Any
 from rlexp.config.json_format.leaves import _Mapped
 from rlexp.config.json_format.trainer_events import _events
 from rlexp.config.json_format.typed_reads import _File, _join
+from rlexp.config.schema import VARIANT_OPTIONS
 
 ACTIVATIONS = ("relu", "elu", "tanh", "gelu", "silu", "swish")
 POLICIES = ("actor_critic", "actor_only")
 ALGORITHMS = ("ppo", "grpo")
-#: The format's policy / algorithm name -> the conf/ group option whose schema it is.
-GROUP_OPTIONS = {
-    "policy": {"actor_critic": "mlp", "actor_only": "actor_only"},
-    "algorithm": {"ppo": "ppo", "grpo": "grpo"},
-}
+#: The format's policy / algorithm name -> the conf/ group option whose schema it is (the schema's).
+GROUP_OPTIONS = VARIANT_OPTIONS
 NET_TYPES = ("mlp",)
 TRAIN_SECTIONS = ("trainer", "policy", "algorithm", "rlexp")
 TRAINER_KEYS = (
