@@ -82,6 +82,18 @@ TINY = [
 ]
 
 
+#: A sweep job: TINY with one PPO epoch, 512 env steps in about a second.
+SWEEP_TINY = [
+    "env=inverted_pendulum",
+    "trainer.total_frames=512",
+    "trainer.frames_per_batch=256",
+    "algorithm.num_epochs=1",
+    "trainer.eval_every=256",
+    "trainer.eval_episodes=2",
+    "trainer.save_every=256",
+]
+
+
 #: Two iterations, a checkpoint after each, no evaluation: for tests about what a run dir holds.
 SHORT = [
     "env=inverted_pendulum",

@@ -141,6 +141,30 @@ def _rank_env(rank: int, port: int) -> dict[str, str]:
     }
 
 
+def run_worker_on_two_ranks(script: str, args: list[str], timeout: float = 120) -> list[str]:
+    """``python -c script *args`` as ranks 0 and 1 of a gloo group; both must exit 0. Their outputs."""
+    port = _free_port()
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", script, *args],
+            env=_rank_env(rank, port),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for rank in (0, 1)
+    ]
+    try:
+        outs = [p.communicate(timeout=timeout)[0] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    assert [p.returncode for p in procs] == [0, 0], "\n".join(outs)
+    return outs
+
+
 def _two_ranks(
     args: list[str], rank1_args: list[str], cwd, timeout: float = 120
 ) -> list[subprocess.CompletedProcess]:
@@ -279,26 +303,7 @@ def test_the_gradient_each_rank_steps_with_is_the_mean_of_the_ranks_gradients(tm
     from rlexp.config.schema import AlgorithmConfig, PolicyConfig
     from rlexp.policies.actor_critic import make_policy
 
-    port = _free_port()
-    script = _GRAD_WORKER.replace("{CFG}", repr(_GRAD_CFG))
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", script, str(tmp_path)],
-            env=_rank_env(rank, port),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        for rank in (0, 1)
-    ]
-    try:
-        outs = [p.communicate(timeout=120)[0] for p in procs]
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
-    assert [p.returncode for p in procs] == [0, 0], "\n".join(outs)
+    run_worker_on_two_ranks(_GRAD_WORKER.replace("{CFG}", repr(_GRAD_CFG)), [str(tmp_path)])
 
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in (0, 1)]
     alone = []  # each rank's gradients, computed in this process with no sync

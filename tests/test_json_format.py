@@ -703,7 +703,8 @@ BROKEN = [
     (
         "lr-range",
         "train",
-        ("set", "algorithm.cfg.learning_rate", -0.001),  # 0 is allowed: a baseline that does not learn
+        # 0 is allowed: a baseline that does not learn
+        ("set", "algorithm.cfg.learning_rate", -0.001),
         "algorithm.cfg.learning_rate=-0.001 is out of range: must be >= 0",
     ),
     (

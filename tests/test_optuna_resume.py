@@ -19,19 +19,10 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, run_train
+from conftest import REPO, SWEEP_TINY, run_train
 
 #: A trial trains 512 env steps of InvertedPendulum (about a second), without TensorBoard.
-TINY = [
-    "env=inverted_pendulum",
-    "trainer.total_frames=512",
-    "trainer.frames_per_batch=256",
-    "algorithm.num_epochs=1",
-    "trainer.eval_every=256",
-    "trainer.eval_episodes=2",
-    "trainer.save_every=256",
-    "logger=none",
-]
+TINY = [*SWEEP_TINY, "logger=none"]
 
 
 def command(sweep: Path, n_trials: int, *extra: str) -> list[str]:

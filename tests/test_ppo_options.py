@@ -8,10 +8,6 @@ from __future__ import annotations
 import copy
 import io
 import json
-import os
-import socket
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -368,36 +364,9 @@ distributed.shutdown()
 
 
 def test_two_ranks_share_the_reward_statistics_and_the_learning_rate(tmp_path):
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", _WORKER, str(tmp_path), str(REPO / "tests")],
-            env={
-                **os.environ,
-                "PYTHONPATH": str(REPO / "src"),
-                "OMP_NUM_THREADS": "1",
-                "RANK": str(rank),
-                "LOCAL_RANK": str(rank),
-                "WORLD_SIZE": "2",
-                "MASTER_ADDR": "127.0.0.1",
-                "MASTER_PORT": str(port),
-            },
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        for rank in (0, 1)
-    ]
-    try:
-        outs = [p.communicate(timeout=120)[0] for p in procs]
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
-    assert [p.returncode for p in procs] == [0, 0], "\n".join(outs)
+    from test_distributed import run_worker_on_two_ranks
+
+    run_worker_on_two_ranks(_WORKER, [str(tmp_path), str(REPO / "tests")])
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in (0, 1)]
     single = RewardNormalizer(AlgorithmConfig().gamma)  # one process with both ranks' envs
     for i in range(2):

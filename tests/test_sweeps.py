@@ -19,18 +19,8 @@ import pytest
 from omegaconf import OmegaConf
 from test_slurm import SLURM, cluster  # noqa: F401 (the fixture: a cluster that answers)
 
-from conftest import CONF_DIR, REPO, run_train
+from conftest import CONF_DIR, REPO, SWEEP_TINY, run_train
 
-#: conftest.TINY with one PPO epoch: a job trains 512 env steps in about a second.
-SWEEP_TINY = [
-    "env=inverted_pendulum",
-    "trainer.total_frames=512",
-    "trainer.frames_per_batch=256",
-    "algorithm.num_epochs=1",
-    "trainer.eval_every=256",
-    "trainer.eval_episodes=2",
-    "trainer.save_every=256",
-]
 GRID = ["seed=0,1", "algorithm.clip_epsilon=0.1,0.2"]
 
 
