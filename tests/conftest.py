@@ -122,3 +122,22 @@ def _compile_problem() -> str | None:
 needs_compiler = pytest.mark.skipif(
     _compile_problem() is not None, reason=f"torch.compile cannot run here: {_compile_problem()}"
 )
+
+
+def clipped_adam_step(params, grads, m, v, step: int, cfg, betas=(0.9, 0.999)) -> None:
+    """A hand-written reference optimiser step: clip the gradients to ``cfg.max_grad_norm`` as
+    ``clip_grad_norm_`` does, then Adam (bias-corrected, ``cfg.lr``, ``cfg.adam_eps``) in place;
+    ``m`` / ``v``: the moment tensors, ``step``: 1 for the first step."""
+    import torch
+
+    beta1, beta2 = betas
+    norm = torch.sqrt(sum(g.pow(2).sum() for g in grads))
+    coef = min(1.0, cfg.max_grad_norm / (float(norm) + 1e-6))
+    with torch.no_grad():
+        for p, g, mi, vi in zip(params, grads, m, v, strict=True):
+            g = g * coef
+            mi.mul_(beta1).add_((1 - beta1) * g)
+            vi.mul_(beta2).add_((1 - beta2) * g * g)
+            m_hat = mi / (1 - beta1**step)
+            v_hat = vi / (1 - beta2**step)
+            p.sub_(cfg.lr * m_hat / (v_hat.sqrt() + cfg.adam_eps))

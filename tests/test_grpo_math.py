@@ -12,6 +12,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import Bounded
 
+from conftest import clipped_adam_step
 from rlexp.algorithms import make_algorithm
 from rlexp.algorithms.grpo import GRPO, group_advantages
 from rlexp.algorithms.ppo import PPO, NonFiniteError
@@ -184,7 +185,7 @@ def _reference_grpo_update(pol, initial, batch, cfg, seed):
     params = [p for p in pol.parameters() if p.requires_grad]
     m = [torch.zeros_like(p) for p in params]
     v = [torch.zeros_like(p) for p in params]
-    beta1, beta2, step = 0.9, 0.999, 0
+    step = 0
     total, mb = n * steps, cfg.mini_batch_size
     sums = {"policy": 0.0, "entropy": 0.0, "kl_ref": 0.0}
     count = 0
@@ -211,17 +212,8 @@ def _reference_grpo_update(pol, initial, batch, cfg, seed):
             d = ref - log_prob
             kl = (w * (torch.exp(d) - d - 1)).sum() / denom
             grads = torch.autograd.grad(policy_loss + entropy_loss + cfg.kl_coeff * kl, params)
-            norm = torch.sqrt(sum(g.pow(2).sum() for g in grads))
-            coef = min(1.0, cfg.max_grad_norm / (float(norm) + 1e-6))
             step += 1
-            with torch.no_grad():
-                for p, g, mi, vi in zip(params, grads, m, v, strict=True):
-                    g = g * coef
-                    mi.mul_(beta1).add_((1 - beta1) * g)
-                    vi.mul_(beta2).add_((1 - beta2) * g * g)
-                    m_hat = mi / (1 - beta1**step)
-                    v_hat = vi / (1 - beta2**step)
-                    p.sub_(cfg.lr * m_hat / (v_hat.sqrt() + cfg.adam_eps))
+            clipped_adam_step(params, grads, m, v, step, cfg)
             sums["policy"] += policy_loss.item()
             sums["entropy"] += entropy_loss.item()
             sums["kl_ref"] += kl.item()

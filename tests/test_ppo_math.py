@@ -237,7 +237,7 @@ def _reference_ppo_update(pol, batch, cfg, seed):
     params = [p for p in pol.parameters() if p.requires_grad]
     m = [torch.zeros_like(p) for p in params]
     v = [torch.zeros_like(p) for p in params]
-    beta1, beta2, step = 0.9, 0.999, 0
+    step = 0
     n, mb = flat_obs.shape[0], cfg.mini_batch_size
     sums = {"policy": 0.0, "value": 0.0, "entropy": 0.0}
     count = 0
@@ -262,17 +262,8 @@ def _reference_ppo_update(pol, batch, cfg, seed):
             )
             entropy_loss = -cfg.entropy_coeff * dist.entropy().sum(-1).mean()
             grads = torch.autograd.grad(policy_loss + value_loss + entropy_loss, params)
-            norm = torch.sqrt(sum(g.pow(2).sum() for g in grads))
-            coef = min(1.0, cfg.max_grad_norm / (float(norm) + 1e-6))
             step += 1
-            with torch.no_grad():
-                for p, g, mi, vi in zip(params, grads, m, v, strict=True):
-                    g = g * coef
-                    mi.mul_(beta1).add_((1 - beta1) * g)
-                    vi.mul_(beta2).add_((1 - beta2) * g * g)
-                    m_hat = mi / (1 - beta1**step)
-                    v_hat = vi / (1 - beta2**step)
-                    p.sub_(cfg.lr * m_hat / (v_hat.sqrt() + cfg.adam_eps))
+            conftest.clipped_adam_step(params, grads, m, v, step, cfg)
             sums["policy"] += policy_loss.item()
             sums["value"] += value_loss.item()
             sums["entropy"] += entropy_loss.item()
