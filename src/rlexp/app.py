@@ -379,16 +379,7 @@ def _task(cfg: DictConfig) -> float | None:
             raise  # StopRequested: SLURM preemption, the launcher requeues the job (launch/slurm.py)
         log.exception("job failed")  # the traceback goes to the job's log; the sweep goes on
         return _failed(run_dir, f"{type(exc).__name__}: {first_line(exc)}", EXIT_FAILED, True, exc)
-    if not multirun:
-        _exit_if_distributed(0)  # (a torchrun rank's teardown can abort: see _exit)
     return metrics.get("eval/episode_return")
-
-
-def _exit_if_distributed(code: int) -> None:
-    from rlexp.launch import distributed
-
-    if distributed.info().enabled:
-        _exit(code)
 
 
 def _join_distributed() -> None:
@@ -468,8 +459,8 @@ def main() -> None:
 def _prompt_exit() -> None:
     """A single run that finished has written everything (checkpoint, status, closed loggers): run
     the atexit handlers (W&B, TensorBoard and logging flush theirs there), then leave without the
-    interpreter's teardown of torch, TorchRL and MuJoCo modules, ~1 s of destructors the user waits
-    for and that write nothing."""
+    interpreter's teardown of torch, TorchRL and MuJoCo modules: ~1 s of destructors the user waits
+    for and that write nothing, and where a torchrun rank's gloo threads can abort (see _exit)."""
     import atexit
 
     atexit._run_exitfuncs()
