@@ -28,15 +28,12 @@ def flatten(node: dict[str, Any], cls: type, prefix: str = "") -> dict[str, Any]
     out: dict[str, Any] = {}
     for key, value in node.items():
         sub = _dataclass_of(hints.get(key))
-        if sub is not None and not prefix and key in VARIANTS:  # the schema its name names
+        if sub is not None and not prefix and key in VARIANTS:
+            # the schema its name names; a partial section (the rlexp section's) without a name:
+            # the group's first (nested sections it lacks stay whole leaves, which replace whole)
             variants = VARIANTS[key]
-            if isinstance(value, dict) and value.get("name") in variants:
-                sub = variants[value["name"]]
-            else:  # a partial section (the rlexp section's): any variant's keys
-                union = {
-                    n: t for v in variants.values() for n, t in typing.get_type_hints(v).items()
-                }
-                sub = dataclasses.make_dataclass(sub.__name__, list(union.items()))
+            name = value.get("name") if isinstance(value, dict) else None
+            sub = variants.get(name, next(iter(variants.values())))
         if sub is not None and isinstance(value, dict):
             out.update(flatten(value, sub, f"{prefix}{key}."))
         else:
