@@ -17,6 +17,9 @@ first env step, against ``python -c "import torchrl"``. The first env step is re
     PYTHONPATH=src .venv/bin/python benchmarks/ppo_throughput.py --quick          # smoke, < 2 min
     PYTHONPATH=src .venv/bin/python benchmarks/ppo_throughput.py --repeats 3      # the real table
     make bench ARGS="--settings standard --repeats 5"
+
+Whole runs from launch to exit (start-up, evaluation, checkpoints and logging included) are
+``benchmarks/end_to_end.py``; its sections of ``results.md`` are kept when this script rewrites it.
 """
 
 from __future__ import annotations
@@ -128,19 +131,28 @@ def run_rlexp(s: Setting, config, warmup: int, iterations: int) -> list[float]:
 
 
 def run_sb3(s: Setting, config, warmup: int, iterations: int) -> list[float]:
-    """SB3 ``PPO("MlpPolicy")`` with the same hyperparameters, ``VecNormalize`` for the observations."""
+    """SB3 ``PPO("MlpPolicy")`` with the same hyperparameters: ``VecNormalize`` for rlexp's observation
+    normalisation and reward scaling, the learning rate annealed as rlexp's (``algorithm.anneal_lr``)."""
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
-    venv = _sb3_env(s, config)
-    venv = VecNormalize(venv, norm_obs=True, norm_reward=False, clip_obs=10.0)
     a = config.algorithm
+    venv = VecNormalize(
+        _sb3_env(s, config),
+        norm_obs=config.env.normalize_observations,
+        clip_obs=config.env.clip_observations,
+        # rlexp's reward scaling (algorithm.normalize_rewards / clip_rewards) is VecNormalize's
+        norm_reward=a.normalize_rewards,
+        clip_reward=a.clip_rewards if a.clip_rewards is not None else float("inf"),
+        gamma=a.gamma,
+    )
+    lr = a.lr
     model = PPO(
         "MlpPolicy",
         venv,
-        learning_rate=a.lr,
+        learning_rate=(lambda remaining: lr * remaining) if a.anneal_lr else lr,
         n_steps=s.steps_per_env,
         batch_size=s.mini_batch_size,
         n_epochs=s.num_epochs,
@@ -642,7 +654,11 @@ def main() -> None:
     startup = measure_startup(args.startup_repeats) if args.startup_repeats > 0 else None
     text = report(results, startup, args, started, first)
     print("\n" + text)
-    Path(args.out).write_text(text)
+    out = Path(args.out)
+    # benchmarks/end_to_end.py's sections (hours of runs) stay in the file
+    from end_to_end import kept_sections
+
+    out.write_text(text + (kept_sections(out.read_text()) if out.exists() else ""))
     print(f"written to {args.out}")
 
 
