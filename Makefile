@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 ARGS ?=
 export MUJOCO_GL ?= egl
 
-.PHONY: install train test test-slow test-slurm test-package lint format bench clean
+.PHONY: install train test test-slow test-slurm test-package lint format bench bench-e2e clean
 
 $(VENV)/.created:
 	$(PYTHON) -m venv $(VENV)
@@ -54,13 +54,24 @@ format: install
 	$(VENV)/bin/ruff format src tests train.py setup.py examples/user_project
 	$(VENV)/bin/ruff check --fix src tests train.py setup.py examples/user_project
 
+# The benchmarks' baselines are the `bench` extra, installed by name so rlexp's editable install is
+# left alone; they need no other torch / gymnasium / numpy than rlexp's (checked with pip install
+# --dry-run).
+$(VENV)/.bench: $(VENV)/.installed
+	$(PY) -m pip install --disable-pip-version-check "stable-baselines3>=2.9,<3" "py-spy>=0.3"
+	touch $@
+
 ## PPO env-steps/s: rlexp vs Stable-Baselines3, CleanRL-style PyTorch and the floors, plus start-up
 ## (docs/performance.md); writes benchmarks/results.md. ARGS="--quick" for a smoke run (< 2 min).
-## The baselines are the `bench` extra, installed by name so rlexp's editable install is left alone;
-## they need no other torch / gymnasium / numpy than rlexp's (checked with pip install --dry-run).
-bench: install
-	$(PY) -m pip install --disable-pip-version-check "stable-baselines3>=2.9,<3" "py-spy>=0.3"
+bench: $(VENV)/.bench
 	$(PY) benchmarks/ppo_throughput.py $(ARGS)
+
+## What users wait for (#18, #15): `python train.py` from launch to exit against an SB3 script doing
+## the same job, with the time to CleanRL's return; a section of benchmarks/results.md per row.
+## ARGS="--row whole" (61,440 steps, 3 alternating rounds, ~5 min on 2 cores) or ARGS="--row e2e"
+## (1M steps with evaluation, rlexp eval sync + async and SB3, ~35 min); --env, --anchor, --variant.
+bench-e2e: $(VENV)/.bench
+	$(PY) benchmarks/end_to_end.py $(ARGS)
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache
