@@ -13,18 +13,22 @@ grid, Optuna's ``n_trials``): jobs whose ``status.json`` is missing or neither `
 of the wrong shape (a torn ``metrics.jsonl`` line, a ``status.json`` that is not an object) is
 read as far as it goes and named in the report. Writes ``report.md``, ``report.csv`` and
 ``curves.png`` into the sweep dir; a sweep dir that cannot be written gets one line saying so, and
-the report is still returned.
+the report is still returned. A sweep over envs (or ``results=True``) also gets the results per env
+(both result metrics with the published anchors, wall time, env steps/s: ``results.csv``,
+``results.png``).
 
 This module is the entry point (``report``); its parts live in ``rlexp.reporting`` (job dirs, the
-plan, statistics, markdown/csv, Optuna trials, the plot) and ``rlexp.stats``, and are re-exported
-here.
+plan, statistics, markdown/csv, the results per env and their anchors, Optuna trials, the plots) and
+``rlexp.stats``, and are re-exported here.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
+from rlexp.reporting.anchors import ANCHORS, SOURCES, Anchor, Source, anchors_for
 from rlexp.reporting.jobs import (
     DEFAULT_METRIC,
     SEED_KEYS,
@@ -51,7 +55,7 @@ from rlexp.reporting.plan import (
     read_plan,
     read_sweep,
 )
-from rlexp.reporting.plot import plot_curves
+from rlexp.reporting.plot import plot_curves, plot_results
 from rlexp.reporting.render import (
     CSV_FIELDS,
     THRESHOLD_CSV_FIELDS,
@@ -59,6 +63,14 @@ from rlexp.reporting.render import (
     threshold_markdown,
     to_csv,
     to_markdown,
+)
+from rlexp.reporting.results import (
+    RESULT_METRICS,
+    EnvResult,
+    env_results,
+    results_csv,
+    results_markdown,
+    varies_env,
 )
 from rlexp.reporting.summary import (
     BudgetSaved,
@@ -85,30 +97,38 @@ from rlexp.stats import (
 
 #: What ``from rlexp.report import ...`` gives: the entry point and the parts it is made of.
 __all__ = [
+    "ANCHORS",
     "BAND_ROWS",
     "CSV_FIELDS",
     "DEFAULT_METRIC",
     "IN_A_ROW",
     "JOB_NUM_SUBDIR",
     "OPTUNA_STUDY",
+    "RESULT_METRICS",
     "SEED_KEYS",
+    "SOURCES",
     "STOPPED_EARLY",
     "THRESHOLD_CSV_FIELDS",
     "TIME_KEYS",
     "UNEXPANDED",
+    "Anchor",
     "BudgetSaved",
     "ConfigStats",
+    "EnvResult",
     "ExpectedJob",
     "Job",
     "Plan",
+    "Source",
     "Sweep",
     "Threshold",
     "ThresholdStats",
+    "anchors_for",
     "bootstrap_ci",
     "budget_saved",
     "common_overrides",
     "config_key",
     "curve_band",
+    "env_results",
     "find_jobs",
     "iqm",
     "match_plan",
@@ -116,6 +136,7 @@ __all__ = [
     "parse_threshold",
     "plan_from_config",
     "plot_curves",
+    "plot_results",
     "reached_stats",
     "read_budget",
     "read_histories",
@@ -126,6 +147,8 @@ __all__ = [
     "read_status",
     "read_sweep",
     "report",
+    "results_csv",
+    "results_markdown",
     "steps_to_threshold",
     "stopped_early_markdown",
     "summarize",
@@ -133,6 +156,7 @@ __all__ = [
     "threshold_stats",
     "to_csv",
     "to_markdown",
+    "varies_env",
 ]
 
 log = logging.getLogger(__name__)
@@ -144,41 +168,65 @@ def report(
     plot: bool = True,
     threshold: float | None = None,
     threshold_metric: str | None = None,
+    results: bool | None = None,
+    results_plot: Path | None = None,
 ) -> str:
     """Write report.md, report.csv (and curves.png) into ``sweep_dir``; return the markdown. What
     cannot be written (a read-only sweep dir) is said in one warning; the markdown is returned.
     ``threshold``: also the steps each seed took to reach it in ``threshold_metric`` (default:
-    ``metric``)."""
+    ``metric``). ``results``: the results per env (both result metrics, anchors, wall time; also
+    results.csv and results.png); None: when the sweep's jobs train on more than one env.
+    ``results_plot``: also write the results' figure to this path (implies ``results``)."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise FileNotFoundError(f"no sweep dir {sweep_dir}")
     target = Threshold(threshold_metric or metric, threshold) if threshold is not None else None
-    sweep = read_sweep(sweep_dir, metric, other_metrics=(target.metric,) if target else ())
+    if results_plot is not None:
+        results = True
+    elif results is None:  # the configs alone say which envs the jobs train on: no metrics read
+        results = varies_env(find_jobs(sweep_dir, metric=None))
+    others = ((target.metric,) if target else ()) + (RESULT_METRICS if results else ())
+    sweep = read_sweep(sweep_dir, metric, other_metrics=others)
     if not sweep.jobs and sweep.plan.jobs is None:
         raise FileNotFoundError(
             f"no jobs under {sweep_dir} (no */.hydra/overrides.yaml) and no multirun.yaml: "
             "is it a multirun dir?"
         )
     stats = summarize(sweep.jobs, target)
-    md = to_markdown(sweep_dir, sweep, stats, metric)
+    per_env = env_results(sweep.jobs) if results else []
+    md = to_markdown(sweep_dir, sweep, stats, metric, results_markdown(per_env) if results else ())
     trials = optuna_markdown(sweep_dir)  # an Optuna sweep: its study's trials
     if trials:
         md += "\n".join(trials) + "\n"
     outputs = {"report.md": lambda p: p.write_text(md)}
     outputs["report.csv"] = lambda p: p.write_text(to_csv(stats))
+    if results:
+        outputs["results.csv"] = lambda p: p.write_text(results_csv(per_env))
     if plot:
         line = target.value if target and target.metric == metric else None
         outputs["curves.png"] = lambda p: plot_curves(stats, p, metric, line)
+        if results:
+            outputs["results.png"] = lambda p: plot_results(per_env, p)
+    _write(sweep_dir, outputs)
+    if results_plot is not None:
+        _write(
+            Path(results_plot).parent, {Path(results_plot).name: lambda p: plot_results(per_env, p)}
+        )
+    return md
+
+
+def _write(where: Path, outputs: dict[str, Callable[[Path], object]]) -> None:
+    """Write each output into ``where``; say what was written, and in one warning what could not
+    be (a read-only dir, a full disk)."""
     written, failed = [], []
     for name, write in outputs.items():
         try:
-            write(sweep_dir / name)
+            write(where / name)
             written.append(name)
         except OSError as exc:
             failed.append((name, exc.strerror or first_line(exc)))
     if written:
-        log.info("wrote %s into %s", ", ".join(written), sweep_dir)
+        log.info("wrote %s into %s", ", ".join(written), where)
     if failed:
         names = ", ".join(name for name, _ in failed)
-        log.warning("rlexp report: could not write %s into %s (%s)", names, sweep_dir, failed[0][1])
-    return md
+        log.warning("rlexp report: could not write %s into %s (%s)", names, where, failed[0][1])

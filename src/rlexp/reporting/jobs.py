@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,6 +40,9 @@ class Job:
     time_s: float = 0.0
     curves: dict[str, list[tuple[int, float]]] = field(default_factory=dict)  # every metric read
     problems: list[str] = field(default_factory=list)  # what in its files could not be read
+    env: str | None = None  # env.name of its config (e.g. Hopper-v5), None: no readable config
+    backend: str | None = None  # env.backend of its config: gymnasium | native
+    wall_s: float | None = None  # provenance.json start_time -> status.json time, as rlexp runs
 
     @property
     def final(self) -> float | None:
@@ -241,8 +244,12 @@ def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = (
             problems.append(f"status.json: global_step {status['global_step']!r} is not a number")
         step = curve[-1][0] if curve else 0
     reason = status.get("reason") or ""
+    budget, env, backend = _budget_and_env(job_dir, problems)
     return Job(
-        budget=read_budget(job_dir, problems),
+        budget=budget,
+        env=env,
+        backend=backend,
+        wall_s=read_wall(job_dir, status),
         path=job_dir,
         overrides=overrides,
         seed=seed,
@@ -268,10 +275,9 @@ def _budget_of(cfg: Any) -> int | None:
     return _step(trainer.get("total_frames"))
 
 
-def read_budget(job_dir: Path, problems: list[str]) -> int | None:
-    """The env steps a job was to train, from its ``config.yaml`` (the resolved config rlexp
-    writes) or else Hydra's ``.hydra/config.yaml``; None when neither says (a job that ended before
-    training writes neither)."""
+def _configs(job_dir: Path, problems: list[str]) -> Iterator[dict]:
+    """The job's configs as plain mappings, read one by one as asked for: its ``config.yaml`` (the
+    resolved config rlexp writes once training starts), then Hydra's ``.hydra/config.yaml``."""
     import yaml
 
     for name in ("config.yaml", ".hydra/config.yaml"):
@@ -283,10 +289,54 @@ def read_budget(job_dir: Path, problems: list[str]) -> int | None:
         except (OSError, yaml.YAMLError) as exc:
             problems.append(f"{name}: not readable ({first_line(exc)})")
             continue
-        budget = _budget_of(cfg)
-        if budget is not None:
-            return budget
-    return None
+        if isinstance(cfg, dict):
+            yield cfg
+
+
+def read_budget(job_dir: Path, problems: list[str]) -> int | None:
+    """The env steps a job was to train, from its ``config.yaml`` or else Hydra's
+    ``.hydra/config.yaml``; None when neither says (a job that ended before training writes
+    neither)."""
+    return next((b for b in map(_budget_of, _configs(job_dir, problems)) if b is not None), None)
+
+
+def _env_of(cfg: dict) -> tuple[str | None, str | None]:
+    """(``env.name``, ``env.backend``) of a plain config mapping; None where it does not say."""
+    env = cfg.get("env")
+    if not isinstance(env, dict) or not isinstance(env.get("name"), str):
+        return None, None
+    backend = env.get("backend")
+    return env["name"], backend if isinstance(backend, str) else None
+
+
+def _budget_and_env(
+    job_dir: Path, problems: list[str]
+) -> tuple[int | None, str | None, str | None]:
+    """``read_budget`` and the env (``env.name``, ``env.backend``) in one read of the configs: each
+    from the first config that says, each file read once."""
+    budget, env, backend = None, None, None
+    for cfg in _configs(job_dir, problems):
+        budget = budget if budget is not None else _budget_of(cfg)
+        if env is None:
+            env, backend = _env_of(cfg)
+        if budget is not None and env is not None:
+            break
+    return budget, env, backend
+
+
+def read_wall(job_dir: Path, status: dict[str, Any]) -> float | None:
+    """Seconds from the run's start (``provenance.json`` ``start_time``) to its last
+    ``status.json`` write (its end, for a job that ended), as ``rlexp runs`` shows a run's wall
+    time; None when either is missing or unreadable."""
+    from rlexp.liveness import parse_time
+
+    try:
+        prov = json.loads(_read_text(job_dir / "provenance.json"))
+    except (OSError, ValueError):
+        return None
+    start = parse_time(prov.get("start_time")) if isinstance(prov, dict) else None
+    end = parse_time(status.get("time"))
+    return end - start if start is not None and end is not None and end >= start else None
 
 
 def find_jobs(

@@ -1,10 +1,14 @@
 """``curves.png``: per configuration, the IQM learning curve over seeds and its 95% bootstrap band,
-the table's statistic (``rlexp.stats.curve_band``)."""
+the table's statistic (``rlexp.stats.curve_band``); ``results.png``: the results per env, one panel
+per env with its training and eval returns and the anchors."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
+from rlexp.reporting.anchors import EVAL, SOURCES, TRAIN
+from rlexp.reporting.results import EVAL_METRIC, TRAIN_METRIC, EnvResult
 from rlexp.reporting.summary import ConfigStats
 from rlexp.stats import iqm_band
 
@@ -44,6 +48,46 @@ def plot_curves(
     ax.grid(alpha=0.3)
     if ax.lines:
         ax.legend(fontsize="small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_results(results: list[EnvResult], path: Path) -> None:
+    """The results view's curves (``results.png``): one panel per env, the IQM over seeds of the
+    training return (last 100 episodes) and of the deterministic eval return vs env steps, each with
+    its 95% bootstrap band (``rlexp.stats.iqm_band``), and the anchors of that env as dotted lines
+    in the colour of the metric they measure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = max(len(results), 1)
+    cols = min(n, 2)
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 4 * rows), squeeze=False)
+    sources = {s.key: s for s in SOURCES}
+    for ax, r in zip(axes.flat, results, strict=False):
+        for metric, what, color in ((TRAIN_METRIC, TRAIN, "C0"), (EVAL_METRIC, EVAL, "C1")):
+            curves = [j.curves[metric] for j in r.jobs if j.curves.get(metric)]
+            if curves:
+                steps, center, low, high = iqm_band(curves)
+                ax.plot(steps, center, color=color, label=f"{metric} (n={len(curves)})")
+                ax.fill_between(steps, low, high, color=color, alpha=0.2)
+            for key, anchor in r.anchors.items():
+                if sources[key].measures == what:
+                    label = f"{sources[key].name} {anchor.env_id}: {anchor.mean:.0f}"
+                    ax.axhline(anchor.mean, color=color, linestyle=":", linewidth=1.2, label=label)
+        ax.set_title(f"{r.env}" + (f" {r.label}" if r.label else ""))
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("return")
+        ax.grid(alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize="small")
+    for ax in list(axes.flat)[len(results) :]:
+        ax.set_visible(False)
+    fig.suptitle("IQM over seeds, 95% percentile bootstrap CI (as in report.md's results per env)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

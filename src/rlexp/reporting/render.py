@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -120,10 +121,17 @@ def _counts(sweep: Sweep) -> str:
     return text
 
 
-def to_markdown(sweep_dir: Path, sweep: Sweep, stats: list[ConfigStats], metric: str) -> str:
+def to_markdown(
+    sweep_dir: Path,
+    sweep: Sweep,
+    stats: list[ConfigStats],
+    metric: str,
+    after_table: Sequence[str] = (),
+) -> str:
     """The human-readable report: configurations, jobs stopped early and the budget they saved,
     failed or unfinished jobs, jobs that never started, and the files that could only be read in
-    part."""
+    part. ``after_table``: lines of a section placed right after the configurations table (the
+    results per env)."""
     jobs = sweep.jobs
     early = [j for j in jobs if j.stopped_early]
     score = (
@@ -158,6 +166,8 @@ def to_markdown(sweep_dir: Path, sweep: Sweep, stats: list[ConfigStats], metric:
             f"[{fixed(s.iqm_ci[0])}, {fixed(s.iqm_ci[1])}] | {fixed(s.steps, 0)} | {fixed(s.time_s, 1)} "
             f"| {s.n_unfinished} |" + (f" {s.n_stopped_early} |" if early else "")
         )
+    if after_table:
+        lines += ["", *after_table]
     with_threshold = [s for s in ranked if s.threshold is not None]
     if with_threshold:
         lines += ["", *threshold_markdown(with_threshold)]

@@ -1,0 +1,94 @@
+"""Published results that a sweep's results are shown next to (``rlexp report``'s results per env):
+a small table of numbers, each with the source it was read from and exactly what it measures.
+
+Only numbers copied from a source named here: an env a source has no number for has no entry
+(its cell stays empty), never an estimate. The numbers were measured on other versions of the
+tasks than rlexp's (Gymnasium MuJoCo v4 or gym's v3, rlexp runs v5) and with other
+hyperparameters, so each cell names its env id: a reference point, not a like-for-like comparison.
+docs/results.md lists the same table with its sources.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+#: Which of a sweep's two result metrics an anchor measures the same way.
+TRAIN = "train"  # the mean return of the last 100 training episodes at the end of training
+EVAL = "eval"  # the mean return of a final evaluation of the deterministic policy
+
+
+@dataclass(frozen=True)
+class Source:
+    """Where a set of anchors comes from and what its numbers are."""
+
+    key: str  # a column name in results.csv
+    name: str  # the column header in report.md
+    measures: str  # TRAIN or EVAL: the metric of ours it sits next to
+    what: str  # one line: the metric, env version, seeds, steps, what the ± is
+    where: str  # the file (repository, commit) or page the numbers were copied from
+
+
+@dataclass(frozen=True)
+class Anchor:
+    """One published number: ``mean ± std`` on ``env_id`` (the id the source ran)."""
+
+    source: str  # Source.key
+    env_id: str  # e.g. "Hopper-v4"
+    mean: float
+    std: float
+
+
+CLEANRL = Source(
+    key="cleanrl_ppo",
+    name="CleanRL PPO",
+    measures=TRAIN,
+    what=(
+        "`ppo_continuous_action.py`, MuJoCo v4, 1M env steps, 3 seeds: per seed the mean return "
+        "of its last 100 training episodes (`charts/episodic_return`, openrlbenchmark's "
+        "`metric_last_n_average_window=100`), then mean ± std over the seeds (numpy, ddof 0). "
+        "No Ant at 1M steps (CleanRL's only PPO Ant-v4 number is from 8M steps)"
+    ),
+    where=(
+        "vwxyzjn/cleanrl `docs/benchmark/ppo_continuous_action.md` (commit 35896b1, PR #424, "
+        "tag pr-424), shown at https://docs.cleanrl.dev/rl-algorithms/ppo/#ppo_continuous_actionpy"
+    ),
+)
+RL_ZOO = Source(
+    key="rl_zoo_ppo",
+    name="rl-zoo PPO",
+    measures=EVAL,
+    what=(
+        "Stable-Baselines3 PPO with rl-baselines3-zoo's hyperparameters (tuned per env; Ant-v3: "
+        "SB3 defaults with normalisation), gym MuJoCo v3, 1M env steps, one trained agent (one "
+        "seed): the mean return of its deterministic policy over ~150k evaluation steps (150-175 "
+        "episodes), ± the std over those episodes, not over seeds"
+    ),
+    where=(
+        "DLR-RM/rl-baselines3-zoo `benchmark.md` (added in commit 8e2b0c0, PR #183), "
+        "https://github.com/DLR-RM/rl-baselines3-zoo/blob/master/benchmark.md"
+    ),
+)
+SOURCES = (CLEANRL, RL_ZOO)
+
+ANCHORS = (
+    Anchor(CLEANRL.key, "Hopper-v4", 2382.86, 271.74),
+    Anchor(CLEANRL.key, "Walker2d-v4", 2287.95, 571.78),
+    Anchor(CLEANRL.key, "HalfCheetah-v4", 1442.64, 46.03),
+    Anchor(RL_ZOO.key, "Hopper-v3", 2410.435, 10.026),
+    Anchor(RL_ZOO.key, "Walker2d-v3", 3478.798, 821.708),
+    Anchor(RL_ZOO.key, "HalfCheetah-v3", 5819.099, 663.530),
+    Anchor(RL_ZOO.key, "Ant-v3", 1327.158, 451.577),
+)
+
+
+def task_of(env_id: str) -> str:
+    """The task an env id names, without its version: ``Hopper-v5`` -> ``Hopper``."""
+    return re.sub(r"-v\d+$", "", env_id)
+
+
+def anchors_for(env_id: str | None) -> dict[str, Anchor]:
+    """The anchors of the task ``env_id`` names (any version), by source key; {} when none."""
+    if not env_id:
+        return {}
+    return {a.source: a for a in ANCHORS if task_of(a.env_id) == task_of(env_id)}

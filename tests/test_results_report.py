@@ -1,0 +1,296 @@
+"""``rlexp report`` on a sweep over envs (the reference-results suite, ``+sweep=mujoco_1m``): per
+env both result metrics (the last 100 training episodes, the final deterministic eval) as IQM with
+its bootstrap interval, the published anchors where the task has one, wall time and env steps/s,
+eval success only for tasks that define it, ``results.csv`` and the per-env figure. Job dirs are
+written as rlexp writes them (overrides, config.yaml, provenance.json, status.json, metrics.jsonl);
+the report's other parts: tests/test_report.py."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+from test_report import multirun_yaml, rlexp_report
+
+from rlexp.report import anchors_for, bootstrap_ci, find_jobs, iqm, report
+
+#: Env option (the override) -> (env.name, env.backend), as conf/env/*.yaml.
+ENVS = {
+    "hopper": ("Hopper-v5", "gymnasium"),
+    "ant": ("Ant-v5", "gymnasium"),
+    "swimmer": ("Swimmer-v5", "gymnasium"),
+    "inverted_pendulum": ("InvertedPendulum-v5", "gymnasium"),
+    "cart_pole": ("cart_pole", "native"),
+}
+BATCH, BUDGET, EVAL_EVERY = 1000, 10_000, 5000
+
+
+def write_job(
+    sweep: Path,
+    num: int,
+    overrides: list[str],
+    train: float,
+    evaluation: float,
+    success: float = 0.0,
+    wall_s: int = 600,
+    state: str = "finished",
+) -> Path:
+    """A job dir as rlexp leaves it: training returns rising to ``train`` at the last iteration
+    (every BATCH steps), evals every EVAL_EVERY steps ending at ``evaluation`` (and ``success``),
+    started at 10:00:00 and ended ``wall_s`` later."""
+    d = sweep / str(num)
+    (d / ".hydra").mkdir(parents=True)
+    (d / ".hydra/overrides.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(overrides)))
+    option = dict(o.split("=") for o in overrides)["env"]
+    name, backend = ENVS[option]
+    cfg = {
+        "seed": 0,
+        "trainer": {"total_frames": BUDGET, "iterations": None, "frames_per_batch": BATCH},
+        "env": {"name": name, "backend": backend},
+    }
+    (d / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(cfg)))
+    (d / "provenance.json").write_text(json.dumps({"start_time": "2026-11-23T10:00:00+0000"}))
+    end = f"2026-11-23T10:{wall_s // 60:02d}:{wall_s % 60:02d}+0000"
+    status = {"state": state, "global_step": BUDGET, "final_eval": {}, "time": end}
+    (d / "status.json").write_text(json.dumps(status))
+    rows = []
+    for step in range(BATCH, BUDGET + 1, BATCH):
+        row = {"step": step, "train/episode_return": train * step / BUDGET, "perf/sps": 1000.0}
+        if step % EVAL_EVERY == 0:
+            row |= {
+                "eval/episode_return": evaluation * step / BUDGET,
+                "eval/success_rate": success * step / BUDGET,
+            }
+        rows.append(json.dumps(row) + "\n")
+    (d / "metrics.jsonl").write_text("".join(rows))
+    return d
+
+
+#: Per env, five seeds' final training return and final eval return.
+TRAIN = {
+    "hopper": [1000.0, 2000.0, 3000.0, 4000.0, 5000.0],
+    "ant": [500.0, 900.0, 1500.0, 2500.0, 2600.0],
+    "swimmer": [40.0, 50.0, 60.0, 70.0, 80.0],
+}
+EVAL = {env: [v + 100.0 for v in values] for env, values in TRAIN.items()}
+#: Wall seconds per seed: median 600 (10 min) for every env.
+WALL = [500, 550, 600, 650, 700]
+
+
+@pytest.fixture
+def env_sweep(tmp_path) -> Path:
+    """env=hopper,ant,swimmer x seed=0..4 as the basic sweeper numbers them; ant seed 4 failed."""
+    multirun_yaml(tmp_path, ["env=hopper,ant,swimmer", "seed=0,1,2,3,4"])
+    num = 0
+    for env in TRAIN:
+        for seed in range(5):
+            state = "failed" if (env, seed) == ("ant", 4) else "finished"
+            overrides = [f"env={env}", f"seed={seed}"]
+            train, evaluation = TRAIN[env][seed], EVAL[env][seed]
+            write_job(tmp_path, num, overrides, train, evaluation, wall_s=WALL[seed], state=state)
+            num += 1
+    return tmp_path
+
+
+def row_of(md: str, env: str) -> list[str]:
+    """The cells of the results table's row of ``env``."""
+    line = next(ln for ln in md.splitlines() if ln.startswith(f"| `{env}` |"))
+    return [c.strip() for c in line.strip("|").split("|")]
+
+
+def iqm_cell(values: list[float]) -> str:
+    """``IQM [low, high]`` as the table shows it, from rlexp.stats' own functions."""
+    x = np.array(values)
+    low, high = bootstrap_ci(x, iqm)
+    return f"{float(iqm(x)):.0f} [{low:.0f}, {high:.0f}]"
+
+
+def test_job_dirs_give_their_env_backend_and_wall_time(env_sweep):
+    jobs = find_jobs(env_sweep)
+    assert [(j.env, j.backend) for j in jobs[:1]] == [("Hopper-v5", "gymnasium")]
+    assert [j.env for j in jobs[5:6]] == ["Ant-v5"]
+    assert [j.wall_s for j in jobs[:5]] == WALL
+
+
+def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep):
+    md = report(env_sweep, plot=False)
+    assert "## Results per env" in md
+    # The section sits right after the configurations table, before the failed jobs.
+    assert md.index("| configuration | seeds |") < md.index("## Results per env")
+    assert md.index("## Results per env") < md.index("## Unfinished or failed jobs")
+    header = row_of(md.replace("| env |", "| `env` |", 1), "env")
+    assert header == [
+        "`env`",
+        "seeds",
+        "train return: IQM [95% CI]",
+        "train mean ± std",
+        "CleanRL PPO (1)",
+        "eval return: IQM [95% CI]",
+        "eval mean ± std",
+        "rl-zoo PPO (2)",
+        "wall per job (median)",
+        "env steps/s (median)",
+    ]
+
+    hopper = row_of(md, "Hopper-v5")
+    assert hopper[1] == "5"
+    assert hopper[2] == iqm_cell(TRAIN["hopper"]) and hopper[2].startswith("3000 [")
+    assert hopper[3] == "3000 ± 1581"  # std ddof 1
+    assert hopper[4] == "2383 ± 272 (Hopper-v4)"  # CleanRL: last 100 training episodes
+    assert hopper[5] == iqm_cell(EVAL["hopper"]) and hopper[5].startswith("3100 [")
+    assert hopper[6] == "3100 ± 1581"
+    assert hopper[7] == "2410 ± 10 (Hopper-v3)"  # rl-zoo: deterministic evaluation
+    assert hopper[8] == "10m00s" and hopper[9] == f"{BUDGET / 600:.0f}"
+
+    ant = row_of(md, "Ant-v5")  # seed 4 failed: 4 of its 5 jobs are its seeds
+    assert ant[1] == "4 of 5"
+    assert ant[2] == iqm_cell(TRAIN["ant"][:4])
+    assert ant[4] == ""  # CleanRL has no Ant number at 1M steps
+    assert ant[7] == "1327 ± 452 (Ant-v3)"
+    assert ant[8] == "9m35s"  # the median of 500, 550, 600, 650 s
+
+    swimmer = row_of(md, "Swimmer-v5")  # no anchor for it anywhere: empty cells
+    assert swimmer[4] == "" and swimmer[7] == ""
+    assert swimmer[2] == iqm_cell(TRAIN["swimmer"])
+
+    # What each anchor is and where it comes from, under the table.
+    assert "1. **CleanRL PPO**: `ppo_continuous_action.py`, MuJoCo v4, 1M env steps, 3 seeds" in md
+    assert "docs/benchmark/ppo_continuous_action.md" in md
+    assert "2. **rl-zoo PPO**: " in md and "rl-baselines3-zoo/blob/master/benchmark.md" in md
+    assert "success" not in md.lower()  # Gymnasium tasks: no success anywhere
+
+    with open(env_sweep / "results.csv") as f:
+        table = {r["env"]: r for r in csv.DictReader(f)}
+    assert list(table) == ["Hopper-v5", "Ant-v5", "Swimmer-v5"]
+    h = table["Hopper-v5"]
+    assert (h["n_seeds"], h["n_jobs"], h["seeds"]) == ("5", "5", "0 1 2 3 4")
+    assert float(h["train_iqm"]) == 3000.0 and float(h["eval_iqm"]) == 3100.0
+    assert float(h["train_mean"]) == 3000.0 and float(h["eval_std"]) == pytest.approx(1581.14, 1e-4)
+    low, high = bootstrap_ci(np.array(TRAIN["hopper"]), iqm)
+    assert (float(h["train_iqm_ci_low"]), float(h["train_iqm_ci_high"])) == (low, high)
+    assert float(h["wall_median_s"]) == 600 and float(h["env_steps_per_s_median"]) == BUDGET / 600
+    assert (h["cleanrl_ppo_env"], float(h["cleanrl_ppo_mean"])) == ("Hopper-v4", 2382.86)
+    assert (h["rl_zoo_ppo_env"], float(h["rl_zoo_ppo_std"])) == ("Hopper-v3", 10.026)
+    assert h["success_iqm"] == ""  # the task defines no success
+    assert table["Ant-v5"]["cleanrl_ppo_mean"] == "" and table["Ant-v5"]["n_seeds"] == "4"
+    assert not (env_sweep / "results.png").exists()  # plot=False
+
+
+def test_anchors_only_for_tasks_a_source_has_a_number_for():
+    assert set(anchors_for("Hopper-v5")) == {"cleanrl_ppo", "rl_zoo_ppo"}
+    assert anchors_for("Walker2d-v5")["cleanrl_ppo"].mean == 2287.95
+    assert anchors_for("HalfCheetah-v5")["cleanrl_ppo"].mean == 1442.64
+    assert set(anchors_for("Ant-v5")) == {"rl_zoo_ppo"}
+    assert anchors_for("Swimmer-v5") == {} and anchors_for("push_cube") == {}
+    assert anchors_for("Hopper") == anchors_for("Hopper-v4") and anchors_for(None) == {}
+
+
+def test_a_sweep_over_envs_without_anchors_has_no_anchor_columns(tmp_path):
+    multirun_yaml(tmp_path, ["env=swimmer,inverted_pendulum", "seed=0,1"])
+    for num, (env, seed) in enumerate([("swimmer", 0), ("swimmer", 1), ("inverted_pendulum", 0)]):
+        write_job(tmp_path, num, [f"env={env}", f"seed={seed}"], 50.0 + seed, 60.0)
+    md = report(tmp_path, plot=False)
+    assert "## Results per env" in md
+    assert "CleanRL" not in md and "rl-zoo" not in md and "Anchors:" not in md
+    assert row_of(md, "Swimmer-v5")[1:4] == ["2", "50 [50, 51]", "50 ± 1"]
+    assert row_of(md, "InvertedPendulum-v5")[1:3] == ["1", "50 [n/a, n/a]"]
+
+
+def test_eval_success_is_shown_only_for_tasks_that_define_it(tmp_path):
+    multirun_yaml(tmp_path, ["env=hopper,cart_pole", "seed=0,1,2"])
+    num = 0
+    for env in ("hopper", "cart_pole"):
+        for seed in range(3):
+            success = 0.0 if env == "hopper" else [0.5, 0.75, 1.0][seed]
+            overrides = [f"env={env}", f"seed={seed}"]
+            write_job(tmp_path, num, overrides, 100.0 * (seed + 1), 200.0, success=success)
+            num += 1
+    md = report(tmp_path, plot=False)
+    assert "eval success: IQM [95% CI]" in md
+    assert row_of(md, "Hopper-v5")[-3] == "—"  # Gymnasium: no success, not a success rate of 0
+    x = np.array([0.5, 0.75, 1.0])
+    low, high = bootstrap_ci(x, iqm)
+    assert row_of(md, "cart_pole")[-3] == f"{float(iqm(x)):.2f} [{low:.2f}, {high:.2f}]"
+    assert "Gymnasium's tasks have none" in md
+    with open(tmp_path / "results.csv") as f:
+        table = {r["env"]: r for r in csv.DictReader(f)}
+    assert table["Hopper-v5"]["success_iqm"] == "" and table["Hopper-v5"]["success_n"] == ""
+    assert float(table["cart_pole"]["success_iqm"]) == pytest.approx(0.75)
+
+
+def test_a_sweep_not_over_envs_reads_as_before(tmp_path):
+    multirun_yaml(tmp_path, ["env=hopper", "algorithm.lr=1,2", "seed=0,1"])
+    for num in range(4):
+        lr, seed = divmod(num, 2)
+        overrides = ["env=hopper", f"algorithm.lr={lr + 1}", f"seed={seed}"]
+        write_job(tmp_path, num, overrides, 100.0 * num, 200.0)
+    md = report(tmp_path, plot=True)
+    assert "Results per env" not in md and "CleanRL" not in md
+    assert not (tmp_path / "results.csv").exists() and not (tmp_path / "results.png").exists()
+    assert (tmp_path / "curves.png").exists()
+    assert md == report(tmp_path, plot=False, results=False)
+
+
+def test_the_results_view_on_one_env_and_its_figure_at_a_given_path(tmp_path):
+    """``+sweep=mujoco_1m env=hopper``: one env, so the view is asked for; the figure goes where
+    the docs want it (e.g. docs/results_1m.png) as well as into the sweep dir."""
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    multirun_yaml(sweep, ["env=hopper", "seed=0,1"])
+    for seed in (0, 1):
+        write_job(sweep, seed, ["env=hopper", f"seed={seed}"], 1000.0 + seed, 900.0)
+    assert "Results per env" not in report(sweep, plot=False)
+    target = tmp_path / "docs" / "results_1m.png"
+    target.parent.mkdir()
+    md = report(sweep, plot=False, results_plot=target)
+    assert "## Results per env" in md and row_of(md, "Hopper-v5")[1] == "2"
+    assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (sweep / "results.png").exists()  # plot=False: only the figure asked for
+    report(sweep, results=True)
+    assert (sweep / "results.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_results_png_draws_each_envs_bands_and_its_anchors(env_sweep, monkeypatch):
+    import matplotlib.axes
+
+    bands, lines = [], []
+    real_fill, real_axhline = matplotlib.axes.Axes.fill_between, matplotlib.axes.Axes.axhline
+
+    def fill(self, x, y1, y2, **kw):
+        bands.append((self, np.asarray(x), np.asarray(y1), np.asarray(y2)))
+        return real_fill(self, x, y1, y2, **kw)
+
+    def axhline(self, y=0, **kw):
+        lines.append((self, y, kw.get("label")))
+        return real_axhline(self, y, **kw)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "fill_between", fill)
+    monkeypatch.setattr(matplotlib.axes.Axes, "axhline", axhline)
+    report(env_sweep)
+    assert (env_sweep / "results.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    results_bands = [b for b in bands if not b[0].get_title().startswith("IQM")]  # not curves.png
+    assert [b[0].get_title() for b in results_bands] == [
+        *("Hopper-v5", "Hopper-v5", "Ant-v5", "Ant-v5", "Swimmer-v5", "Swimmer-v5")
+    ]
+    hopper_train, hopper_eval = results_bands[0], results_bands[1]
+    assert list(hopper_train[1]) == list(range(BATCH, BUDGET + 1, BATCH))
+    assert list(hopper_eval[1]) == [EVAL_EVERY, BUDGET]
+    # At the last step each band is the table's interval of that metric.
+    low, high = bootstrap_ci(np.array(TRAIN["hopper"]), iqm)
+    assert (hopper_train[2][-1], hopper_train[3][-1]) == pytest.approx((low, high))
+    low, high = bootstrap_ci(np.array(EVAL["hopper"]), iqm)
+    assert (hopper_eval[2][-1], hopper_eval[3][-1]) == pytest.approx((low, high))
+    drawn = {(ax.get_title(), y) for ax, y, _ in lines}
+    assert drawn == {("Hopper-v5", 2382.86), ("Hopper-v5", 2410.435), ("Ant-v5", 1327.158)}
+
+
+def test_rlexp_report_on_a_sweep_over_envs_prints_the_results(env_sweep):
+    proc = rlexp_report(str(env_sweep), "--no-plot")
+    assert proc.returncode == 0, proc.stderr
+    assert "## Results per env" in proc.stdout
+    assert row_of(proc.stdout, "Hopper-v5")[4] == "2383 ± 272 (Hopper-v4)"
+    assert (env_sweep / "results.csv").exists()
