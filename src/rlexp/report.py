@@ -35,6 +35,7 @@ from rlexp.reporting.jobs import (
     STOPPED_EARLY,
     TIME_KEYS,
     Job,
+    add_histories,
     find_jobs,
     first_line,
     read_budget,
@@ -122,6 +123,7 @@ __all__ = [
     "Sweep",
     "Threshold",
     "ThresholdStats",
+    "add_histories",
     "anchors_for",
     "bootstrap_ci",
     "budget_saved",
@@ -181,17 +183,17 @@ def report(
     if not sweep_dir.is_dir():
         raise FileNotFoundError(f"no sweep dir {sweep_dir}")
     target = Threshold(threshold_metric or metric, threshold) if threshold is not None else None
-    if results_plot is not None:
-        results = True
-    elif results is None:  # the configs alone say which envs the jobs train on: no metrics read
-        results = varies_env(find_jobs(sweep_dir, metric=None))
-    others = ((target.metric,) if target else ()) + (RESULT_METRICS if results else ())
-    sweep = read_sweep(sweep_dir, metric, other_metrics=others)
+    sweep = read_sweep(sweep_dir, metric, other_metrics=(target.metric,) if target else ())
     if not sweep.jobs and sweep.plan.jobs is None:
         raise FileNotFoundError(
             f"no jobs under {sweep_dir} (no */.hydra/overrides.yaml) and no multirun.yaml: "
             "is it a multirun dir?"
         )
+    results = True if results_plot is not None else results
+    if results is None:
+        results = varies_env(sweep.jobs)
+    if results:
+        add_histories(sweep.jobs, RESULT_METRICS)
     stats = summarize(sweep.jobs, target)
     per_env = env_results(sweep.jobs) if results else []
     md = to_markdown(sweep_dir, sweep, stats, metric, results_markdown(per_env) if results else ())

@@ -179,6 +179,16 @@ def read_histories(
     return {m: sorted(v.items()) for m, v in values.items()}, float(sum(times.values()))
 
 
+def add_histories(jobs: Sequence[Job], metrics: Sequence[str]) -> None:
+    """Read the histories of ``metrics`` a job's ``Job.curves`` lacks from its ``metrics.jsonl``
+    (a second view of jobs already read: the file's bad lines were counted the first time)."""
+    for job in jobs:
+        missing = [m for m in metrics if m not in job.curves]
+        if missing:
+            curves, _ = read_histories(job.path / "metrics.jsonl", missing)
+            job.curves.update(curves)
+
+
 def read_status(path: Path, problems: list[str]) -> dict[str, Any] | None:
     """A job's ``status.json``: {} when there is none, None (and a problem) when it is not a JSON
     object."""

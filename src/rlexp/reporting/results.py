@@ -107,7 +107,7 @@ def _median(values: list[float]) -> float:
 
 def env_results(jobs: list[Job]) -> list[EnvResult]:
     """One EnvResult per configuration (its overrides less the seed), in job order; each job's
-    ``curves`` must hold RESULT_METRICS (``read_sweep(..., other_metrics=RESULT_METRICS)``)."""
+    ``curves`` must hold RESULT_METRICS (``rlexp.reporting.jobs.add_histories``)."""
     common = set(common_overrides(jobs))
     groups: dict[tuple[str, ...], list[Job]] = {}
     for job in jobs:
