@@ -1,6 +1,6 @@
 """``rlexp`` command: ``rlexp train [overrides]``, ``rlexp eval CHECKPOINT [--episodes N]``,
-``rlexp report SWEEP_DIR``, ``rlexp runs [DIR ...]``, ``rlexp compare DIR ...``, ``rlexp --version``
-(also ``python -m rlexp ...``).
+``rlexp export CHECKPOINT --format torchscript|onnx``, ``rlexp report SWEEP_DIR``,
+``rlexp runs [DIR ...]``, ``rlexp compare DIR ...``, ``rlexp --version`` (also ``python -m rlexp``).
 
 Bad input (an option out of range, a missing or unreadable checkpoint) is one line on stderr and
 exit 2; a checkpoint whose policy weights are NaN/Inf exits 3, like a run the NaN guard stopped.
@@ -13,9 +13,11 @@ import logging
 import os
 import re
 import sys
-import warnings
 from pathlib import Path
 from typing import Any, NoReturn
+
+# rlexp eval's work (re-exported: ``from rlexp.cli import evaluate``); a light import, torch-free
+from rlexp.policy_eval import evaluate
 
 log = logging.getLogger("rlexp")
 
@@ -52,110 +54,6 @@ def _one_line(exc: BaseException) -> str:
     """The first line of an error's message, without terminal colour codes (torch adds some)."""
     text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).strip()
     return text.splitlines()[0] if text else type(exc).__name__
-
-
-def load_for_eval(path: str | Path) -> dict[str, Any]:
-    """The checkpoint file at ``path``, or a run dir's newest step checkpoint that loads: corrupt
-    newer ones are reported and skipped, as ``trainer.resume=auto`` does."""
-    from rlexp.checkpoint import load_checkpoint, step_checkpoints
-
-    # torch warns about the pickle protocol of a file it is about to refuse: noise next to the error
-    warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
-    p = Path(path)
-    if not p.is_dir():
-        return load_checkpoint(p)
-    candidates = step_checkpoints(p)
-    if not candidates:
-        raise FileNotFoundError(
-            f"no rlexp checkpoint (*_step_N.pt) in {str(p)!r} or its checkpoints/"
-        )
-    for candidate in reversed(candidates):
-        try:
-            return load_checkpoint(candidate)
-        except ValueError as exc:
-            log.warning("rlexp eval: skipped %s", _one_line(exc))
-    raise ValueError(
-        f"none of the {len(candidates)} checkpoints in {str(p)!r} can be read (each skipped above)"
-    )
-
-
-def check_policy_finite(ckpt: dict[str, Any]) -> None:
-    """NonFiniteError naming the policy tensors (normaliser statistics included) holding NaN/Inf."""
-    import torch
-
-    bad = [
-        name
-        for name, value in ckpt["policy"].items()
-        if torch.is_tensor(value) and value.is_floating_point() and not torch.isfinite(value).all()
-    ]
-    if bad:
-        from rlexp.algorithms.ppo import NonFiniteError
-
-        shown = ", ".join(bad[:3]) + (f" and {len(bad) - 3} more" if len(bad) > 3 else "")
-        raise NonFiniteError(
-            f"checkpoint {ckpt['path']!r} holds non-finite policy weights ({shown}); there is "
-            "nothing to evaluate: use an earlier checkpoint of the run"
-        )
-
-
-def evaluate(
-    checkpoint: str, episodes: int, num_envs: int | None, seed: int | None = None
-) -> dict[str, float]:
-    """Rebuild the run's env and policy from a checkpoint (a file, or a run dir: its newest good
-    one) and evaluate it deterministically."""
-    if episodes < 1:
-        raise ValueError(f"episodes={episodes}; evaluate at least 1 episode")
-    if num_envs is not None and num_envs < 1:
-        raise ValueError(f"num_envs={num_envs}; use at least 1 env (None: the run's num_eval_envs)")
-    ckpt = load_for_eval(checkpoint)  # before the heavy imports: a bad path fails fast
-    check_policy_finite(ckpt)
-
-    from rlexp.app import seed_everything
-    from rlexp.checkpoint import check_checkpoint_fits
-    from rlexp.config.validate import to_root_config
-    from rlexp.envs.factory import make_env
-    from rlexp.evaluation import run_episodes
-    from rlexp.policies.actor_critic import make_policy
-
-    config = to_root_config(eval_config(ckpt["config"]))
-    e = config.env
-    if seed is None:  # the run's own eval seed: the same episodes as the Trainer's eval rounds
-        from rlexp.build import EVAL_SEED_OFFSET
-
-        seed = config.seed + EVAL_SEED_OFFSET
-    seed_everything(seed)
-    n = num_envs or max(1, e.num_eval_envs)
-    env = make_env(e, n, seed)
-    obs_dim = env.observation_spec["observation"].shape[-1]
-    policy = make_policy(
-        config.policy,
-        obs_dim,
-        env.action_spec.shape[-1],
-        env.action_spec,
-        e.normalize_observations,
-        e.clip_observations,
-    )
-    check_checkpoint_fits(ckpt, config, policy)  # loads the weights; ValueError if they do not fit
-    metrics = run_episodes(env, policy.sampling_policy(deterministic=True), episodes)
-    env.close()
-    return {
-        "path": ckpt["path"],
-        "global_step": int(ckpt["global_step"]),
-        "mean_return": metrics["eval/episode_return"],
-        "std_return": metrics["eval/episode_return_std"],
-        "episodes": int(metrics["eval/episodes"]),
-    }
-
-
-def eval_config(saved: dict) -> dict:
-    """The checkpoint's config, less what evaluation does not use and what may be checked
-    differently here: its events (an older rlexp accepted other event params) and its thread count
-    (the machine that trained may have had more CPUs)."""
-    config = {**saved, "events": {"train": {}, "eval": {}}}
-    config["trainer"] = {**(saved.get("trainer") or {}), "torch_threads": 1}
-    if isinstance(saved.get("env"), dict):  # older checkpoints: a key that never did anything
-        config["env"] = {k: v for k, v in saved["env"].items() if k != "vectorization"}
-    return config
 
 
 def _load_plugins_or_exit(prog: str) -> None:
@@ -309,7 +207,9 @@ def main(argv: list[str] | None = None) -> None:
         "eval", help="evaluate a checkpoint: mean return over N deterministic episodes"
     )
     ev.add_argument(
-        "checkpoint", help="a checkpoint file, or a run dir (its newest readable checkpoint)"
+        "checkpoint",
+        help="a checkpoint file, a run dir (its newest readable checkpoint), or a file written by "
+        "rlexp export (its metadata JSON beside it)",
     )
     ev.add_argument("--episodes", type=_at_least_1, default=10, help="episodes to run (>= 1)")
     ev.add_argument(
@@ -321,6 +221,15 @@ def main(argv: list[str] | None = None) -> None:
         default=None,
         help="eval env seed (default: the run's own eval seed, seed + 1000000, as its eval rounds)",
     )
+    ev.add_argument(
+        "--video",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="PATH.mp4",
+        help="also write an mp4 of eval env 0's episodes (default: beside the file, <name>.mp4)",
+    )
+    _add_export_parser(sub)
     rep = sub.add_parser(
         "report", help="a sweep's per-configuration statistics: report.md, report.csv, curves.png"
     )
@@ -361,20 +270,69 @@ def main(argv: list[str] | None = None) -> None:
             print(f"rlexp report: {exc}", file=sys.stderr)
             sys.exit(2)
         return
-    if args.command == "eval":
-        _load_plugins_or_exit("rlexp eval")  # the checkpoint's task may be a plugin's
+    if args.command in ("eval", "export"):
+        _load_plugins_or_exit(f"rlexp {args.command}")  # the checkpoint's task may be a plugin's
         try:
-            res = evaluate(args.checkpoint, args.episodes, args.num_envs, args.seed)
+            print(_eval(args) if args.command == "eval" else _export(args))
         except (FileNotFoundError, ValueError) as exc:
-            print(f"rlexp eval: {_one_line(exc)}", file=sys.stderr)
+            print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
             sys.exit(2)
         except FloatingPointError as exc:  # NonFiniteError: NaN/Inf weights (not imported: slow)
-            print(f"rlexp eval: {_one_line(exc)}", file=sys.stderr)
+            print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
             sys.exit(3)
-        print(
-            f"checkpoint {res['path']} (step {res['global_step']}): mean return "
-            f"{res['mean_return']:.3f} +- {res['std_return']:.3f} over {res['episodes']} episodes"
-        )
+
+
+def _add_export_parser(sub: Any) -> None:
+    """``rlexp export`` (docs/export.md)."""
+    exp = sub.add_parser(
+        "export",
+        help="a checkpoint's deterministic policy (normaliser folded in) as one TorchScript or "
+        "ONNX file, with a metadata JSON beside it",
+    )
+    exp.add_argument("path", metavar="RUN_DIR_OR_CHECKPOINT")
+    exp.add_argument("--format", choices=["torchscript", "onnx"], default="torchscript")
+    exp.add_argument(
+        "--out",
+        default=None,
+        metavar="PATH",
+        help="the file to write (default: <run_dir>/exported/<checkpoint name>.pt or .onnx)",
+    )
+    exp.add_argument(
+        "--checkpoint",
+        choices=["best", "last"],
+        default=None,
+        help="which checkpoint of a run dir (default: best.pt if there is one, else the last)",
+    )
+
+
+def _eval(args: argparse.Namespace) -> str:
+    """``rlexp eval``: its result line (and the video's)."""
+    video = args.video
+    if video == "":  # --video without a path
+        from rlexp.policy_eval import default_video_path
+
+        video = default_video_path(args.checkpoint)
+    res = evaluate(args.checkpoint, args.episodes, args.num_envs, args.seed, video)
+    step = res["global_step"]
+    what = f"checkpoint {res['path']} (step {step})"
+    if res["kind"] != "checkpoint":
+        what = f"exported policy {res['path']} ({res['kind']} of {res['checkpoint']}, step {step})"
+    line = (
+        f"{what}: mean return {res['mean_return']:.3f} +- "
+        f"{res['std_return']:.3f} over {res['episodes']} episodes"
+    )
+    return line + (f"\nvideo: {res['video']}" if res["video"] else "")
+
+
+def _export(args: argparse.Namespace) -> str:
+    """``rlexp export``: what was written, from which checkpoint and why that one."""
+    from rlexp.export import export_policy
+
+    res = export_policy(args.path, args.format, args.out, args.checkpoint)
+    return (
+        f"exported {res.checkpoint} (step {res.global_step}; {res.chosen}) as {args.format}: "
+        f"{res.path}\nmetadata: {res.metadata}"
+    )
 
 
 if __name__ == "__main__":

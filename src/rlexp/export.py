@@ -1,0 +1,354 @@
+"""``rlexp export``: a checkpoint's deterministic policy as one self-contained file, TorchScript or
+ONNX, and a metadata JSON beside it (``<file>.json``; docs/export.md).
+
+The file maps a float32 ``observation`` [batch, obs_dim] to the ``action`` [batch, act_dim] that
+``rlexp eval`` applies to the env: the Gaussian's mean, i.e. the actor MLP on the normalised
+observation. Folded in:
+
+- the observation normaliser. rlexp normalises inside the policy (``ObservationNormalizer``, whose
+  statistics are checkpointed), not with a TorchRL transform on the env: ``(x - mean) / sqrt(var +
+  eps)`` as the ``_scale`` / ``_shift`` buffers hold it, clipped to +-``env.clip_observations``;
+  with ``env.normalize_observations=false`` it is the identity (and nothing is clipped);
+- the clipping of the action to the action bounds, which rlexp's envs (gymnasium, native) apply
+  before acting; ``env.backend=torchrl_gym`` hands actions on unclipped, and so does its export.
+
+Only the actor is exported (PPO's critic is not); actor-critic and actor-only policies alike.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from rlexp.policy_eval import (
+    EXPORT_SCHEMA,
+    EXPORT_SUFFIXES,
+    check_policy_finite,
+    eval_config,
+    load_exported,
+    metadata_path,
+    quiet,
+)
+
+#: The exported file's input and output names (ONNX graph names; the metadata states them).
+INPUT_NAME, OUTPUT_NAME = "observation", "action"
+#: Backends whose envs clip actions to the action bounds before applying them.
+CLIPPING_BACKENDS = ("gymnasium", "native")
+#: ``--checkpoint`` choices for a run dir.
+CHOICES = ("best", "last")
+
+
+class DeterministicActor(nn.Module):
+    """observation [batch, obs_dim] float32 -> the Gaussian's mean action [batch, act_dim], the
+    normaliser folded in and (``clamp_actions``) clipped to the action bounds as the env does."""
+
+    __constants__ = ["normalize", "clip", "clamp_actions"]  # TorchScript: fixed branches
+
+    def __init__(
+        self, policy: nn.Module, low: torch.Tensor, high: torch.Tensor, clamp_actions: bool
+    ) -> None:
+        super().__init__()
+        norm = policy.actor_net.normalizer
+        self.normalize = bool(norm.enabled)
+        self.clip = float(norm.clip)
+        self.clamp_actions = clamp_actions
+        # the same float32 buffers and ops as ObservationNormalizer.forward: the same numbers
+        self.register_buffer("obs_scale", norm._scale.detach().clone().float())
+        self.register_buffer("obs_shift", norm._shift.detach().clone().float())
+        self.mlp = copy.deepcopy(policy.actor_net.mlp).float().requires_grad_(False)
+        self.register_buffer("action_low", low.detach().clone().float())
+        self.register_buffer("action_high", high.detach().clone().float())
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        x = observation
+        if self.normalize:
+            x = torch.clamp(torch.addcmul(self.obs_shift, x, self.obs_scale), -self.clip, self.clip)
+        action = self.mlp(x)
+        if self.clamp_actions:
+            action = torch.clamp(action, self.action_low, self.action_high)
+        return action
+
+
+@dataclass
+class Exported:
+    """What ``export_policy`` wrote and from which checkpoint."""
+
+    path: Path
+    metadata: Path
+    checkpoint: str
+    chosen: str  # why this checkpoint: given, best.pt, the newest step checkpoint
+    global_step: int
+
+
+def choose_checkpoint(path: str | Path, which: str | None = None) -> tuple[dict[str, Any], str]:
+    """The checkpoint to export and why: a file as given; in a run dir (or its ``checkpoints/``)
+    ``best.pt`` when present (or ``which='best'``), else (or ``which='last'``) the newest step
+    checkpoint that loads."""
+    from rlexp.checkpoint import latest_good_checkpoint, load_checkpoint, step_checkpoints
+
+    p = Path(path)
+    if which is not None and which not in CHOICES:
+        raise ValueError(f"--checkpoint {which!r}; choose from {list(CHOICES)}")
+    if not p.exists():
+        raise FileNotFoundError(f"{str(p)!r} does not exist (give a run dir or a checkpoint file)")
+    if not p.is_dir():
+        if which is not None:
+            raise ValueError(
+                f"--checkpoint {which} picks a checkpoint of a run dir; {str(p)!r} is a file: "
+                "leave --checkpoint out"
+            )
+        return load_checkpoint(p), "as given"
+    best = next((b for b in (p / "checkpoints" / "best.pt", p / "best.pt") if b.is_file()), None)
+    if which == "best" and best is None:
+        raise FileNotFoundError(
+            f"no best.pt in {str(p)!r} or its checkpoints/ (the run never evaluated): "
+            "use --checkpoint last"
+        )
+    if best is not None and which != "last":
+        return load_checkpoint(best), "best.pt: the best evaluation"
+    ckpt = latest_good_checkpoint(p)
+    if ckpt is None:
+        found = step_checkpoints(p)
+        if not found:
+            raise FileNotFoundError(f"no rlexp checkpoint (*_step_N.pt) in {str(p)!r}")
+        raise ValueError(f"none of the {len(found)} checkpoints in {str(p)!r} can be read")
+    return ckpt, "the last checkpoint" + (
+        ": --checkpoint last" if which == "last" else ": no best.pt"
+    )
+
+
+def out_path(out: str | Path | None, checkpoint: str | Path, fmt: str) -> Path:
+    """Where to write: ``out`` (a file; a folder gets the default name; the format's suffix is
+    added when missing), by default ``<run_dir>/exported/<checkpoint stem>.pt|.onnx``."""
+    suffix = EXPORT_SUFFIXES[fmt]
+    ckpt = Path(checkpoint)
+    name = ckpt.stem + suffix
+    if out is None:
+        home = ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent
+        return home / "exported" / name
+    p = Path(out)
+    if p.is_dir():
+        return p / name
+    if not p.suffix:
+        return p.with_suffix(suffix)
+    if p.suffix != suffix:
+        raise ValueError(f"--out {str(p)!r}: a {fmt} file ends in {suffix}, not {p.suffix}")
+    return p
+
+
+def export_policy(
+    path: str | Path, fmt: str, out: str | Path | None = None, which: str | None = None
+) -> Exported:
+    """Export the deterministic actor of the checkpoint at ``path`` (a file or a run dir) as
+    ``fmt`` (torchscript | onnx), with its metadata JSON; the file is checked against the policy."""
+    if fmt not in EXPORT_SUFFIXES:
+        raise ValueError(f"--format {fmt!r}; choose from {list(EXPORT_SUFFIXES)}")
+    if fmt == "onnx":
+        from rlexp.extras import require
+
+        require("export", "rlexp export --format onnx", ("onnx", "onnxscript", "onnxruntime"))
+    ckpt, chosen = choose_checkpoint(path, which)
+    check_policy_finite(ckpt)
+    target = out_path(out, ckpt["path"], fmt)
+    if target.exists() and not metadata_path(target).is_file():  # a checkpoint, someone's file
+        raise ValueError(
+            f"--out {str(target)!r} exists and is not an rlexp export (no "
+            f"{metadata_path(target).name!r} beside it); rlexp export does not overwrite it"
+        )
+    actor, config, info = _actor_of(ckpt)
+    if not target.parent.is_dir():
+        target.parent.mkdir(parents=True)
+    try:
+        _atomic(target, lambda tmp: _WRITERS[fmt](actor, tmp))
+    except (RuntimeError, TypeError, ValueError, ImportError) as exc:  # the exporters' own kinds
+        text = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ValueError(f"writing the {fmt} file {str(target)!r} failed: {text}") from exc
+    meta = {
+        "schema": EXPORT_SCHEMA,
+        "format": fmt,
+        "file": target.name,
+        **_io_fields(info),
+        **info,
+        **_source_fields(ckpt, chosen, config),
+    }
+    try:
+        _check_file(target, meta, actor)
+    except ValueError:
+        target.unlink()  # a file that does not act as the policy is worse than none
+        raise
+    meta_file = metadata_path(target)
+    _atomic(meta_file, lambda tmp: tmp.write_text(json.dumps(meta, indent=2) + "\n"))
+    return Exported(target, meta_file, ckpt["path"], chosen, int(ckpt["global_step"]))
+
+
+def _actor_of(ckpt: dict[str, Any]) -> tuple[DeterministicActor, Any, dict[str, Any]]:
+    """The checkpoint's policy rebuilt on one copy of its env (as ``rlexp eval`` builds it) -> the
+    deterministic actor, the typed config, and what the metadata says about the env."""
+    from rlexp.checkpoint import check_checkpoint_fits
+    from rlexp.config.validate import to_root_config
+    from rlexp.envs.factory import make_env
+    from rlexp.policies.actor_critic import make_policy
+
+    config = to_root_config(eval_config(ckpt["config"]))
+    e = config.env
+    env = make_env(e, 1, config.seed)
+    try:
+        obs_dim = int(env.observation_spec["observation"].shape[-1])
+        act_dim = int(env.action_spec.shape[-1])
+        policy = make_policy(
+            config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
+            e.clip_observations,
+        )  # fmt: skip
+        check_checkpoint_fits(
+            ckpt, config, policy
+        )  # loads the weights; ValueError if they do not fit
+        space = env.action_spec.space
+        low = space.low.reshape(-1, act_dim)[0]
+        high = space.high.reshape(-1, act_dim)[0]
+        clamp = e.backend in CLIPPING_BACKENDS
+        actor = DeterministicActor(policy, low, high, clamp).eval()
+        info = {
+            "observation_dim": obs_dim,
+            "action_dim": act_dim,
+            **_names(env, config),
+            "action_low": _finite_or_none(low),
+            "action_high": _finite_or_none(high),
+            "actions_clamped": clamp,
+            "observation_normalizer": {
+                "enabled": actor.normalize,
+                "clip": actor.clip if actor.normalize else None,
+                "count": float(policy.normalizer.count),
+            },
+        }
+    finally:
+        env.close()
+    return actor, config, info
+
+
+def _names(env: Any, config: Any) -> dict[str, Any]:
+    """Observation and action names where the env knows them (native tasks: term names, one per
+    element, and each observation term's slice); null for Gymnasium tasks."""
+    base = env
+    while hasattr(base, "base_env"):  # under TorchRL transforms
+        base = base.base_env
+    layout = getattr(base, "observation_layout", None)
+    terms = getattr(base, "_action_terms", None)
+    native = config.env.native
+    if layout is None or terms is None or native is None:
+        return {"observation_names": None, "observation_terms": None, "action_names": None}
+    obs_names = [
+        _element(n, i, stop - start) for n, start, stop, _ in layout for i in range(stop - start)
+    ]
+    action_names = [
+        _element(key, i, part.stop - part.start)
+        for key, (part, _) in zip(native.actions, terms, strict=True)
+        for i in range(part.stop - part.start)
+    ]
+    return {
+        "observation_names": obs_names,
+        "observation_terms": [
+            {"name": n, "start": start, "stop": stop, "shape": list(shape)}
+            for n, start, stop, shape in layout
+        ],
+        "action_names": action_names,
+    }
+
+
+def _element(name: str, i: int, size: int) -> str:
+    return name if size == 1 else f"{name}[{i}]"
+
+
+def _finite_or_none(values: torch.Tensor) -> list[float | None]:
+    """Bounds as JSON numbers; an unbounded side (+-inf, which JSON cannot hold) as null."""
+    return [float(v) if torch.isfinite(v) else None for v in values]
+
+
+def _io_fields(info: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "input_name": INPUT_NAME,
+        "output_name": OUTPUT_NAME,
+        "input_shape": ["batch", info["observation_dim"]],
+        "output_shape": ["batch", info["action_dim"]],
+        "dtype": "float32",
+    }
+
+
+def _source_fields(ckpt: dict[str, Any], chosen: str, config: Any) -> dict[str, Any]:
+    from rlexp import __version__
+
+    return {
+        "env_id": config.env.name,
+        "env_backend": config.env.backend,
+        "native_task": config.env.native.task if config.env.native is not None else None,
+        "algorithm": config.algorithm.name,
+        "policy": config.policy.name,
+        "source_checkpoint": str(Path(ckpt["path"]).resolve()),
+        "checkpoint_choice": chosen,
+        "global_step": int(ckpt["global_step"]),
+        "rlexp_version": __version__,
+        "torch_version": torch.__version__,
+        "config": ckpt["config"],  # the run's config: `rlexp eval FILE` rebuilds its env from it
+    }
+
+
+def _atomic(path: Path, write: Any) -> None:
+    """``write(tmp)`` to a temporary file beside ``path``, then rename it over ``path``."""
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _write_torchscript(actor: DeterministicActor, path: Path) -> None:
+    with warnings.catch_warnings():  # torch.jit.script is deprecated in favour of torch.export
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.jit.save(torch.jit.script(actor), str(path))
+
+
+def _write_onnx(actor: DeterministicActor, path: Path) -> None:
+    """torch.export-based exporter (torch's default and future; the TorchScript-based one is
+    deprecated), a dynamic batch axis, weights inside the file (no ``.data`` beside it)."""
+    example = torch.zeros(2, actor.obs_scale.shape[0])
+    with warnings.catch_warnings(), quiet("torch.onnx"), quiet("torch.export"):
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            actor,
+            (example,),
+            str(path),
+            dynamo=True,
+            external_data=False,
+            verbose=False,
+            input_names=[INPUT_NAME],
+            output_names=[OUTPUT_NAME],
+            dynamic_shapes={"observation": {0: torch.export.Dim("batch")}},
+        )
+
+
+_WRITERS = {"torchscript": _write_torchscript, "onnx": _write_onnx}
+
+
+def _check_file(path: Path, meta: dict[str, Any], actor: DeterministicActor) -> None:
+    """Load the written file as a user would and compare it with the actor on a probe batch
+    (observations around the normaliser's mean, some far out so the clips act)."""
+    gen = torch.Generator().manual_seed(0)
+    probe = torch.randn(16, meta["observation_dim"], generator=gen) * 3.0
+    if actor.normalize:  # x = (probe - shift) / scale: normalised values of about +-3
+        probe = (probe - actor.obs_shift) / actor.obs_scale
+    with torch.no_grad():
+        want = actor(probe)
+        got = load_exported(path, meta)(probe)
+    if got.shape != want.shape or not torch.allclose(got, want, rtol=1e-5, atol=1e-5):
+        raise ValueError(
+            f"the exported {meta['format']} file {str(path)!r} does not reproduce the policy "
+            f"(max difference {float((got - want).abs().max()):.3g}); please report it"
+        )
