@@ -204,7 +204,9 @@ def main(argv: list[str] | None = None) -> None:
         add_help=False,
     )
     ev = sub.add_parser(
-        "eval", help="evaluate a checkpoint: mean return over N deterministic episodes"
+        "eval",
+        help="evaluate a checkpoint or an exported policy: mean return over N deterministic "
+        "episodes [and an mp4 of them]",
     )
     ev.add_argument(
         "checkpoint",
@@ -289,8 +291,17 @@ def _add_export_parser(sub: Any) -> None:
         help="a checkpoint's deterministic policy (normaliser folded in) as one TorchScript or "
         "ONNX file, with a metadata JSON beside it",
     )
-    exp.add_argument("path", metavar="RUN_DIR_OR_CHECKPOINT")
-    exp.add_argument("--format", choices=["torchscript", "onnx"], default="torchscript")
+    exp.add_argument(
+        "path",
+        metavar="RUN_DIR_OR_CHECKPOINT",
+        help="a checkpoint file, or a run dir (its best.pt if there is one, else its last)",
+    )
+    exp.add_argument(
+        "--format",
+        choices=["torchscript", "onnx"],
+        default="torchscript",
+        help="torchscript (.pt, plain torch) or onnx (.onnx, onnxruntime; the 'export' extra)",
+    )
     exp.add_argument(
         "--out",
         default=None,
