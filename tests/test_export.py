@@ -440,3 +440,12 @@ def test_the_folded_normaliser_matches_the_policy_s_own(normalize):
     torch.testing.assert_close(scripted(obs), want, atol=0, rtol=0)
     if not normalize:  # the policy clips nothing either: large inputs reach the MLP as they are
         assert not torch.equal(actor(obs), actor(torch.clamp(obs, -2.0, 2.0)))
+
+
+def test_eval_video_wants_an_mp4_name(exported, tmp_path):
+    line = _one_line_error(
+        ("eval", exported["cart_pole", "torchscript"], "--video", tmp_path / "v.gif")
+    )
+    assert (
+        line == f"rlexp eval: --video {str(tmp_path / 'v.gif')!r}: give a file name ending in .mp4"
+    )
