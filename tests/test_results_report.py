@@ -294,3 +294,23 @@ def test_rlexp_report_on_a_sweep_over_envs_prints_the_results(env_sweep):
     assert "## Results per env" in proc.stdout
     assert row_of(proc.stdout, "Hopper-v5")[4] == "2383 ± 272 (Hopper-v4)"
     assert (env_sweep / "results.csv").exists()
+
+
+def test_rlexp_report_results_flags_on_one_env(tmp_path):
+    """``--results`` asks for the view on a one-env sweep; ``--results-plot`` writes the figure
+    where it is asked (even with ``--no-plot``)."""
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    multirun_yaml(sweep, ["env=hopper", "seed=0,1"])
+    for seed in (0, 1):
+        write_job(sweep, seed, ["env=hopper", f"seed={seed}"], 1000.0 + seed, 900.0)
+    plain = rlexp_report(str(sweep), "--no-plot")
+    assert plain.returncode == 0, plain.stderr
+    assert "Results per env" not in plain.stdout
+    asked = rlexp_report(str(sweep), "--no-plot", "--results")
+    assert asked.returncode == 0, asked.stderr
+    assert "## Results per env" in asked.stdout and row_of(asked.stdout, "Hopper-v5")[1] == "2"
+    target = tmp_path / "results_1m.png"
+    drawn = rlexp_report(str(sweep), "--no-plot", "--results-plot", str(target))
+    assert drawn.returncode == 0, drawn.stderr
+    assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -246,6 +246,20 @@ def main(argv: list[str] | None = None) -> None:
         help="also the steps each seed took to reach VALUE (first time, and 3 logged values in "
         "a row) in --metric, or in METRIC: e.g. 475, or eval/success_rate=0.9",
     )
+    rep.add_argument(
+        "--results",
+        action="store_true",
+        default=None,
+        help="the results per env (train/eval return next to published anchors, wall time, "
+        "env steps/s; results.csv, results.png) for a sweep of one env too (automatic over several)",
+    )
+    rep.add_argument(
+        "--results-plot",
+        type=Path,
+        default=None,
+        metavar="PNG",
+        help="also write the results figure here, e.g. docs/results_1m.png (implies --results)",
+    )
     _add_runs_parsers(sub)
     args = parser.parse_args(_sort_values_joined(argv))
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
@@ -258,7 +272,8 @@ def main(argv: list[str] | None = None) -> None:
         from rlexp.report import report
 
         try:
-            require("report", "rlexp report", None if not args.no_plot else ("scipy",))
+            plots = not args.no_plot or args.results_plot is not None
+            require("report", "rlexp report", None if plots else ("scipy",))
             threshold_metric, threshold = args.threshold or (None, None)
             md = report(
                 Path(args.sweep_dir),
@@ -266,6 +281,8 @@ def main(argv: list[str] | None = None) -> None:
                 plot=not args.no_plot,
                 threshold=threshold,
                 threshold_metric=threshold_metric,
+                results=args.results,
+                results_plot=args.results_plot,
             )
             print(md, end="")
         except (FileNotFoundError, MissingExtra) as exc:
