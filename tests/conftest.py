@@ -124,6 +124,11 @@ needs_compiler = pytest.mark.skipif(
 )
 
 
+#: PPO without the MuJoCo references' extras that rlexp turns on by default (reward scaling and
+#: clipping, LR annealing): the plain update the hand-written references in the tests implement.
+PLAIN_PPO = {"anneal_lr": False, "normalize_rewards": False, "clip_rewards": None}
+
+
 def clipped_adam_step(params, grads, m, v, step: int, cfg, betas=(0.9, 0.999)) -> None:
     """A hand-written reference optimiser step: clip the gradients to ``cfg.max_grad_norm`` as
     ``clip_grad_norm_`` does, then Adam (bias-corrected, ``cfg.lr``, ``cfg.adam_eps``) in place;

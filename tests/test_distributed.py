@@ -11,7 +11,7 @@ import sys
 import pytest
 import torch
 
-from conftest import REPO, only_run_dir, run_train
+from conftest import PLAIN_PPO, REPO, only_run_dir, run_train
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint
 
 ARGS = [
@@ -223,6 +223,8 @@ def test_nan_on_one_rank_stops_both_ranks_with_the_nan_guard_error(tmp_path, wei
         "trainer.eval_every=0",
         "trainer.save_every=0",
         "algorithm.num_epochs=1",
+        "algorithm.normalize_rewards=false",  # raw rewards: the scaled ones never overflow
+        "algorithm.clip_rewards=null",
         "trainer.resume=never",
         f"hydra.run.dir={run_dir}",
     ]
@@ -290,7 +292,13 @@ distributed.shutdown()
 """
 
 # One minibatch of the whole rollout, no clipping: the stepped gradient is the loss's own.
-_GRAD_CFG = {"num_epochs": 2, "mini_batch_size": 32, "max_grad_norm": 0.0, "compile": "false"}
+_GRAD_CFG = {
+    "num_epochs": 2,
+    "mini_batch_size": 32,
+    "max_grad_norm": 0.0,
+    "compile": "false",
+    **PLAIN_PPO,
+}
 
 
 def test_the_gradient_each_rank_steps_with_is_the_mean_of_the_ranks_gradients(tmp_path):

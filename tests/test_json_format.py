@@ -98,6 +98,9 @@ def test_push_cube_file_maps_key_by_key(tmp_path, monkeypatch):
         0.5,
         0.5,
     )
+    # what their PPO did: no reward scaling, a constant rate (rlexp's own defaults differ)
+    assert (a.normalize_rewards, a.clip_rewards, a.anneal_lr) == (False, None, False)
+    assert compose([]).algorithm.normalize_rewards is True
     assert (p.name, p.actor.hidden_sizes, p.actor.activation, p.critic.hidden_sizes) == (
         "actor_critic",
         [256, 256],

@@ -12,7 +12,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import Bounded
 
-from conftest import run_train
+from conftest import PLAIN_PPO, run_train
 from rlexp.algorithms.ppo import NonFiniteError, make_algorithm
 from rlexp.config.schema import AlgorithmConfig, PolicyConfig
 from rlexp.policies.actor_critic import make_policy
@@ -47,7 +47,9 @@ def _policy_and_batch(reward: float = 1.0):
 
 
 def _algorithm(pol, **cfg):
-    cfg = AlgorithmConfig(num_epochs=1, mini_batch_size=ENVS * STEPS, compile="false", **cfg)
+    cfg = AlgorithmConfig(
+        num_epochs=1, mini_batch_size=ENVS * STEPS, compile="false", **{**PLAIN_PPO, **cfg}
+    )
     return make_algorithm(cfg, pol, total_iterations=10)
 
 
@@ -115,7 +117,7 @@ def test_a_peers_non_finite_loss_or_gradient_stops_this_rank_too(peer, what):
     on and leaving that peer blocked. Here ``grad_sync`` averages with a made-up peer."""
     pol, batch = _policy_and_batch()
     before = copy.deepcopy(pol)
-    cfg = AlgorithmConfig(num_epochs=1, mini_batch_size=ENVS * STEPS, compile="false")
+    cfg = AlgorithmConfig(num_epochs=1, mini_batch_size=ENVS * STEPS, compile="false", **PLAIN_PPO)
     synced: list[list[torch.Tensor]] = []
 
     def grad_sync(tensors: list[torch.Tensor]) -> None:
@@ -138,7 +140,7 @@ def test_a_peers_non_finite_loss_or_gradient_stops_this_rank_too(peer, what):
 
 def test_nan_guard_off_lets_the_update_through():
     pol, batch = _policy_and_batch(reward=1e30)
-    cfg = AlgorithmConfig(num_epochs=1, mini_batch_size=ENVS * STEPS, compile="false")
+    cfg = AlgorithmConfig(num_epochs=1, mini_batch_size=ENVS * STEPS, compile="false", **PLAIN_PPO)
     make_algorithm(cfg, pol, total_iterations=10, nan_guard=False).update(batch)
 
 
@@ -153,6 +155,8 @@ BASE = [
     "trainer.eval_every=0",
     "trainer.save_every=0",
     "algorithm.num_epochs=1",
+    "algorithm.normalize_rewards=false",  # raw rewards: scaled and clipped ones never overflow
+    "algorithm.clip_rewards=null",
 ]
 
 

@@ -9,6 +9,7 @@ from tensordict import TensorDict
 from torchrl.modules import ValueOperator
 
 import conftest
+from conftest import PLAIN_PPO
 from rlexp.algorithms.ppo import make_gae
 from rlexp.config.schema import AlgorithmConfig, PolicyConfig
 from rlexp.policies.actor_critic import ObservationNormalizer, make_policy
@@ -21,7 +22,7 @@ class _ObsIsValue(torch.nn.Module):
 
 def _gae(terminated, truncated):
     """gamma 0.9, lambda 0.8; V(s_t) = [0.5, 1.0, 1.5], V(s_t+1) = [1.0, 1.5, 2.0], r = [1, 2, 3]."""
-    cfg = AlgorithmConfig(gamma=0.9, lmbda=0.8)
+    cfg = AlgorithmConfig(gamma=0.9, lmbda=0.8, **PLAIN_PPO)
     gae = make_gae(cfg, ValueOperator(_ObsIsValue(), in_keys=["observation"]))
     term = torch.tensor(terminated).reshape(1, 3, 1)
     trunc = torch.tensor(truncated).reshape(1, 3, 1)
@@ -162,7 +163,7 @@ def test_ppo_minibatch_loss_and_gradients_match_a_reference_implementation():
 
     torch.manual_seed(0)
     n, obs_dim, act_dim = 64, 5, 2
-    cfg = AlgorithmConfig(clip_epsilon=0.2, entropy_coeff=0.01, critic_coeff=0.5)
+    cfg = AlgorithmConfig(clip_epsilon=0.2, entropy_coeff=0.01, critic_coeff=0.5, **PLAIN_PPO)
     pol = make_policy(PolicyConfig(), obs_dim, act_dim, Bounded(-1.0, 1.0, shape=(n, act_dim)))
     with torch.no_grad():
         pol.actor_net.log_std.copy_(torch.tensor([-0.3, 0.2]))
@@ -293,6 +294,7 @@ def test_ppo_update_matches_a_plain_torch_ppo(compile_loss):
         mini_batch_size=12,
         lr=1e-2,  # large steps: a wrong update rule could not hide in the tolerance
         compile=compile_loss,
+        **PLAIN_PPO,
     )
     pol = make_policy(PolicyConfig(), obs_dim, act_dim, Bounded(-1.0, 1.0, shape=(act_dim,)))
     pol.normalizer.update(torch.randn(100, obs_dim) * 2 + 1)
@@ -360,7 +362,7 @@ def test_advantages_equal_torchrl_gae_with_its_own_value_network(env_name):
     col.shutdown()
     pol.normalizer.update(batch["observation"])  # a non-trivial critic input
     assert batch["next", "done"].any(), "episodes must end inside the rollout"
-    mine = make_algorithm(AlgorithmConfig(), pol, 1).compute_advantages(batch.clone())
+    mine = make_algorithm(AlgorithmConfig(**PLAIN_PPO), pol, 1).compute_advantages(batch.clone())
     theirs = make_gae(AlgorithmConfig(), pol.critic)(batch.clone())
     for key in ("state_value", ("next", "state_value"), "advantage", "value_target"):
         torch.testing.assert_close(mine[key], theirs[key], rtol=1e-5, atol=1e-5, msg=str(key))

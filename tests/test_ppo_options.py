@@ -15,7 +15,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import Bounded
 
-from conftest import REPO, compose, run_train
+from conftest import PLAIN_PPO, REPO, compose, run_train
 from rlexp.algorithms.normalize import RewardNormalizer
 from rlexp.algorithms.ppo import PPO, adaptive_learning_rate, gaussian_kl
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint
@@ -174,7 +174,7 @@ def _rollout(pol, seed: int, envs: int = 2, steps: int = 24, loc_shift: float = 
 
 
 def _cfg(**kw) -> AlgorithmConfig:
-    base = {"num_epochs": 2, "mini_batch_size": 12, "lr": 1e-3, "compile": "false"}
+    base = {"num_epochs": 2, "mini_batch_size": 12, "lr": 1e-3, "compile": "false", **PLAIN_PPO}
     return AlgorithmConfig(**{**base, **kw})
 
 
@@ -182,15 +182,18 @@ def _params(pol) -> list[torch.Tensor]:
     return [p.detach().clone() for p in pol.parameters()]
 
 
-def test_options_are_off_by_default_and_the_update_is_unchanged():
+def test_defaults_are_the_references_settings_and_options_off_leave_the_update_unchanged():
+    # CleanRL's / SB3's MuJoCo settings: reward scaling, clipped at 10, LR annealing (docs/results.md)
+    defaults = (True, 10.0, True, None)
     cfg = AlgorithmConfig()
-    assert (cfg.normalize_rewards, cfg.clip_rewards, cfg.desired_kl) == (False, None, None)
+    assert (cfg.normalize_rewards, cfg.clip_rewards, cfg.anneal_lr, cfg.desired_kl) == defaults
     composed = compose([]).algorithm
-    assert (composed.normalize_rewards, composed.clip_rewards, composed.desired_kl) == (
-        False,
-        None,
-        None,
-    )
+    assert (
+        composed.normalize_rewards,
+        composed.clip_rewards,
+        composed.anneal_lr,
+        composed.desired_kl,
+    ) == defaults
     pol = _policy()
     algo = PPO(_cfg(), pol, 10)
     assert algo.reward_normalizer is None
@@ -398,6 +401,7 @@ def test_train_py_with_the_options_on_adapts_the_learning_rate_and_resumes_bit_e
         "algorithm.normalize_rewards=true",
         "algorithm.clip_rewards=10",
         "algorithm.desired_kl=0.01",
+        "algorithm.anneal_lr=false",  # the adaptive rate is the one LR controller
     ]
     whole, broken = tmp_path / "whole", tmp_path / "broken"
     run_train([*options, "trainer.total_frames=1024", f"hydra.run.dir={whole}"], cwd=tmp_path)

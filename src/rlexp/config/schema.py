@@ -124,11 +124,13 @@ class AlgorithmConfig(BaseAlgorithmConfig):
     loss_critic_type: str = "l2"  # l1 | l2 | smooth_l1
     normalize_advantage: bool = True  # normalise advantages per minibatch
     clip_value: float | None = None  # value clipping range (None: no value clipping)
-    # Options off by default (docs/ppo.md). Reward scaling, on the rollout before GAE (SB3
-    # VecNormalize's reward part, CleanRL's NormalizeReward): divide rewards by the running std of
-    # the discounted return (statistics checkpointed)
-    normalize_rewards: bool = False
-    clip_rewards: float | None = None  # clip the (normalised) rewards to +- this (None: off)
+    # The MuJoCo references' settings, on by default (docs/ppo.md, docs/results.md): linear LR
+    # annealing, and reward scaling on the rollout before GAE (SB3 VecNormalize's reward part,
+    # CleanRL's NormalizeReward): rewards divided by the running std of the discounted return
+    # (statistics checkpointed), then clipped
+    anneal_lr: bool = True
+    normalize_rewards: bool = True
+    clip_rewards: float | None = 10.0  # clip the (normalised) rewards to +- this (None: off)
     # rsl_rl's adaptive learning rate: per minibatch, lr / 1.5 when the KL to the behaviour policy
     # is above 2 x desired_kl, lr x 1.5 below desired_kl / 2, within [1e-5, 1e-2] (None: off)
     desired_kl: float | None = None

@@ -60,6 +60,9 @@ GRPO_KEYS = {
     "max_grad_norm": ("max_grad_norm", 0.5),
 }
 ALGORITHM_FORMAT_KEYS = {"ppo": PPO_KEYS, "grpo": GRPO_KEYS}
+#: What the format's PPO did and has no key for, set explicitly so that rlexp's own PPO defaults
+#: (reward scaling, LR annealing: docs/results.md) do not change what a JSON file means.
+PPO_FORMAT_FIXED = {"anneal_lr": False, "normalize_rewards": False, "clip_rewards": None}
 
 
 def _map_trainer(
@@ -203,6 +206,8 @@ def _map_algorithm(tf: _File, train: dict[str, Any], m: _Mapped) -> None:
         value = tf.get(c, key, "algorithm.cfg", kind, default, low, high, positive=positive)
         if target is not None:
             m.leaves[f"algorithm.{target}"] = value
+    if name == "ppo":
+        m.leaves.update({f"algorithm.{key}": value for key, value in PPO_FORMAT_FIXED.items()})
     group = m.leaves.get("algorithm.group_size")
     if group is not None and num_envs % group:
         raise tf.error(
