@@ -115,9 +115,9 @@ def test_the_metrics_are_each_jobs_final_values_and_best_eval(sweep):
         evals = [r["eval/episode_return"] for r in rows if "eval/episode_return" in r]
         train = [r for r in rows if "train/episode_return" in r][-1]
         got = metrics(groups[f"{job}/tensorboard"])
-        assert set(got) == METRICS
+        # InvertedPendulum defines no success: its column is declared and stays empty
+        assert set(got) == METRICS - {"eval/success_rate"} and "eval/success_rate" not in final
         assert got["eval/episode_return"] == pytest.approx(final["eval/episode_return"])
-        assert got["eval/success_rate"] == pytest.approx(final["eval/success_rate"])
         assert got["train/episode_return"] == pytest.approx(train["train/episode_return"])
         assert got["train/episode_length"] == pytest.approx(train["train/episode_length"])
         assert len(evals) == 2 and got["best/eval_episode_return"] == pytest.approx(max(evals))

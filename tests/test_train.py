@@ -176,20 +176,20 @@ def test_collection_and_eval_run_one_torch_thread_and_the_update_torch_threads(
 
 def test_best_pt_keeps_the_better_eval_when_a_later_one_is_worse(tmp_path, monkeypatch):
     """Three eval rounds scoring 1, 5, 2: best.pt is the step-512 state, not the last one."""
-    import rlexp.trainer as trainer_mod
+    import rlexp.evaluation as evaluation_mod  # the Trainer's in-process rounds run_episodes
     from conftest import compose
     from rlexp.app import train
     from rlexp.config.validate import to_root_config
 
     scores = iter([1.0, 5.0, 2.0])
-    real_run_episodes = trainer_mod.run_episodes
+    real_run_episodes = evaluation_mod.run_episodes
 
     def scripted(*args, **kwargs):
         metrics = real_run_episodes(*args, **kwargs)  # the real episodes, a scripted score
         metrics["eval/episode_return"] = next(scores)
         return metrics
 
-    monkeypatch.setattr(trainer_mod, "run_episodes", scripted)
+    monkeypatch.setattr(evaluation_mod, "run_episodes", scripted)
     config = to_root_config(
         compose(
             [

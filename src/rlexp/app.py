@@ -66,9 +66,12 @@ class RunEnded(Exception):
         self.exit_code = exit_code
 
 
-def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> dict[str, float]:
+def train(
+    config: RootConfig, run_dir: Path, sweep_group: str | None = None, jobs: int = 1
+) -> dict[str, float]:
     """Lock the run dir, build envs, policy, PPO, loggers and Trainer from ``config``, train, and
-    return the last eval. Nothing is written into the run dir before the config has built."""
+    return the last eval. Nothing is written into the run dir before the config has built.
+    ``jobs``: the sweep's jobs running side by side on this machine (``trainer.eval_async=auto``)."""
     import torch
 
     from rlexp import _speedups
@@ -84,7 +87,7 @@ def train(config: RootConfig, run_dir: Path, sweep_group: str | None = None) -> 
             if dist.is_main:
                 lock.acquire()  # before anything is read or written: one run per dir
             _agree(failed=False)
-            return _train_locked(config, run_dir, sweep_group, stops)
+            return _train_locked(config, run_dir, sweep_group, stops, jobs)
         except ConfigError:
             _agree(failed=True)
             raise
@@ -116,7 +119,7 @@ def _agree(failed: bool) -> None:
 
 
 def _train_locked(
-    config: RootConfig, run_dir: Path, sweep_group: str | None, stops: Any
+    config: RootConfig, run_dir: Path, sweep_group: str | None, stops: Any, jobs: int
 ) -> dict[str, float]:
     import torch
 
@@ -193,7 +196,7 @@ def _train_locked(
         logger = make_logger(config.logger, run_dir, t.exp_name, config_dict, group=sweep_group)
     else:
         logger = MetricLogger([])
-    trainer = objects.trainer(logger, config_dict, versions())
+    trainer = objects.trainer(logger, config_dict, versions(), _eval_async(config, total, jobs))
     if ckpt is not None:
         trainer.load_state_dict(ckpt)
     stops.attach(trainer)  # SIGINT / SIGTERM / SIGHUP: checkpoint at the end of the iteration
@@ -279,6 +282,21 @@ def _run(
     return trainer.last_eval
 
 
+def _eval_async(config: RootConfig, total: int, jobs: int) -> bool:
+    """``trainer.eval_async`` as a bool (``auto`` decided here, once, and logged with why)."""
+    from rlexp.config.rules import available_cpus
+    from rlexp.eval_worker import decide_eval_async
+    from rlexp.launch import distributed
+
+    dist = distributed.info()
+    if not dist.is_main:  # rank 0 alone evaluates
+        return False
+    on, why = decide_eval_async(config, total, available_cpus(), jobs, dist.world_size)
+    choice = str(config.trainer.eval_async).lower()
+    log.info("[eval] trainer.eval_async=%s -> %s: %s", choice, "on" if on else "off", why)
+    return on
+
+
 def _progress(trainer: Any, total: int) -> dict[str, Any]:
     """What the heartbeat records besides who and when (read from the heartbeat's thread)."""
     cfg = trainer.config_dict
@@ -361,7 +379,13 @@ def _task(cfg: DictConfig) -> float | None:
             check_buildable(config)
         if os.environ.get("RLEXP_DISTRIBUTED") == "1":
             _join_distributed()
-        metrics: dict[str, Any] = train(config, run_dir, sweep_group)
+        jobs = 1  # the joblib launcher runs n_jobs of a sweep's jobs at once on this machine
+        if multirun:
+            from rlexp.config.rules import available_cpus
+            from rlexp.eval_worker import launcher_jobs
+
+            jobs = launcher_jobs(hc.launcher.get("n_jobs"), available_cpus())
+        metrics: dict[str, Any] = train(config, run_dir, sweep_group, jobs)
     except ConfigError as exc:
         return _failed(run_dir, f"config error: {exc}", EXIT_CONFIG, multirun, exc)
     except RunEnded as exc:

@@ -49,11 +49,24 @@ class Built:
     events: Any
     eval_events: Any
 
-    def trainer(self, logger: Any, config_dict: dict, versions: dict) -> Any:
+    def trainer(
+        self, logger: Any, config_dict: dict, versions: dict, eval_async: bool = False
+    ) -> Any:
+        """The Trainer; ``eval_async`` (``trainer.eval_async`` resolved by the app): its eval rounds
+        run in a worker process beside training (rank 0, where an eval env exists)."""
+        from rlexp.eval_worker import EvalSetup, EvalWorker
         from rlexp.hooks import HookManager
         from rlexp.launch import distributed
         from rlexp.trainer import Trainer
 
+        c = self.config
+        worker = None
+        if eval_async and self.eval_env is not None:
+            device = str(next(self.policy.parameters()).device)
+            setup = EvalSetup(
+                c.env, c.policy, c.seed + EVAL_SEED_OFFSET, c.trainer.eval_episodes, device
+            )
+            worker = EvalWorker(setup)
         return Trainer(
             cfg=self.config.trainer,
             policy=self.policy,
@@ -70,6 +83,7 @@ class Built:
             eval_seed=self.config.seed + EVAL_SEED_OFFSET,
             console=self.config.logger.console,
             hooks=HookManager(self.config.hooks, self.algorithm.hyperparameters()),
+            eval_worker=worker,
         )
 
 

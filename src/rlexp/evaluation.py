@@ -6,12 +6,15 @@ plain tensors, the env's own ``step_action`` / ``autoreset_observation``. TorchR
 ``step_and_maybe_reset`` loop serves everything else (transformed envs, other policies) and callers
 that need each step's tensordict (``on_step``: the eval events of mode step / interval, e.g. the eval
 video). Episodes are spread over the env's copies; more copies share the per-step Python and network
-cost (docs/performance.md, "Evaluation").
+cost (docs/performance.md, "Evaluation"). ``eval/success_rate`` is reported for tasks that define
+success only (a native task with a success rule, or any env whose steps carry ``metrics/success``
+without a task spec saying otherwise); Gymnasium's MuJoCo tasks define none.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -37,6 +40,7 @@ class EpisodeTally:
         self.returns: list[float] = []
         self.lengths: list[int] = []
         self.successes: list[float] = []
+        self.tracks_success = False  # the env reported success (the task defines it)
 
     @property
     def finished(self) -> bool:
@@ -49,6 +53,7 @@ class EpisodeTally:
         self.ep_ret += reward
         self.ep_len += 1
         if success is not None:
+            self.tracks_success = True
             np.maximum(self.ep_success, success, out=self.ep_success)
         if not done.any():
             return
@@ -61,14 +66,91 @@ class EpisodeTally:
             self.ep_ret[i], self.ep_len[i], self.ep_success[i] = 0.0, 0, 0.0
 
     def metrics(self) -> dict[str, float]:
-        """Mean/std return, mean length, success rate and the number of episodes counted."""
-        return {
+        """Mean/std return, mean length, the success rate (tasks that define success only) and the
+        number of episodes counted."""
+        out = {
             "eval/episode_return": float(np.mean(self.returns)),
             "eval/episode_return_std": float(np.std(self.returns)),
             "eval/episode_length": float(np.mean(self.lengths)),
             "eval/success_rate": float(np.mean(self.successes)),
             "eval/episodes": float(len(self.returns)),
         }
+        if not self.tracks_success:
+            del out["eval/success_rate"]
+        return out
+
+
+def defines_success(env: EnvBase) -> bool:
+    """Whether the ``metrics/success`` an env reports means something: a native task without a
+    success rule reports zeros (its spec says ``success=None``)."""
+    while hasattr(env, "base_env"):  # under TorchRL transforms
+        env = env.base_env
+    spec = getattr(env, "task_spec", None)
+    return spec is None or getattr(spec, "success", None) is not None
+
+
+def _success_key(env: EnvBase, nxt: TensorDictBase) -> tuple[str, str] | None:
+    metrics = nxt.get("metrics", None)
+    if metrics is None or "success" not in metrics.keys() or not defines_success(env):
+        return None
+    return ("metrics", "success")
+
+
+def eval_line(step: int, metrics: dict[str, float], episodes: int) -> str:
+    """The console's summary of a round (success only where the task defines it)."""
+    success = metrics.get("eval/success_rate")
+    return (
+        f"[eval] step={step} return={metrics['eval/episode_return']:.2f} +- "
+        f"{metrics['eval/episode_return_std']:.2f} length={metrics['eval/episode_length']:.1f}"
+        + (f" success={success:.2f}" if success is not None else "")
+        + f" ({episodes} episodes)"
+    )
+
+
+def event_callbacks(
+    env: EnvBase, events: Any, ctx: Callable[..., Any]
+) -> tuple[Callable[[TensorDictBase], None] | None, Callable[[TensorDictBase], TensorDictBase]]:
+    """``run_episodes``' ``on_step`` and ``on_reset`` for an eval round with the eval events
+    (an ``EventManager``; ``ctx(**kw)``: its EventContext). ``on_step`` is None without step or
+    interval events: the round then takes the lean loop."""
+    n = int(env.batch_size.numel())
+
+    def on_reset(td: TensorDictBase) -> TensorDictBase:
+        events.fire("reset", ctx(env_ids=np.arange(n)))
+        base = env
+        while hasattr(base, "base_env"):
+            base = base.base_env
+        if events.has("reset") and hasattr(base, "current_tensordict"):
+            td.set(
+                "observation", base.current_tensordict().get("observation")
+            )  # events moved things
+        return td
+
+    def on_step(td: TensorDictBase) -> None:
+        events.fire("step", ctx(tensordict=td, phase="action"))
+        events.fire("interval", ctx(tensordict=td))
+
+    # Step / interval events (the eval video, noise) see each step's tensordict: TorchRL's loop.
+    return (on_step if events.has("step", "interval") else None), on_reset
+
+
+@torch.no_grad()
+def run_round(
+    env: EnvBase, policy: Any, episodes: int, seed: int, events: Any, ctx: Callable[..., Any]
+) -> dict[str, float]:
+    """An in-process eval round of ``policy`` (a ``GaussianPolicy``): the eval env reseeded, its
+    deterministic episodes with the eval events (``events``, an ``EventManager``; ``ctx(**kw)`` its
+    EventContext), which are finalised and told ``eval_end``; the metrics without the count."""
+    on_step, on_reset = event_callbacks(env, events, ctx)
+    # Fresh episodes from the same seed every round: rounds compare like with like, and a resumed
+    # run evaluates exactly as an uninterrupted one (no eval episode spans two rounds).
+    env.set_seed(seed)
+    sampling = policy.sampling_policy(deterministic=True)
+    metrics = run_episodes(env, sampling, episodes, on_step, on_reset)
+    metrics.pop("eval/episodes")
+    events.finalize(ctx())
+    events.fire("trigger", ctx(metrics=metrics), signal="eval_end")
+    return metrics
 
 
 @torch.no_grad()
@@ -116,9 +198,7 @@ def _lean_loop(env: EnvBase, policy, obs: torch.Tensor, tally: EpisodeTally) -> 
         nxt = env.step_action(action)
         if first:  # an env's step output always has the same keys
             first = False
-            metrics = nxt.get("metrics", None)
-            if metrics is not None and "success" in metrics.keys():
-                success_key = ("metrics", "success")
+            success_key = _success_key(env, nxt)
         success = None if success_key is None else nxt.get(success_key).numpy().reshape(n)
         tally.add(nxt.get("reward").numpy().reshape(n), nxt.get("done").numpy().reshape(n), success)
         obs = env.autoreset_observation(nxt)
@@ -139,9 +219,8 @@ def _torchrl_loop(
             on_step(td)
         out, td = env.step_and_maybe_reset(td)
         nxt = out["next"]
-        success = None
-        if "metrics" in nxt.keys() and "success" in nxt["metrics"].keys():
-            success = nxt["metrics", "success"].reshape(n).cpu().numpy()
+        key = _success_key(env, nxt)
+        success = None if key is None else nxt[key].reshape(n).cpu().numpy()
         tally.add(
             nxt["reward"].reshape(n).cpu().numpy(), nxt["done"].reshape(n).cpu().numpy(), success
         )

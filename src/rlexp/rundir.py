@@ -172,6 +172,7 @@ RESUME_MAY_CHANGE = (
     "algorithm.compile",  # how the loss runs, not what it computes
     "logger.console",  # the summary lines on the console
     "env.num_eval_envs",  # evaluation copies (the Gymnasium default went from 1 to 10)
+    "trainer.eval_async",  # where eval rounds run, not what they compute (and older dirs lack it)
     "env.vectorization",  # removed (it never did anything); older run dirs still hold it
 )
 

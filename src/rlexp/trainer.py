@@ -3,14 +3,14 @@ Read it top to bottom."""
 
 from __future__ import annotations
 
+import copy
+import functools
 import logging
 import time
-from collections import deque
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, TransformedEnv
@@ -25,19 +25,15 @@ from rlexp.checkpoint import (
 )
 from rlexp.collector import RolloutCollector
 from rlexp.config.schema import TrainerConfig
-from rlexp.evaluation import run_episodes
+from rlexp.episodes import EpisodeStats
+from rlexp.eval_worker import EvalRound, EvalWorker, record
+from rlexp.evaluation import eval_line, run_round
 from rlexp.events import EventContext, EventManager
 from rlexp.events.transform import EventTransform
 from rlexp.hooks import HookManager, HookState
 from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
 from rlexp.logging import MetricLogger
-from rlexp.loop import (
-    base_env,
-    check_rollout_finite,
-    crossed,
-    one_torch_thread,
-    parameter_digest,
-)
+from rlexp.loop import base_env, check_rollout_finite, crossed, one_torch_thread, parameter_digest
 from rlexp.policies.actor_critic import GaussianPolicy
 from rlexp.progress import Progress
 
@@ -69,6 +65,7 @@ class Trainer:
         eval_seed: int = 0,
         console: bool = True,
         hooks: HookManager | None = None,
+        eval_worker: EvalWorker | None = None,
     ) -> None:
         self.cfg = cfg
         self.console = console  # logger.console: the [train] / [eval] summary lines
@@ -86,16 +83,11 @@ class Trainer:
         self.dist = dist or DistInfo()  # rank / world size; rank 0 alone logs, evaluates and saves
         self.eval_seed = eval_seed  # every eval round starts fresh episodes from this seed
         self.global_step = 0
-        self.ret_window: deque[float] = deque(maxlen=100)
-        self.len_window: deque[int] = deque(maxlen=100)
         self.last_eval: dict[str, float] = {}
         self.best_metric = -float("inf")
         self.last_checkpoint: Path | None = None
         self.resumed_from: str | None = None
-        self._num_envs = int(env.batch_size.numel()) if len(env.batch_size) else 1
-        self._ep_ret = np.zeros(self._num_envs)
-        self._ep_len = np.zeros(self._num_envs, dtype=np.int64)
-        self._term_means: dict[str, float] = {}
+        self.episodes = EpisodeStats(int(env.batch_size.numel()) if len(env.batch_size) else 1)
         self._timing = {"collect": 0.0, "update": 0.0, "eval": 0.0}
         self.collector: RolloutCollector | None = None  # built when training starts, after a resume
         self._event_transform: EventTransform | None = None
@@ -113,6 +105,13 @@ class Trainer:
             self.env = TransformedEnv(env, self._event_transform)
         self.progress: Progress | None = None
         self.safe_point = True  # False from the start of a rollout until its update is applied
+        self.eval_worker = eval_worker  # eval_async: rounds run there beside training (None: here)
+        self._resume_round: EvalRound | None = None  # in flight when the resumed run stopped
+        # A step checkpoint holds its step's eval: written when the result is in (_eval_done), or
+        # after waiting for it where hooks or events act on eval results or checkpoints.
+        self._defer_saves = not event_manager.has("trigger") and not any(
+            {"eval_end", "checkpoint"} & set(points) for _, points, _ in self.hooks.hooks
+        )
 
     # -- the loop ----------------------------------------------------------------------------------
     def train(self, total_timesteps: int) -> None:
@@ -124,14 +123,18 @@ class Trainer:
         if self._resume_rng is not None:  # after the collector's construction (it draws)
             set_rng_state(self._resume_rng)
             self._resume_rng = None
+        if self.eval_worker is not None:
+            self.eval_worker.start()  # it imports and builds its env while the first rollouts run
         self.progress = Progress(total_timesteps, enabled=self.cfg.progress, start=self.global_step)
         status = "failed"
         try:
             self._hook("train_start")
             self._apply_hook_decisions()
+            self._resume_eval_round()
             with self.progress:
                 while self.global_step < total_timesteps and self.stopped_early is None:
                     self._iteration()
+            self._collect_eval()  # the last round's result, before the final checkpoint
             if self.dist.enabled:
                 self.check_ranks_in_sync()
             self.save_checkpoint()
@@ -153,12 +156,13 @@ class Trainer:
         self.safe_point = True  # the update is complete: a checkpoint now is consistent
         self._last_losses = dict(losses)
         self._hook("update_end")
+        self._collect_eval()  # last iteration's round, logged before this iteration's metrics
         self.log_train(losses)
         self.event_manager.fire("interval", self._ctx(batch=batch))
         if crossed(before, self.global_step, self.cfg.eval_every):
-            self.eval_once()
+            self.evaluate()
         if crossed(before, self.global_step, self.cfg.save_every):
-            self.save_checkpoint()
+            self._save_step_checkpoint()
         self._apply_hook_decisions()  # a hook's stop: the loop ends, the run saves and finishes
         if self.dist.enabled:  # a signal may reach one rank only: all stop together
             self._agree_on_stop()
@@ -188,8 +192,7 @@ class Trainer:
         with one_torch_thread():
             if self.algorithm.reset_each_rollout:  # GRPO: every env starts a new episode
                 self.collector.reset()
-                self._ep_ret[:] = 0.0  # the episodes in flight are dropped, not counted
-                self._ep_len[:] = 0
+                self.episodes.drop_running()
             batch = next(self._rollouts)
         self._timing["collect"] = time.perf_counter() - t0
         self.global_step += batch.numel() * self.dist.world_size  # every rank collected as much
@@ -198,7 +201,7 @@ class Trainer:
         if self.cfg.nan_guard:  # every rank checks, and all raise together
             device = next(self.policy.parameters()).device  # where the backend reduces
             check_rollout_finite(batch, self.dist, device, self.global_step)
-        self._track_episodes(batch)
+        self.episodes.track(batch, all_gather_object if self.dist.enabled else None)
         return batch
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
@@ -227,10 +230,7 @@ class Trainer:
         metrics["perf/update_time"] = self._timing["update"]
         metrics["perf/eval_time"] = self._timing["eval"]
         self._timing["eval"] = 0.0
-        if self.ret_window:
-            metrics["train/episode_return"] = float(np.mean(self.ret_window))
-            metrics["train/episode_length"] = float(np.mean(self.len_window))
-        metrics.update(self._term_means)
+        metrics.update(self.episodes.means())
         metrics.update({f"hparams/{k}": v for k, v in self._hparams_set.items()})
         self._hparams_set = {}
         if self.progress is not None:
@@ -244,67 +244,100 @@ class Trainer:
             if self.console:
                 log.info("[train] step=%d sps=%.0f return(100)=%.2f", self.global_step, sps, ret)
 
-    @torch.no_grad()
+    # -- evaluation ----------------------------------------------------------------------------------
+    def evaluate(self) -> None:
+        """An eval round of the policy as it is now: run here, or (``eval_async``) handed to the eval
+        worker with a snapshot of the whole state; ``_collect_eval`` takes its result in."""
+        if self.eval_worker is None:
+            self.eval_once()
+            return
+        self._collect_eval()  # at most one round in flight
+        t_start = time.perf_counter()
+        self.eval_worker.submit(EvalRound(self.global_step, self.state_dict()))
+        self._timing["eval"] += time.perf_counter() - t_start  # the round's cost on this process
+
     def eval_once(self) -> dict[str, float]:
-        """Deterministic evaluation over ``eval_episodes`` episodes spread over the eval envs."""
+        """Evaluate the current policy here and now: the sync rounds, a run's final round."""
         if self.eval_env is None or self.cfg.eval_episodes <= 0 or not self.dist.is_main:
             return {}
+        metrics = self._run_round(self.policy)
+        self._eval_done(self.global_step, metrics)
+        return metrics
+
+    def _run_round(self, policy: GaussianPolicy) -> dict[str, float]:
         t_start = time.perf_counter()
-        env = self.eval_env
-        n = int(env.batch_size.numel())
-        events = self.eval_event_manager
-
-        def on_reset(td: TensorDictBase) -> TensorDictBase:
-            events.fire("reset", self._ctx(env, env_ids=np.arange(n)))
-            base = base_env(env)  # reset events may have moved objects: observe again
-            if events.has("reset") and hasattr(base, "current_tensordict"):
-                td.set("observation", base.current_tensordict().get("observation"))
-            return td
-
-        def on_step(td: TensorDictBase) -> None:
-            events.fire("step", self._ctx(env, tensordict=td, phase="action"))
-            events.fire("interval", self._ctx(env, tensordict=td))
-
-        # Step / interval events (the eval video, noise) see each step's tensordict: TorchRL's loop.
-        # Without them run_episodes takes the collector's lean loop (the same numbers, faster).
-        per_step = on_step if events.has("step", "interval") else None
-        policy = self.policy.sampling_policy(deterministic=True)
-        # Fresh episodes from the same seed every round: rounds compare like with like, and a resumed
-        # run evaluates exactly as an uninterrupted one (no eval episode spans two rounds).
-        env.set_seed(self.eval_seed)
+        ctx = functools.partial(self._ctx, self.eval_env)
         with one_torch_thread():
-            metrics = run_episodes(env, policy, self.cfg.eval_episodes, per_step, on_reset)
-        episodes = int(metrics.pop("eval/episodes"))
-        self.last_eval = metrics
-        events.finalize(self._ctx(env))
+            metrics = run_round(self.eval_env, policy, self.cfg.eval_episodes, self.eval_seed,
+                                self.eval_event_manager, ctx)  # fmt: skip
         self._timing["eval"] += time.perf_counter() - t_start
-        self.logger.log(metrics, self.global_step)
+        return metrics
+
+    def _collect_eval(self) -> None:
+        """Take the result of the round in flight in (waiting for it) as its snapshot step's round."""
+        if getattr(self.eval_worker, "in_flight", None) is None:
+            return
+        t_start = time.perf_counter()
+        done, metrics = self.eval_worker.result()
+        self._timing["eval"] += time.perf_counter() - t_start  # waiting is on the critical path
+        self._eval_done(done.step, metrics, done)
+
+    def _eval_done(
+        self, step: int, metrics: dict[str, float], done: EvalRound | None = None
+    ) -> None:
+        """What follows a round of the policy at ``step``: the metrics logged at that step, the
+        console line, eval_end events and hooks, best.pt, and the step's checkpoint if it waited
+        (``done``: a snapshot's round, whose state these files hold; None: the state now)."""
+        self.last_eval = metrics
+        self.logger.log(metrics, step)
         if self.console:
-            log.info(
-                "[eval] step=%d return=%.2f +- %.2f length=%.1f success=%.2f (%d episodes)",
-                self.global_step,
-                metrics["eval/episode_return"],
-                metrics["eval/episode_return_std"],
-                metrics["eval/episode_length"],
-                metrics["eval/success_rate"],
-                episodes,
-            )
-        events.fire("trigger", self._ctx(env, metrics=metrics), signal="eval_end")
-        self.event_manager.fire("trigger", self._ctx(metrics=metrics), signal="eval_end")
-        self._hook("eval_end")
-        self.logger.log(self.hooks.take_logged(), self.global_step)
+            log.info("%s", eval_line(step, metrics, self.cfg.eval_episodes))
+        self.event_manager.fire("trigger", self._ctx(metrics=metrics, step=step), signal="eval_end")
+        self._hook("eval_end", global_step=step)
+        self.logger.log(self.hooks.take_logged(), step)
         value = metrics.get(self.cfg.best_metric)
         if value is not None and value > self.best_metric:
             self.best_metric = value
-            self._save_best()
-        return metrics
+            self._save_best(self.state_dict() if done is None else done.state | self._eval_state())
+        if done is not None and done.save:
+            path = checkpoint_path(self.ckpt_dir, self.cfg.exp_name, done.step)
+            self._write_checkpoint(path, done.state | self._eval_state())
 
+    def _resume_eval_round(self) -> None:
+        """A round that was in flight when the resumed run stopped is evaluated first (by the
+        worker, or here on a copy of the policy with the snapshot's weights)."""
+        done, self._resume_round = self._resume_round, None
+        if done is not None and self.eval_worker is not None:
+            self.eval_worker.submit(done)
+        elif done is not None and self.eval_env is not None and self.dist.is_main:
+            policy = copy.deepcopy(self.policy)
+            policy.load_state_dict(done.state["policy"])
+            self._eval_done(done.step, self._run_round(policy), done)
+
+    def _eval_state(self) -> dict[str, Any]:
+        return {"last_eval": dict(self.last_eval), "best_metric": self.best_metric}
+
+    # -- checkpoints ---------------------------------------------------------------------------------
     def save_checkpoint(self) -> Path:
-        """Write everything needed to evaluate or continue this run to ``checkpoints/``."""
+        """Write everything needed to evaluate or continue this run to ``checkpoints/`` (a round in
+        flight is recorded, and a resume evaluates it first)."""
         path = checkpoint_path(self.ckpt_dir, self.cfg.exp_name, self.global_step)
         if self.last_checkpoint == path or not self.dist.is_main:
             return path
-        save_checkpoint(path, self.state_dict())
+        return self._write_checkpoint(path, self.state_dict())
+
+    def _save_step_checkpoint(self) -> None:
+        """A due checkpoint holds the eval of its step, as in sync mode: with that round in flight it
+        is written when the result comes in (or now, after waiting, see ``_defer_saves``)."""
+        in_flight = getattr(self.eval_worker, "in_flight", None)
+        if in_flight is not None and in_flight.step == self.global_step and self._defer_saves:
+            in_flight.save = True
+            return
+        self._collect_eval()
+        self.save_checkpoint()
+
+    def _write_checkpoint(self, path: Path, state: dict[str, Any]) -> Path:
+        save_checkpoint(path, state)
         self.last_checkpoint = path
         prune_checkpoints(self.ckpt_dir, self.cfg.keep_last, newest=path)
         log.info("[ckpt] saved %s", path)
@@ -327,12 +360,7 @@ class Trainer:
             "global_step": self.global_step,
             "policy": self.policy.state_dict(),
             "algorithm": self.algorithm.state_dict(),
-            "windows": {
-                "returns": list(self.ret_window),
-                "lengths": list(self.len_window),
-                "running_return": self._ep_ret.copy(),
-                "running_length": self._ep_len.copy(),
-            },
+            "windows": self.episodes.state_dict(),
             "events": {
                 "train": self.event_manager.state_dict(),
                 "eval": self.eval_event_manager.state_dict(),
@@ -343,6 +371,9 @@ class Trainer:
             "best_metric": self.best_metric,
             "hooks": self.hooks.state_dict(),
             "pending_observation": self._pending_observation(),
+            "eval_in_flight": record(
+                getattr(self.eval_worker, "in_flight", None) or self._resume_round
+            ),  # resume: first
             "config": self.config_dict,
             "versions": self.versions,
         }
@@ -352,12 +383,7 @@ class Trainer:
         self.global_step = int(sd["global_step"])
         self.policy.load_state_dict(sd["policy"])
         self.algorithm.load_state_dict(sd["algorithm"])
-        w = sd["windows"]
-        self.ret_window.extend(w["returns"])
-        self.len_window.extend(w["lengths"])
-        if len(w.get("running_return", ())) == self._num_envs:
-            self._ep_ret[:] = np.asarray(w["running_return"])
-            self._ep_len[:] = np.asarray(w["running_length"])
+        self.episodes.load_state_dict(sd["windows"])
         base = base_env(self.env)
         # The checkpoint holds rank 0's envs; other ranks continue with fresh episodes.
         if self.dist.is_main and "train" in sd.get("envs", {}) and hasattr(base, "load_env_state"):
@@ -367,6 +393,8 @@ class Trainer:
         self.last_eval = dict(sd.get("last_eval", {}))
         self.best_metric = float(sd.get("best_metric", -float("inf")))
         self.hooks.load_state_dict(sd.get("hooks", {}))
+        if sd.get("eval_in_flight") is not None:
+            self._resume_round = EvalRound.from_record(sd["eval_in_flight"])
         self._resume_rng = sd["rng"]
         if self.dist.is_main:  # with the env state it belongs to (rank 0's)
             self._resume_obs = sd.get("pending_observation")
@@ -377,7 +405,9 @@ class Trainer:
         log.info("[resume] continuing from %s at step %d", self.resumed_from, self.global_step)
 
     def close(self) -> None:
-        """Shut the collector, envs and loggers down."""
+        """Shut the eval worker, collector, envs and loggers down."""
+        if self.eval_worker is not None:
+            self.eval_worker.close()
         if self.collector is not None:
             self.collector.shutdown()
         for env in (self.env, self.eval_env):
@@ -415,7 +445,7 @@ class Trainer:
             return
         state = HookState(
             point=point,
-            global_step=self.global_step,
+            global_step=kw.pop("global_step", self.global_step),  # eval_end: the evaluated step
             iteration=self.algorithm.iteration,
             total_steps=self.total_steps,
             run_dir=self.run_dir,
@@ -454,43 +484,15 @@ class Trainer:
                 raise
             log.error("[hooks] train_end failed: %s", exc)
 
-    def _save_best(self) -> None:
-        path = save_checkpoint(self.ckpt_dir / "best.pt", self.state_dict())
+    def _save_best(self, state: dict[str, Any]) -> None:
+        path = save_checkpoint(self.ckpt_dir / "best.pt", state)
         log.info("[ckpt] new best %s=%.3f -> %s", self.cfg.best_metric, self.best_metric, path)
         self.event_manager.fire("trigger", self._ctx(), signal="new_best")
 
-    def _ctx(self, env: EnvBase | None = None, **kw: Any) -> EventContext:
+    def _ctx(self, env: EnvBase | None = None, step: int | None = None, **kw: Any) -> EventContext:
         return EventContext(
             env=env if env is not None else self.env,
-            global_step=self.global_step,
+            global_step=self.global_step if step is None else step,
             run_dir=self.run_dir,
             **kw,
         )
-
-    def _track_episodes(self, batch: TensorDictBase) -> None:
-        """Update the return/length windows and per-term means from a [num_envs, T] rollout."""
-        nxt = batch["next"]
-        rewards = nxt["reward"].reshape(self._num_envs, -1).cpu().numpy()
-        dones = nxt["done"].reshape(self._num_envs, -1).cpu().numpy()
-        returns: list[float] = []
-        lengths: list[int] = []
-        for t in range(rewards.shape[1]):
-            self._ep_ret += rewards[:, t]
-            self._ep_len += 1
-            finished = dones[:, t]
-            if finished.any():
-                returns += self._ep_ret[finished].tolist()
-                lengths += self._ep_len[finished].tolist()
-                self._ep_ret[finished] = 0.0
-                self._ep_len[finished] = 0
-        if self.dist.enabled:  # every rank's finished episodes, in rank order
-            gathered = all_gather_object((returns, lengths))
-            returns = [r for rets, _ in gathered for r in rets]
-            lengths = [n for _, lens in gathered for n in lens]
-        self.ret_window.extend(returns)
-        self.len_window.extend(lengths)
-        self._term_means = {}
-        for group in ("rewards", "metrics"):
-            if group in nxt.keys():
-                for key, value in nxt[group].items():
-                    self._term_means[f"{group}/{key}"] = float(value.float().mean())

@@ -130,6 +130,9 @@ FIELD_RULES: dict[str, Rule] = {
     "trainer.strict_device": FLAG,
     "trainer.eval_every": at_least(0, " (0: no evaluation)"),
     "trainer.eval_episodes": at_least(0, " (0: no evaluation)"),
+    "trainer.eval_async": Rule(
+        lambda v: str(v).strip().lower() in ("auto", "true", "false"), "auto, true or false"
+    ),
     "trainer.save_every": at_least(0, " (0: checkpoints only at the end and on a stop)"),
     "trainer.keep_last": Rule(lambda v: isinstance(v, int), "an integer (<= 0: keep all)"),
     "trainer.resume": Rule(

@@ -34,6 +34,10 @@ class TrainerConfig:
     )
     eval_every: int = 50_000  # evaluate when global_step crosses a multiple of this (0: never)
     eval_episodes: int = 10  # episodes per evaluation, spread over env.num_eval_envs
+    # evaluate in a worker process while training goes on: auto | true | false. auto: on with a
+    # spare core and nothing acting on eval results (docs/performance.md, "Evaluation off the
+    # critical path"); the same metrics and best.pt as in-process evaluation
+    eval_async: str = "auto"
     save_every: int = (
         100_000  # checkpoint when global_step crosses a multiple of this (0: only at the end)
     )

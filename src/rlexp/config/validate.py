@@ -214,6 +214,17 @@ def validate(config: RootConfig) -> None:
             "algorithm.compile=true: GRPO's loss runs eager (torch.compile is PPO's); use "
             "algorithm.compile=auto or false"
         )
+    if str(t.eval_async).strip().lower() == "true" and config.events.eval:
+        raise ConfigError(
+            f"trainer.eval_async=true: events.eval ({', '.join(config.events.eval)}) run in the "
+            "training process's eval env, not in the eval worker; use trainer.eval_async=auto "
+            "(evaluates in-process for such configs) or false"
+        )
+    if t.best_metric == "eval/success_rate" and e.backend != "native":
+        raise ConfigError(
+            f"trainer.best_metric=eval/success_rate: {e.name} ({e.backend}) defines no success, "
+            "so no eval round reports it; use trainer.best_metric=eval/episode_return"
+        )
     desired_kl = getattr(a, "desired_kl", None)
     if desired_kl is not None and a.anneal_lr:
         raise ConfigError(
