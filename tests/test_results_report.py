@@ -1,7 +1,8 @@
 """``rlexp report`` on a sweep over envs (the reference-results suite, ``+sweep=mujoco_1m``): per
 env both result metrics (the last 100 training episodes, the final deterministic eval) as IQM with
 its bootstrap interval, the published anchors where the task has one, wall time and env steps/s,
-eval success only for tasks that define it, ``results.csv`` and the per-env figure. Job dirs are
+the time to the CleanRL mean (env steps and wall-clock, k/n seeds), eval success only for tasks
+that define it, ``results.csv`` and the per-env figure. Job dirs are
 written as rlexp writes them (overrides, config.yaml, provenance.json, status.json, metrics.jsonl);
 the report's other parts: tests/test_report.py."""
 
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +18,16 @@ import pytest
 from omegaconf import OmegaConf
 from test_report import multirun_yaml, rlexp_report
 
-from rlexp.report import anchors_for, bootstrap_ci, find_jobs, iqm, report
+from rlexp.report import (
+    RESULT_METRICS,
+    add_histories,
+    anchors_for,
+    bootstrap_ci,
+    env_results,
+    find_jobs,
+    iqm,
+    report,
+)
 
 #: Env option (the override) -> (env.name, env.backend), as conf/env/*.yaml.
 ENVS = {
@@ -27,6 +38,11 @@ ENVS = {
     "cart_pole": ("cart_pole", "native"),
 }
 BATCH, BUDGET, EVAL_EVERY = 1000, 10_000, 5000
+#: The first attempt's start (provenance.json's start_time of every job, unless ``start_s``).
+START = datetime(2026, 11, 23, 10, tzinfo=timezone.utc).timestamp()
+#: Seconds from the start to the end of the first iteration, before the batches' own time; an
+#: eval row is written EVAL_S after its step's training row. Both exact in binary.
+STARTUP_S, EVAL_S = 12.5, 2.25
 
 
 def write_job(
@@ -38,10 +54,17 @@ def write_job(
     success: float = 0.0,
     wall_s: int = 600,
     state: str = "finished",
+    batch_s: float = 30.0,
+    start_s: int = 0,
+    times: bool = True,
 ) -> Path:
     """A job dir as rlexp leaves it: training returns rising to ``train`` at the last iteration
     (every BATCH steps), evals every EVAL_EVERY steps ending at ``evaluation`` (and ``success``),
-    started at 10:00:00 and ended ``wall_s`` later."""
+    started at 10:00:00 and ended ``wall_s`` later. Each row's ``time``: the training row of
+    iteration i at START + STARTUP_S + i x ``batch_s``, its step's eval row (a row of its own, as
+    the trainer writes it) EVAL_S later; none with ``times`` False (an older rlexp).
+    ``start_s``: provenance.json's start that many seconds after 10:00:00 (a resumed job's last
+    attempt: the rows before it are an earlier attempt's)."""
     d = sweep / str(num)
     (d / ".hydra").mkdir(parents=True)
     (d / ".hydra/overrides.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(overrides)))
@@ -53,20 +76,24 @@ def write_job(
         "env": {"name": name, "backend": backend},
     }
     (d / "config.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(cfg)))
-    (d / "provenance.json").write_text(json.dumps({"start_time": "2026-11-23T10:00:00+0000"}))
+    start = f"2026-11-23T10:{start_s // 60:02d}:{start_s % 60:02d}+0000"
+    (d / "provenance.json").write_text(json.dumps({"start_time": start}))
     end = f"2026-11-23T10:{wall_s // 60:02d}:{wall_s % 60:02d}+0000"
     status = {"state": state, "global_step": BUDGET, "final_eval": {}, "time": end}
     (d / "status.json").write_text(json.dumps(status))
     rows = []
     for step in range(BATCH, BUDGET + 1, BATCH):
+        t = START + STARTUP_S + step // BATCH * batch_s
         row = {"step": step, "train/episode_return": train * step / BUDGET, "perf/sps": 1000.0}
+        rows.append(({"time": t} if times else {}) | row)
         if step % EVAL_EVERY == 0:
-            row |= {
+            row = {
+                "step": step,
                 "eval/episode_return": evaluation * step / BUDGET,
                 "eval/success_rate": success * step / BUDGET,
             }
-        rows.append(json.dumps(row) + "\n")
-    (d / "metrics.jsonl").write_text("".join(rows))
+            rows.append(({"time": t + EVAL_S} if times else {}) | row)
+    (d / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     return d
 
 
@@ -79,6 +106,12 @@ TRAIN = {
 EVAL = {env: [v + 100.0 for v in values] for env, values in TRAIN.items()}
 #: Wall seconds per seed: median 600 (10 min) for every env.
 WALL = [500, 550, 600, 650, 700]
+#: Seconds per iteration (BATCH steps) per seed.
+BATCH_S = [20.0, 25.0, 30.0, 35.0, 40.0]
+#: Hopper's seeds 2, 3, 4 reach CleanRL's 2382.86 (rising linearly to 3000, 4000, 5000) at steps
+#: 8000, 6000, 5000 (an eval step: the training row's time, not its eval row's); 0 and 1 never.
+HOPPER_REACHED = [8000, 6000, 5000]
+HOPPER_REACHED_S = [STARTUP_S + 8 * 30.0, STARTUP_S + 6 * 35.0, STARTUP_S + 5 * 40.0]
 
 
 @pytest.fixture
@@ -91,7 +124,10 @@ def env_sweep(tmp_path) -> Path:
             state = "failed" if (env, seed) == ("ant", 4) else "finished"
             overrides = [f"env={env}", f"seed={seed}"]
             train, evaluation = TRAIN[env][seed], EVAL[env][seed]
-            write_job(tmp_path, num, overrides, train, evaluation, wall_s=WALL[seed], state=state)
+            write_job(
+                tmp_path, num, overrides, train, evaluation, wall_s=WALL[seed], state=state,
+                batch_s=BATCH_S[seed],
+            )  # fmt: skip
             num += 1
     return tmp_path
 
@@ -100,6 +136,21 @@ def row_of(md: str, env: str) -> list[str]:
     """The cells of the results table's row of ``env``."""
     line = next(ln for ln in md.splitlines() if ln.startswith(f"| `{env}` |"))
     return [c.strip() for c in line.strip("|").split("|")]
+
+
+def cells_of(md: str, env: str) -> dict[str, str]:
+    """The cells of the results table's row of ``env``, by column header."""
+    header = next(ln for ln in md.splitlines() if ln.startswith("| env |"))
+    return dict(
+        zip([c.strip() for c in header.strip("|").split("|")], row_of(md, env), strict=True)
+    )
+
+
+def results_of(sweep: Path):
+    """``env_results`` of the sweep's jobs, as ``rlexp report`` reads them."""
+    jobs = find_jobs(sweep)
+    add_histories(jobs, RESULT_METRICS)
+    return env_results(jobs)
 
 
 def iqm_cell(values: list[float]) -> str:
@@ -134,6 +185,8 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
         "rl-zoo PPO (2)",
         "wall per job (median)",
         "env steps/s (median)",
+        "steps to CleanRL mean (median, seeds)",
+        "wall to CleanRL mean (median)",
     ]
 
     hopper = row_of(md, "Hopper-v5")
@@ -145,6 +198,9 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
     assert hopper[6] == "3100 ± 1581"
     assert hopper[7] == "2410 ± 10 (Hopper-v3)"  # rl-zoo: deterministic evaluation
     assert hopper[8] == "10m00s" and hopper[9] == f"{BUDGET / 600:.0f}"
+    # Time to CleanRL's mean: 3 of 5 seeds, the median of 8000, 6000, 5000 steps and of 252.5,
+    # 222.5, 212.5 s since the job's start (3m42s).
+    assert hopper[10:] == ["6k (3/5)", "3m42s"]
 
     ant = row_of(md, "Ant-v5")  # seed 4 failed: 4 of its 5 jobs are its seeds
     assert ant[1] == "4 of 5"
@@ -152,9 +208,11 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
     assert ant[4] == ""  # CleanRL has no Ant number at 1M steps
     assert ant[7] == "1327 ± 452 (Ant-v3)"
     assert ant[8] == "9m35s"  # the median of 500, 550, 600, 650 s
+    assert ant[10:] == ["—", "—"]  # no CleanRL number: no time to it (rl-zoo's is an eval return)
 
     swimmer = row_of(md, "Swimmer-v5")  # no anchor for it anywhere: empty cells
-    assert swimmer[4] == "" and swimmer[7] == ""
+    assert swimmer[4] == "" and swimmer[7] == "" and swimmer[10:] == ["—", "—"]
+    assert "**To CleanRL mean**: per seed, the first logged `train/episode_return` >= " in md
     assert swimmer[2] == iqm_cell(TRAIN["swimmer"])
 
     # What each anchor is and where it comes from, under the table.
@@ -177,6 +235,11 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
     assert (h["rl_zoo_ppo_env"], float(h["rl_zoo_ppo_std"])) == ("Hopper-v3", 10.026)
     assert h["success_iqm"] == ""  # the task defines no success
     assert table["Ant-v5"]["cleanrl_ppo_mean"] == "" and table["Ant-v5"]["n_seeds"] == "4"
+    assert (h["cleanrl_ppo_reached"], h["cleanrl_ppo_wall_n"]) == ("3", "3")
+    assert float(h["cleanrl_ppo_steps_median"]) == 6000
+    assert float(h["cleanrl_ppo_wall_median_s"]) == 222.5
+    time_to = ("reached", "steps_median", "wall_median_s", "wall_n")
+    assert [table["Ant-v5"][f"cleanrl_ppo_{k}"] for k in time_to] == ["", "", "", ""]
     assert not (env_sweep / "results.png").exists()  # plot=False
 
 
@@ -211,10 +274,11 @@ def test_eval_success_is_shown_only_for_tasks_that_define_it(tmp_path):
             num += 1
     md = report(tmp_path, plot=False)
     assert "eval success: IQM [95% CI]" in md
-    assert row_of(md, "Hopper-v5")[-3] == "—"  # Gymnasium: no success, not a success rate of 0
+    success = "eval success: IQM [95% CI]"
+    assert cells_of(md, "Hopper-v5")[success] == "—"  # Gymnasium: no success, not a rate of 0
     x = np.array([0.5, 0.75, 1.0])
     low, high = bootstrap_ci(x, iqm)
-    assert row_of(md, "cart_pole")[-3] == f"{float(iqm(x)):.2f} [{low:.2f}, {high:.2f}]"
+    assert cells_of(md, "cart_pole")[success] == f"{float(iqm(x)):.2f} [{low:.2f}, {high:.2f}]"
     assert "Gymnasium's tasks have none" in md
     with open(tmp_path / "results.csv") as f:
         table = {r["env"]: r for r in csv.DictReader(f)}
@@ -314,3 +378,54 @@ def test_rlexp_report_results_flags_on_one_env(tmp_path):
     drawn = rlexp_report(str(sweep), "--no-plot", "--results-plot", str(target))
     assert drawn.returncode == 0, drawn.stderr
     assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_time_to_cleanrl_per_seed_from_the_jobs_start(env_sweep):
+    """Per seed the first training row >= the anchor's mean: its step and its own ``time`` less
+    the job's start (start-up included), not the time of a later row at that step (the eval's)."""
+    hopper, ant, swimmer = results_of(env_sweep)
+    t = hopper.to_cleanrl
+    assert (t.target, t.n, t.k) == (2382.86, 5, 3)
+    assert t.steps == HOPPER_REACHED and t.seconds == HOPPER_REACHED_S
+    assert (t.median_steps, t.median_s) == (6000, 222.5)
+    assert ant.to_cleanrl is None and swimmer.to_cleanrl is None
+
+
+def test_time_to_cleanrl_not_reached_and_envs_without_an_anchor(tmp_path):
+    multirun_yaml(tmp_path, ["env=hopper,swimmer", "seed=0,1,2"])
+    num = 0
+    for env, finals in (("hopper", [1000.0, 2000.0, 2382.0]), ("swimmer", [50.0, 60.0, 70.0])):
+        for seed, train in enumerate(finals):
+            write_job(tmp_path, num, [f"env={env}", f"seed={seed}"], train, 100.0)
+            num += 1
+    md = report(tmp_path, plot=False)
+    steps, wall = "steps to CleanRL mean (median, seeds)", "wall to CleanRL mean (median)"
+    hopper, swimmer = cells_of(md, "Hopper-v5"), cells_of(md, "Swimmer-v5")
+    assert (hopper[steps], hopper[wall]) == ("not reached (0/3)", "—")  # 2382 < 2382.86
+    assert (swimmer[steps], swimmer[wall]) == ("—", "—")
+    with open(tmp_path / "results.csv") as f:
+        table = {r["env"]: r for r in csv.DictReader(f)}
+    time_to = ("reached", "steps_median", "wall_median_s", "wall_n")
+    assert [table["Hopper-v5"][f"cleanrl_ppo_{k}"] for k in time_to] == ["0", "", "", "0"]
+    assert [table["Swimmer-v5"][f"cleanrl_ppo_{k}"] for k in time_to] == ["", "", "", ""]
+
+
+def test_time_to_cleanrl_leaves_out_the_time_of_resumed_jobs_and_rows_without_one(tmp_path):
+    """Seed 1 was resumed (its start is its last attempt's, after its first rows): its step counts,
+    its time does not; seed 2's rows have no ``time``; the time is the median of seeds 0 and 3."""
+    multirun_yaml(tmp_path, ["env=hopper", "seed=0,1,2,3"])
+    kwargs = [{"batch_s": 30.0}, {"start_s": 120}, {"times": False}, {"batch_s": 20.0}]
+    for seed, kw in enumerate(kwargs):  # 5000 at the end: 2382.86 reached at step 5000
+        write_job(tmp_path, seed, ["env=hopper", f"seed={seed}"], 5000.0, 100.0, **kw)
+    (r,) = results_of(tmp_path)
+    assert r.to_cleanrl.steps == [5000] * 4
+    assert r.to_cleanrl.seconds == [STARTUP_S + 5 * 30.0, STARTUP_S + 5 * 20.0]
+    assert r.jobs[1].wall_s == 600 - 120  # the wall per job: also its last attempt
+    md = report(tmp_path, plot=False, results=True)
+    cells = cells_of(md, "Hopper-v5")
+    assert cells["steps to CleanRL mean (median, seeds)"] == "5k (4/4)"
+    assert cells["wall to CleanRL mean (median)"] == "2m17s (2 of 4 seeds)"  # 137.5 s
+    with open(tmp_path / "results.csv") as f:
+        (row,) = csv.DictReader(f)
+    assert (row["cleanrl_ppo_reached"], row["cleanrl_ppo_wall_n"]) == ("4", "2")
+    assert float(row["cleanrl_ppo_wall_median_s"]) == 137.5

@@ -43,6 +43,7 @@ class Job:
     env: str | None = None  # env.name of its config (e.g. Hopper-v5), None: no readable config
     backend: str | None = None  # env.backend of its config: gymnasium | native
     wall_s: float | None = None  # provenance.json start_time -> status.json time, as rlexp runs
+    start: float | None = None  # provenance.json start_time, epoch seconds (a resume: its last)
 
     @property
     def final(self) -> float | None:
@@ -255,11 +256,13 @@ def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = (
         step = curve[-1][0] if curve else 0
     reason = status.get("reason") or ""
     budget, env, backend = _budget_and_env(job_dir, problems)
+    start = read_start(job_dir)
     return Job(
         budget=budget,
         env=env,
         backend=backend,
-        wall_s=read_wall(job_dir, status),
+        wall_s=wall_of(start, status),
+        start=start,
         path=job_dir,
         overrides=overrides,
         seed=seed,
@@ -334,19 +337,52 @@ def _budget_and_env(
     return budget, env, backend
 
 
-def read_wall(job_dir: Path, status: dict[str, Any]) -> float | None:
-    """Seconds from the run's start (``provenance.json`` ``start_time``) to its last
-    ``status.json`` write (its end, for a job that ended), as ``rlexp runs`` shows a run's wall
-    time; None when either is missing or unreadable."""
+def read_start(job_dir: Path) -> float | None:
+    """The run's start (``provenance.json`` ``start_time``, whole seconds, rewritten by each
+    attempt of a resumed run) as epoch seconds; None when it is missing or unreadable."""
     from rlexp.liveness import parse_time
 
     try:
         prov = json.loads(_read_text(job_dir / "provenance.json"))
     except (OSError, ValueError):
         return None
-    start = parse_time(prov.get("start_time")) if isinstance(prov, dict) else None
+    return parse_time(prov.get("start_time")) if isinstance(prov, dict) else None
+
+
+def wall_of(start: float | None, status: dict[str, Any]) -> float | None:
+    """Seconds from the run's start (``read_start``) to its last ``status.json`` write (its end,
+    for a job that ended), as ``rlexp runs`` shows a run's wall time; None when either is missing
+    or unreadable."""
+    from rlexp.liveness import parse_time
+
     end = parse_time(status.get("time"))
     return end - start if start is not None and end is not None and end >= start else None
+
+
+def metric_times(path: Path, metric: str) -> dict[int, float]:
+    """Per step, the ``time`` (epoch seconds, when the row was written) of the ``metrics.jsonl``
+    row its value of ``metric`` comes from: the last row of the step with a finite value of it,
+    as ``read_histories``. Steps whose row has no time (an older rlexp) are left out."""
+    times: dict[int, float] = {}
+    try:
+        lines = _read_text(path).splitlines()
+    except OSError:
+        return times
+    for line in lines:
+        try:
+            row = json.loads(line)
+        except ValueError:
+            continue
+        if not isinstance(row, dict) or (step := _step(row.get("step"))) is None:
+            continue
+        value = json_number(row.get(metric))
+        if value is not None and math.isfinite(value):
+            t = json_number(row.get("time"))
+            if t is not None and math.isfinite(t):
+                times[step] = t
+            else:
+                times.pop(step, None)
+    return times
 
 
 def find_jobs(

@@ -3,8 +3,10 @@ configuration of the sweep, its env's two result metrics over seeds (the mean re
 100 training episodes at the end of training, and the final deterministic evaluation's mean return),
 each as IQM with a 95% bootstrap interval and as mean ± std, next to the published anchors that
 measure the same thing (``rlexp.reporting.anchors``), the eval success rate for tasks that define
-success, the median wall time per job and the env steps per second. Written as a section of
-``report.md`` and as ``results.csv``; the curves are ``rlexp.reporting.plot.plot_results``."""
+success, the median wall time per job and the env steps per second, and the time to the CleanRL
+mean (``TimeTo``: the env steps and wall-clock until the training return first reached it).
+Written as a section of ``report.md`` and as ``results.csv``; the curves are
+``rlexp.reporting.plot.plot_results``."""
 
 from __future__ import annotations
 
@@ -16,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rlexp.reporting.anchors import EVAL, SOURCES, TRAIN, Anchor, Source, anchors_for
-from rlexp.reporting.jobs import STOPPED_EARLY, Job, split_override
+from rlexp.reporting.anchors import CLEANRL, EVAL, SOURCES, TRAIN, Anchor, Source, anchors_for
+from rlexp.reporting.jobs import STOPPED_EARLY, Job, metric_times, split_override
 from rlexp.reporting.summary import common_overrides, config_key
-from rlexp.stats import bootstrap_ci, iqm
+from rlexp.stats import bootstrap_ci, iqm, steps_to_threshold
 from rlexp.table import fixed, format_duration
 
 #: The mean return of the last 100 training episodes, as the trainer logs it every iteration.
@@ -90,10 +92,53 @@ class EnvResult:
     wall_s: float  # median over its jobs with a result
     steps_per_s: float  # median over them of global_step / wall
     anchors: dict[str, Anchor]  # by Source.key
+    to_cleanrl: TimeTo | None = None  # None: no CleanRL anchor for the env
 
     @property
     def n(self) -> int:
         return len(self.jobs)
+
+
+@dataclass(frozen=True)
+class TimeTo:
+    """Time to result: per seed the first logged ``train/episode_return`` >= an anchor's mean, its
+    env step and its wall-clock (the row's ``time`` less the job's start, ``provenance.json``)."""
+
+    target: float  # the anchor's mean
+    n: int  # the seeds with a result (the row's seeds)
+    steps: list[int]  # one per seed that reached the target: the step of its first row >= target
+    seconds: list[float]  # of those seeds, the ones whose row has a time since a one-attempt start
+
+    @property
+    def k(self) -> int:
+        """How many seeds reached the target."""
+        return len(self.steps)
+
+    @property
+    def median_steps(self) -> float:
+        return _median(self.steps)
+
+    @property
+    def median_s(self) -> float:
+        return _median(self.seconds)
+
+
+def time_to(jobs: list[Job], target: float) -> TimeTo:
+    """Per job, the first step whose ``train/episode_return`` is >= ``target``
+    (``rlexp.stats.steps_to_threshold``, one value) and the seconds from the job's start to the
+    row that logged it. No seconds for a job resumed (a row written before its start: the start is
+    its last attempt's) nor for a row with no ``time``."""
+    steps, seconds = [], []
+    for job in jobs:
+        step = steps_to_threshold(job.curves.get(TRAIN_METRIC) or [], target)
+        if step is None:
+            continue
+        steps.append(step)
+        times = metric_times(job.path / "metrics.jsonl", TRAIN_METRIC)
+        one_attempt = job.start is not None and all(t >= job.start for t in times.values())
+        if one_attempt and step in times:
+            seconds.append(times[step] - job.start)
+    return TimeTo(target, len(jobs), steps, seconds)
 
 
 def _last(job: Job, metric: str) -> float | None:
@@ -120,6 +165,8 @@ def env_results(jobs: list[Job]) -> list[EnvResult]:
         backends = {j.backend for j in members if j.backend}
         success = any(defines_success(b) for b in backends)
         walls = [j.wall_s for j in done if j.wall_s]
+        anchors = anchors_for(envs[0] if len(envs) == 1 else None)
+        cleanrl = anchors.get(CLEANRL.key)
 
         def finals(metric: str, done: list[Job] = done) -> OverSeeds:
             return over_seeds([v for v in (_last(j, metric) for j in done) if v is not None])
@@ -135,7 +182,8 @@ def env_results(jobs: list[Job]) -> list[EnvResult]:
                 success=finals(SUCCESS_METRIC) if success else None,
                 wall_s=_median(walls),
                 steps_per_s=_median([j.global_step / j.wall_s for j in done if j.wall_s]),
-                anchors=anchors_for(envs[0] if len(envs) == 1 else None),
+                anchors=anchors,
+                to_cleanrl=time_to(done, cleanrl.mean) if cleanrl is not None else None,
             )
         )
     return out
@@ -162,6 +210,25 @@ def _anchor_cell(a: Anchor | None) -> str:
     return "" if a is None else f"{fixed(a.mean, 0)} ± {fixed(a.std, 0)} ({a.env_id})"
 
 
+def _steps(x: float) -> str:
+    """Env steps in three digits: ``950``, ``5.5k``, ``412k``, ``1M``."""
+    if x < 1000:
+        return f"{x:.0f}"
+    return f"{x / 1e3:.3g}k" if x < 999_500 else f"{x / 1e6:.3g}M"
+
+
+def _time_to_cells(t: TimeTo | None) -> list[str]:
+    """``412k (5/5)`` and ``3m51s``: the medians over the seeds that reached the target; ``—``
+    with no anchor; ``not reached (0/5)``; the time over fewer seeds says how many."""
+    if t is None:
+        return ["—", "—"]
+    if not t.k:
+        return [f"not reached (0/{t.n})", "—"]
+    wall = format_duration(t.median_s) if t.seconds else "n/a"
+    wall += f" ({len(t.seconds)} of {t.k} seeds)" if 0 < len(t.seconds) < t.k else ""
+    return [f"{_steps(t.median_steps)} ({t.k}/{t.n})", wall]
+
+
 def results_markdown(results: list[EnvResult]) -> list[str]:
     """The section ``## Results per env`` of report.md: the table, then what each column is and
     where each anchor comes from."""
@@ -176,6 +243,9 @@ def results_markdown(results: list[EnvResult]) -> list[str]:
     head += [f"{s.name} ({i})" for i, s in enumerate(sources, 1) if s.measures == EVAL]
     head += ["eval success: IQM [95% CI]"] if with_success else []
     head += ["wall per job (median)", "env steps/s (median)"]
+    with_time_to = CLEANRL in sources
+    if with_time_to:
+        head += ["steps to CleanRL mean (median, seeds)", "wall to CleanRL mean (median)"]
     lines = [
         "## Results per env",
         "",
@@ -185,9 +255,17 @@ def results_markdown(results: list[EnvResult]) -> list[str]:
         f"last `{EVAL_METRIC}`, the mean return of the final evaluation of the deterministic "
         "policy (`trainer.eval_episodes` episodes). IQM with its 95% percentile bootstrap interval "
         "over seeds, as above; std with ddof 1. **Wall**: per job, from its start "
-        "(`provenance.json`) to its end (`status.json`): env construction, training, evaluations "
-        "and checkpoints (a resumed job: its last attempt); **env steps/s**: the median over jobs "
-        "of their steps / wall.",
+        "(`provenance.json`, written once its envs are built) to its end (`status.json`): "
+        "training, evaluations and checkpoints (a resumed job: its last attempt); **env steps/s**: "
+        "the median over jobs of their steps / wall."
+        + (
+            f" **To CleanRL mean**: per seed, the first logged `{TRAIN_METRIC}` >= the CleanRL "
+            "anchor's mean: its env step, and its row's `time` less the job's start "
+            "(`provenance.json`); the median over the seeds that reached it, (k/n): how many did. "
+            "A resumed job's steps count, its time does not (its start is its last attempt's)."
+            if with_time_to
+            else ""
+        ),
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
@@ -203,6 +281,7 @@ def results_markdown(results: list[EnvResult]) -> list[str]:
             cells.append(_iqm_cell(r.success, r.n, 2) if r.success is not None else "—")
         wall = format_duration(r.wall_s) if not math.isnan(r.wall_s) else "n/a"
         cells += [wall, fixed(r.steps_per_s, 0)]
+        cells += _time_to_cells(r.to_cleanrl) if with_time_to else []
         lines.append("| " + " | ".join(cells) + " |")
     if with_success:
         lines += [
@@ -234,6 +313,9 @@ def results_csv(results: list[EnvResult]) -> str:
     fields += ["wall_median_s", "env_steps_per_s_median"]
     for s in sources:
         fields += [f"{s.key}_env", f"{s.key}_mean", f"{s.key}_std"]
+    if CLEANRL in sources:  # time to its mean: empty for an env with no CleanRL number
+        fields += [f"{CLEANRL.key}_{k}" for k in ("reached", "steps_median", "wall_median_s")]
+        fields += [f"{CLEANRL.key}_wall_n"]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     writer.writeheader()
@@ -265,5 +347,13 @@ def results_csv(results: list[EnvResult]) -> str:
                 row.update(
                     {f"{s.key}_env": a.env_id, f"{s.key}_mean": a.mean, f"{s.key}_std": a.std}
                 )
+        t = r.to_cleanrl
+        if t is not None and CLEANRL in sources:
+            row[f"{CLEANRL.key}_reached"] = t.k
+            row[f"{CLEANRL.key}_wall_n"] = len(t.seconds)
+            if t.k:
+                row[f"{CLEANRL.key}_steps_median"] = t.median_steps
+            if t.seconds:
+                row[f"{CLEANRL.key}_wall_median_s"] = t.median_s
         writer.writerow(row)
     return buf.getvalue()
