@@ -93,7 +93,7 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
     from rlexp.envs.factory import make_env
     from rlexp.events import EventManager
     from rlexp.launch import distributed
-    from rlexp.policies.actor_critic import make_policy
+    from rlexp.policies.actor_critic import policy_for_env
 
     t, e = config.trainer, config.env
     dist = distributed.info()
@@ -111,12 +111,10 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
             e.num_eval_envs,
         )
     obs_dim = env.observation_spec["observation"].shape[-1]
-    act_dim = env.action_spec.shape[-1]
-    log.info("env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, act_dim)
-    policy = make_policy(
-        config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
-        e.clip_observations,
-    ).to(device)  # fmt: skip
+    log.info(
+        "env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, env.action_spec.shape[-1]
+    )
+    policy = policy_for_env(config.policy, e, env).to(device)
     if dist.enabled:  # same initial parameters everywhere
         distributed.broadcast_([*policy.parameters(), *policy.buffers()])
     iterations = -(-total // (t.frames_per_batch * dist.world_size))

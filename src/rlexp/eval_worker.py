@@ -54,17 +54,10 @@ class EvalSetup:
     def build(self) -> tuple[Any, Any]:
         """The eval env and a policy of the run's shape (its weights come with each snapshot)."""
         from rlexp.envs.factory import make_env
-        from rlexp.policies.actor_critic import make_policy
+        from rlexp.policies.actor_critic import policy_for_env
 
-        e = self.env
-        env = make_env(e, e.num_eval_envs, self.seed)
-        obs_dim = env.observation_spec["observation"].shape[-1]
-        act_dim = env.action_spec.shape[-1]
-        policy = make_policy(
-            self.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
-            e.clip_observations,
-        ).to(self.device)  # fmt: skip
-        return env, policy
+        env = make_env(self.env, self.env.num_eval_envs, self.seed)
+        return env, policy_for_env(self.policy, self.env, env).to(self.device)
 
 
 @dataclass

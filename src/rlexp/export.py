@@ -195,18 +195,15 @@ def _actor_of(ckpt: dict[str, Any]) -> tuple[DeterministicActor, Any, dict[str, 
     from rlexp.checkpoint import check_checkpoint_fits
     from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
-    from rlexp.policies.actor_critic import make_policy
+    from rlexp.policies.actor_critic import policy_for_env
 
     config = to_root_config(eval_config(ckpt["config"]))
     e = config.env
     env = make_env(e, 1, config.seed)
     try:
+        policy = policy_for_env(config.policy, e, env)
         obs_dim = int(env.observation_spec["observation"].shape[-1])
         act_dim = int(env.action_spec.shape[-1])
-        policy = make_policy(
-            config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
-            e.clip_observations,
-        )  # fmt: skip
         check_checkpoint_fits(
             ckpt, config, policy
         )  # loads the weights; ValueError if they do not fit

@@ -145,17 +145,9 @@ def _is_torchscript(path: Path) -> bool:
 def _from_ckpt(ckpt: dict[str, Any]) -> PolicyBuilder:
     def build(config: Any, env: Any) -> Callable[[Any], Any]:
         from rlexp.checkpoint import check_checkpoint_fits
-        from rlexp.policies.actor_critic import make_policy
+        from rlexp.policies.actor_critic import policy_for_env
 
-        e = config.env
-        policy = make_policy(
-            config.policy,
-            env.observation_spec["observation"].shape[-1],
-            env.action_spec.shape[-1],
-            env.action_spec,
-            e.normalize_observations,
-            e.clip_observations,
-        )
+        policy = policy_for_env(config.policy, config.env, env)
         check_checkpoint_fits(
             ckpt, config, policy
         )  # loads the weights; ValueError if they do not fit

@@ -21,7 +21,7 @@ def check_buildable(config: RootConfig) -> None:
     from rlexp.envs.factory import make_env
     from rlexp.events import EventManager
     from rlexp.extras import check_config
-    from rlexp.policies.actor_critic import make_policy
+    from rlexp.policies.actor_critic import policy_for_env
 
     check_config(config)  # an optional part it turns on is installed (W&B, mp4 videos)
     from rlexp.build import resolve_device
@@ -46,12 +46,7 @@ def check_buildable(config: RootConfig) -> None:
         raise ConfigError(msg) from None
     t = config.trainer
     try:
-        obs_dim = int(env.observation_spec["observation"].shape[-1])
-        act_dim = int(env.action_spec.shape[-1])
-        policy = make_policy(
-            config.policy, obs_dim, act_dim, env.action_spec, e.normalize_observations,
-            e.clip_observations,
-        )  # fmt: skip
+        policy = policy_for_env(config.policy, e, env)
         train_events = EventManager(config.events.train, "events.train")
         eval_events = EventManager(config.events.eval, "events.eval")
         # Each event checks itself on the env (record_video renders one frame at its resolution).

@@ -17,10 +17,11 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
 from torch.nn import functional as F
 from torchrl.data import TensorSpec
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
-from rlexp.config.schema import BasePolicyConfig, MLPConfig
+from rlexp.config.schema import BasePolicyConfig, EnvConfig, MLPConfig
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
@@ -310,4 +311,17 @@ def make_policy(
         raise ValueError(f"policy.name={cfg.name!r}; choose from {sorted(POLICIES)}")
     return POLICIES[cfg.name](
         cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations
+    )
+
+
+def policy_for_env(cfg: BasePolicyConfig, env_cfg: EnvConfig, env: EnvBase) -> GaussianPolicy:
+    """The configured policy for a built env: its observation and action sizes and bounds from the
+    env's specs, the observation normaliser as ``env_cfg`` says (training, eval, export, checks)."""
+    return make_policy(
+        cfg,
+        int(env.observation_spec["observation"].shape[-1]),
+        int(env.action_spec.shape[-1]),
+        env.action_spec,
+        env_cfg.normalize_observations,
+        env_cfg.clip_observations,
     )
