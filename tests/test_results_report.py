@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import csv
 import json
+import subprocess
+import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -429,3 +431,27 @@ def test_time_to_cleanrl_leaves_out_the_time_of_resumed_jobs_and_rows_without_on
         (row,) = csv.DictReader(f)
     assert (row["cleanrl_ppo_reached"], row["cleanrl_ppo_wall_n"]) == ("4", "2")
     assert float(row["cleanrl_ppo_wall_median_s"]) == 137.5
+
+
+def test_a_job_still_training_is_not_called_dead(tmp_path):
+    """``rlexp report`` during a sweep: a ``running`` job with a fresh heartbeat from a live process
+    is still running; one whose process is gone died (the heartbeat and PID rule of rlexp runs)."""
+    import os
+    import socket
+    import time
+
+    from rlexp.reporting.jobs import read_job
+
+    multirun_yaml(tmp_path, ["env=hopper", "seed=0,1"])
+    live = write_job(tmp_path, 0, ["env=hopper", "seed=0"], 1.0, 1.0, state="running")
+    dead = write_job(tmp_path, 1, ["env=hopper", "seed=1"], 1.0, 1.0, state="running")
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)  # fmt: skip
+    for job_dir, pid in ((live, os.getpid()), (dead, int(gone.stdout))):
+        beat = {"host": socket.gethostname(), "pid": pid, "time": time.time(), "interval_s": 10.0}
+        (job_dir / "heartbeat.json").write_text(json.dumps(beat))
+        status = json.loads((job_dir / "status.json").read_text())
+        (job_dir / "status.json").write_text(json.dumps({**status, "pid": pid}))
+    assert read_job(live, None).why.startswith("still running")
+    assert read_job(dead, None).why.startswith("died: ")
+    assert "still running" in report(tmp_path, plot=False)

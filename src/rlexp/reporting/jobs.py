@@ -228,6 +228,20 @@ def read_overrides(path: Path, problems: list[str]) -> list[str]:
     return [str(o) for o in data]
 
 
+def _running_reason(job_dir: Path, status: dict[str, Any]) -> str:
+    """A ``running`` status.json checked against the job's heartbeat and PID, as ``rlexp runs``
+    does: a job still training (the sweep goes on) is not called dead."""
+    import time
+
+    from rlexp.liveness import Here, liveness
+    from rlexp.rundir import read_heartbeat
+
+    shown, why = liveness(status, read_heartbeat(job_dir), time.time(), Here.now())
+    if shown == "running":
+        return "still running (its heartbeat is fresh): the sweep is not done"
+    return f"{shown}: {why}" if why else shown
+
+
 def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = ()) -> Job:
     """One job dir; ``metric`` None skips ``metrics.jsonl`` (the state alone is wanted).
     ``other_metrics``: histories read besides ``metric``'s (into ``Job.curves``)."""
@@ -255,6 +269,8 @@ def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = (
             problems.append(f"status.json: global_step {status['global_step']!r} is not a number")
         step = curve[-1][0] if curve else 0
     reason = status.get("reason") or ""
+    if state == "running" and not reason:
+        reason = _running_reason(job_dir, status)
     budget, env, backend = _budget_and_env(job_dir, problems)
     start = read_start(job_dir)
     return Job(
