@@ -157,3 +157,12 @@ def test_several_loggers_at_once():
 def test_every_experiment_preset_composes(name):
     config = to_root_config(compose([f"+experiment={name}"]))
     assert isinstance(config, RootConfig)
+
+
+def test_the_throughput_preset_batches_envs_on_any_gymnasium_task():
+    """+experiment=mujoco_throughput over the env chosen on the command line (docs/results.md)."""
+    config = to_root_config(compose(["env=hopper", "+experiment=mujoco_throughput"]))
+    assert config.env.name == "Hopper-v5"
+    assert (config.env.num_envs, config.trainer.frames_per_batch) == (4, 4096)
+    assert config.algorithm.mini_batch_size == 128
+    assert config.trainer.frames_per_batch // config.algorithm.mini_batch_size == 2048 // 64
