@@ -5,8 +5,8 @@ The worker is started once per run (``start``, at train start) with the ``spawn`
 process that already runs torch's and MuJoCo's threads is unsafe. It builds its own eval env exactly
 as the training process builds one (``env.num_eval_envs`` copies, the eval seed, reseeded every
 round) and a policy of the run's shape, then for each snapshot it receives (the policy's state dict,
-observation normaliser included) runs ``rlexp.evaluation.run_episodes``: the same deterministic
-episodes, the same numbers as an in-process round. It ignores SIGINT and SIGHUP (a terminal's
+observation normaliser included) runs ``rlexp.evaluation.run_round``, as in-process rounds do:
+the same deterministic episodes, the same numbers. It ignores SIGINT and SIGHUP (a terminal's
 Ctrl-C reaches the whole process group; the training process decides), dies with the training
 process (``PR_SET_PDEATHSIG`` on Linux, and a closed pipe ends it anywhere) and leaves through
 ``os._exit`` without the interpreter's teardown.
@@ -208,7 +208,7 @@ def _serve(conn: Any, setup: EvalSetup, parent: int) -> None:
     for sig in _TERMINAL_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _TERMINAL_SIGNALS)
-    from rlexp.evaluation import run_episodes
+    from rlexp.evaluation import run_round
 
     torch.set_num_threads(1)  # as in-process rounds (one_torch_thread): the same kernels
     try:
@@ -218,10 +218,7 @@ def _serve(conn: Any, setup: EvalSetup, parent: int) -> None:
             step, payload = msg
             state = torch.load(io.BytesIO(payload), map_location="cpu", weights_only=True)
             policy.load_state_dict(state)
-            env.set_seed(setup.seed)  # every round the same fresh episodes, as in-process
-            sampling = policy.sampling_policy(deterministic=True)
-            metrics = run_episodes(env, sampling, setup.episodes)
-            metrics.pop("eval/episodes")
+            metrics = run_round(env, policy, setup.episodes, setup.seed)  # as in-process rounds
             conn.send(("result", (step, metrics)))
     except Exception as exc:
         lines = traceback.format_exception_only(type(exc), exc)

@@ -22,6 +22,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
 from rlexp.collector import supports_fast_rollout
+from rlexp.loop import base_env
 
 
 class EpisodeTally:
@@ -83,9 +84,7 @@ class EpisodeTally:
 def defines_success(env: EnvBase) -> bool:
     """Whether the ``metrics/success`` an env reports means something: a native task without a
     success rule reports zeros (its spec says ``success=None``)."""
-    while hasattr(env, "base_env"):  # under TorchRL transforms
-        env = env.base_env
-    spec = getattr(env, "task_spec", None)
+    spec = getattr(base_env(env), "task_spec", None)  # under TorchRL transforms
     return spec is None or getattr(spec, "success", None) is not None
 
 
@@ -117,13 +116,9 @@ def event_callbacks(
 
     def on_reset(td: TensorDictBase) -> TensorDictBase:
         events.fire("reset", ctx(env_ids=np.arange(n)))
-        base = env
-        while hasattr(base, "base_env"):
-            base = base.base_env
+        base = base_env(env)  # reset events may have moved objects: observe again
         if events.has("reset") and hasattr(base, "current_tensordict"):
-            td.set(
-                "observation", base.current_tensordict().get("observation")
-            )  # events moved things
+            td.set("observation", base.current_tensordict().get("observation"))
         return td
 
     def on_step(td: TensorDictBase) -> None:
@@ -136,20 +131,29 @@ def event_callbacks(
 
 @torch.no_grad()
 def run_round(
-    env: EnvBase, policy: Any, episodes: int, seed: int, events: Any, ctx: Callable[..., Any]
+    env: EnvBase,
+    policy: Any,
+    episodes: int,
+    seed: int,
+    events: Any = None,
+    ctx: Callable[..., Any] | None = None,
 ) -> dict[str, float]:
-    """An in-process eval round of ``policy`` (a ``GaussianPolicy``): the eval env reseeded, its
-    deterministic episodes with the eval events (``events``, an ``EventManager``; ``ctx(**kw)`` its
-    EventContext), which are finalised and told ``eval_end``; the metrics without the count."""
-    on_step, on_reset = event_callbacks(env, events, ctx)
+    """An eval round of ``policy`` (a ``GaussianPolicy``), in the training process or in the eval
+    worker: the eval env reseeded, its deterministic episodes; with the eval events (``events``, an
+    ``EventManager``; ``ctx(**kw)`` its EventContext), which are finalised and told ``eval_end``.
+    The metrics without the count."""
+    on_step, on_reset = None, None
+    if events is not None:
+        on_step, on_reset = event_callbacks(env, events, ctx)
     # Fresh episodes from the same seed every round: rounds compare like with like, and a resumed
     # run evaluates exactly as an uninterrupted one (no eval episode spans two rounds).
     env.set_seed(seed)
     sampling = policy.sampling_policy(deterministic=True)
     metrics = run_episodes(env, sampling, episodes, on_step, on_reset)
     metrics.pop("eval/episodes")
-    events.finalize(ctx())
-    events.fire("trigger", ctx(metrics=metrics), signal="eval_end")
+    if events is not None:
+        events.finalize(ctx())
+        events.fire("trigger", ctx(metrics=metrics), signal="eval_end")
     return metrics
 
 
@@ -213,13 +217,15 @@ def _torchrl_loop(
 ) -> None:
     """TorchRL's ``step_and_maybe_reset`` loop: any env, any policy, each step's tensordict."""
     n = len(tally.quota)
+    key, first = None, True
     while not tally.finished:
         td = policy(td)
         if on_step is not None:
             on_step(td)
         out, td = env.step_and_maybe_reset(td)
         nxt = out["next"]
-        key = _success_key(env, nxt)
+        if first:  # an env's step output always has the same keys
+            key, first = _success_key(env, nxt), False
         success = None if key is None else nxt[key].reshape(n).cpu().numpy()
         tally.add(
             nxt["reward"].reshape(n).cpu().numpy(), nxt["done"].reshape(n).cpu().numpy(), success
