@@ -34,6 +34,7 @@ from rlexp.policy_eval import (
     check_policy_finite,
     eval_config,
     load_exported,
+    load_for_eval,
     metadata_path,
     quiet,
 )
@@ -92,7 +93,7 @@ def choose_checkpoint(path: str | Path, which: str | None = None) -> tuple[dict[
     """The checkpoint to export and why: a file as given; in a run dir (or its ``checkpoints/``)
     ``best.pt`` when present (or ``which='best'``), else (or ``which='last'``) the newest step
     checkpoint that loads."""
-    from rlexp.checkpoint import latest_good_checkpoint, load_checkpoint, step_checkpoints
+    from rlexp.checkpoint import load_checkpoint
 
     p = Path(path)
     if which is not None and which not in CHOICES:
@@ -114,12 +115,7 @@ def choose_checkpoint(path: str | Path, which: str | None = None) -> tuple[dict[
         )
     if best is not None and which != "last":
         return load_checkpoint(best), "best.pt: the best evaluation"
-    ckpt = latest_good_checkpoint(p)
-    if ckpt is None:
-        found = step_checkpoints(p)
-        if not found:
-            raise FileNotFoundError(f"no rlexp checkpoint (*_step_N.pt) in {str(p)!r}")
-        raise ValueError(f"none of the {len(found)} checkpoints in {str(p)!r} can be read")
+    ckpt = load_for_eval(p)  # the newest step checkpoint that loads, as rlexp eval takes it
     return ckpt, "the last checkpoint" + (
         ": --checkpoint last" if which == "last" else ": no best.pt"
     )
