@@ -162,8 +162,12 @@ def env_results(jobs: list[Job]) -> list[EnvResult]:
         done = [j for j in members if j.state in ("finished", STOPPED_EARLY)]
         envs = list(dict.fromkeys(e for e in map(env_of, members) if e))
         env = " / ".join(envs) or "(unknown env)"
+        # Shown where the jobs logged it (rlexp logs it for tasks that define success) and their
+        # backend can define it (runs of older rlexp logged a constant 0 for Gymnasium tasks).
         backends = {j.backend for j in members if j.backend}
-        success = any(defines_success(b) for b in backends)
+        success = any(map(defines_success, backends)) and any(
+            _last(j, SUCCESS_METRIC) is not None for j in done
+        )
         walls = [j.wall_s for j in done if j.wall_s]
         anchors = anchors_for(envs[0] if len(envs) == 1 else None)
         cleanrl = anchors.get(CLEANRL.key)
