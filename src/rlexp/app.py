@@ -80,9 +80,10 @@ def train(
 
     dist = distributed.info()
     _speedups.apply()
+    _speedups.release_frozen()  # an earlier run in this process (a sweep's jobs, tests)
     torch.set_num_threads(config.trainer.torch_threads)
     lock = RunDirLock(run_dir)
-    with stop_on_signals() as stops:
+    with _speedups.startup_gc(), stop_on_signals() as stops:
         try:
             if dist.is_main:
                 lock.acquire()  # before anything is read or written: one run per dir
@@ -208,6 +209,7 @@ def _run(
     trainer: Any, run_dir: Path, total: int, stops: Any, ckpt: dict | None
 ) -> dict[str, float]:
     """Train; every way out leaves ``status.json`` saying how the run ended and why."""
+    from rlexp import _speedups
     from rlexp.algorithms.ppo import NonFiniteError
     from rlexp.launch.slurm import stop_requested_by_signal
     from rlexp.trainer import StopRequested
@@ -225,6 +227,7 @@ def _run(
         if stops.requested and trainer.global_step == 0:
             raise StopRequested(stops.reason())  # a signal during the build: nothing to save yet
         _check_writable(trainer.ckpt_dir)  # now, not after the first hour of training
+        _speedups.training_gc()  # the GC walks only what training creates from here on
         trainer.train(total)
         if trainer.eval_env is not None and not trainer.last_eval:
             trainer.eval_once()

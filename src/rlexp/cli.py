@@ -70,10 +70,13 @@ def _load_plugins_or_exit(prog: str) -> None:
 def train(argv: list[str], prog: str = "rlexp train") -> None:
     """``rlexp train`` / ``python train.py``: plugins first (a JSON file may name a plugin's task),
     then ``--config-json`` / ``--distributed`` and Hydra (``rlexp.launch.json_entry``)."""
-    _load_plugins_or_exit(prog)
-    from rlexp.launch.json_entry import main as train_main
+    from rlexp import _speedups
 
-    train_main(argv)
+    with _speedups.startup_gc():  # the GC is back on once the run is built (app._run)
+        _load_plugins_or_exit(prog)
+        from rlexp.launch.json_entry import main as train_main
+
+        train_main(argv)
 
 
 def _add_runs_parsers(sub: Any) -> None:

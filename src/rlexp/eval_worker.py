@@ -208,11 +208,13 @@ def _serve(conn: Any, setup: EvalSetup, parent: int) -> None:
     for sig in _TERMINAL_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _TERMINAL_SIGNALS)
+    from rlexp import _speedups
     from rlexp.evaluation import run_round
 
     torch.set_num_threads(1)  # as in-process rounds (one_torch_thread): the same kernels
     try:
         env, policy = setup.build()
+        _speedups.training_gc()  # rounds walk only what they create (rlexp._speedups)
         conn.send(("ready", None))
         while (msg := _recv(conn)) is not None:
             step, payload = msg
