@@ -140,7 +140,7 @@ def test_collection_and_eval_run_one_torch_thread_and_the_update_torch_threads(
     from rlexp.envs.gym import GymnasiumEnv
 
     seen: dict[str, set[int]] = {"step": set(), "update": set()}
-    step, update = GymnasiumEnv.step_action, PPO.update
+    step, update = GymnasiumEnv.step_tensors, PPO.update  # (step_action steps through it too)
 
     def spy_step(self, action):
         seen["step"].add(torch.get_num_threads())
@@ -150,7 +150,7 @@ def test_collection_and_eval_run_one_torch_thread_and_the_update_torch_threads(
         seen["update"].add(torch.get_num_threads())
         return update(self, batch)
 
-    monkeypatch.setattr(GymnasiumEnv, "step_action", spy_step)
+    monkeypatch.setattr(GymnasiumEnv, "step_tensors", spy_step)
     monkeypatch.setattr(PPO, "update", spy_update)
     before = torch.get_num_threads()
     config = to_root_config(
@@ -216,3 +216,48 @@ def test_best_pt_keeps_the_better_eval_when_a_later_one_is_worse(tmp_path, monke
     for key, value in best["policy"].items():
         assert torch.equal(value, at_512["policy"][key]), f"best.pt {key} is not step 512's"
     assert any(not torch.equal(v, last["policy"][k]) for k, v in best["policy"].items())
+
+
+def test_the_gc_is_off_while_a_run_builds_and_walks_only_what_training_creates(
+    tmp_path, monkeypatch
+):
+    """Start-up runs without the cyclic GC (imports and the build trigger dozens of full
+    collections, ~0.2 s each); training runs with it on and everything built before frozen; a later
+    run in the same process unfreezes what the earlier one froze, and the GC is on again after."""
+    import gc
+
+    import rlexp.build as build_mod
+    from conftest import compose
+    from rlexp.app import train
+    from rlexp.config.validate import to_root_config
+    from rlexp.trainer import Trainer
+
+    seen: list[tuple[str, bool, int]] = []
+    real_build, real_train = build_mod.build, Trainer.train
+
+    def spy_build(*args, **kwargs):
+        seen.append(("build", gc.isenabled(), gc.get_freeze_count()))
+        return real_build(*args, **kwargs)
+
+    def spy_train(self, total):
+        seen.append(("train", gc.isenabled(), gc.get_freeze_count()))
+        return real_train(self, total)
+
+    monkeypatch.setattr(build_mod, "build", spy_build)
+    monkeypatch.setattr(Trainer, "train", spy_train)
+    config = to_root_config(compose([*TINY, "logger=none"]))
+    assert gc.isenabled()
+    try:
+        train(config, tmp_path / "a")
+        assert gc.isenabled() and gc.get_freeze_count() > 0  # left frozen until the next run
+        train(config, tmp_path / "b")
+        enabled_after = gc.isenabled()
+    finally:
+        gc.unfreeze()
+        gc.enable()
+    (b1, on1, _), (t1, on2, frozen1), (b2, on3, frozen2), (t2, on4, _) = seen
+    assert (b1, t1, b2, t2) == ("build", "train", "build", "train")
+    assert (on1, on2, on3, on4) == (False, True, False, True)
+    assert frozen1 > 10_000  # the imports' objects: out of the collector's reach while training
+    assert frozen2 == 0  # the second run released the first one's before building
+    assert enabled_after
