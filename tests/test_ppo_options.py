@@ -16,6 +16,7 @@ from tensordict import TensorDict
 from torchrl.data import Bounded
 
 from conftest import PLAIN_PPO, REPO, compose, run_train
+from rlexp.algorithms import normalize
 from rlexp.algorithms.normalize import RewardNormalizer
 from rlexp.algorithms.ppo import PPO, adaptive_learning_rate, gaussian_kl
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint
@@ -113,6 +114,23 @@ def test_reward_normalizer_equals_gymnasiums_normalize_reward_when_episodes_are_
         [norm.scale(reward[:, :30], done[:, :30]), norm.scale(reward[:, 30:], done[:, 30:])], 1
     )
     np.testing.assert_allclose(mine.squeeze(-1).numpy(), theirs, rtol=1e-6)
+
+
+@pytest.mark.parametrize("envs", [1, 5, normalize.PYTHON_LOOP_MAX_ENVS + 1])
+def test_running_returns_are_the_same_bits_on_python_floats_and_on_tensors(envs, monkeypatch):
+    """Few envs: the returns run env by env on Python floats; many: step by step on tensors. Both
+    do the same float64 operations in the same order, so they agree to the bit (and so a run
+    resumes exactly whichever way it took)."""
+    reward, done = _rewards(envs, 200, seed=4)
+    r, ended = reward.squeeze(-1).double(), done.squeeze(-1)
+    start = torch.linspace(-3.0, 3.0, envs, dtype=torch.float64)
+    got = normalize.discounted_returns(r, ended, start, 0.99)
+    monkeypatch.setattr(normalize, "PYTHON_LOOP_MAX_ENVS", -1)  # the tensor loop, always
+    want = normalize.discounted_returns(r, ended, start, 0.99)
+    assert ended.any()
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == torch.float64 and g.shape == w.shape
+        assert torch.equal(g, w)
 
 
 def test_the_statistics_are_summed_over_ranks():

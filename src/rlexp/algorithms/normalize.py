@@ -26,6 +26,45 @@ ReduceSum = Callable[[torch.Tensor], torch.Tensor]
 INITIAL_COUNT = 1e-4
 
 
+#: Up to this many envs the running returns are computed env by env on Python floats (~0.1 us a
+#: step) rather than step by step on tensors of all envs (~10 us a step whatever their number).
+PYTHON_LOOP_MAX_ENVS = 64
+
+
+def discounted_returns(
+    reward: torch.Tensor, ended: torch.Tensor, start: torch.Tensor, gamma: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``R_t = gamma * R_{t-1} + r_t`` along the last dim of ``reward`` [*E, T] (float64), from
+    ``start`` [*E], back to 0 after each step where ``ended``; returns all ``R_t`` and the running
+    ``R`` after the last step. The same float64 operations in the same order either way."""
+    envs, steps = reward.shape[:-1], reward.shape[-1]
+    if start.numel() <= PYTHON_LOOP_MAX_ENVS and reward.device.type == "cpu":
+        rows, last = [], []
+        for rew, end, acc in zip(
+            reward.reshape(-1, steps).tolist(),
+            ended.reshape(-1, steps).tolist(),
+            start.reshape(-1).tolist(),
+            strict=True,
+        ):
+            row = []
+            for x, e in zip(rew, end, strict=True):
+                acc = acc * gamma + x
+                row.append(acc)
+                if e:
+                    acc = 0.0
+            rows.append(row)
+            last.append(acc)
+        returns = torch.tensor(rows, dtype=torch.float64).reshape(reward.shape)
+        return returns, torch.tensor(last, dtype=torch.float64).reshape(envs)
+    returns = torch.empty_like(reward)
+    running = start
+    for t in range(steps):
+        running = running * gamma + reward[..., t]
+        returns[..., t] = running
+        running = running.masked_fill(ended[..., t], 0.0)
+    return returns, running
+
+
 class RewardNormalizer:
     """Running std of the discounted return; ``scale(reward, done)`` scales one rollout [*E, T, 1]."""
 
@@ -63,13 +102,7 @@ class RewardNormalizer:
         self.mean, self.var, self.count, self.returns = (
             t.to(device) for t in (self.mean, self.var, self.count, self.returns)
         )
-        returns = torch.empty_like(r)
-        running = self.returns
-        for t in range(steps):  # the returns depend on each other; the statistics below do not
-            running = running * self.gamma + r[..., t]
-            returns[..., t] = running
-            running = running.masked_fill(ended[..., t], 0.0)
-        self.returns = running
+        returns, self.returns = discounted_returns(r, ended, self.returns, self.gamma)
 
         # Per step: count, and sum and sum of squares of R - mean (centred on the statistics'
         # mean before this rollout, the same on every rank: stable, and reducible by summing).
