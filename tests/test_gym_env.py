@@ -58,3 +58,29 @@ def test_same_seed_same_trajectory():
 
     assert torch.equal(rollout(3), rollout(3))
     assert not torch.equal(rollout(3), rollout(4))
+
+
+def test_mujoco_warnings_while_building_go_to_the_log_not_stdout_or_the_working_directory(
+    tmp_path, monkeypatch, capfd, caplog
+):
+    """MuJoCo 4.0 warns that Gymnasium's own XML uses ``settotalmass`` at every model compile
+    (stdout, and a MUJOCO_LOG.TXT in the working directory): dropped. Any other MuJoCo warning
+    while building goes to the log; MuJoCo's own handler is back afterwards."""
+    import logging
+
+    import mujoco
+
+    from rlexp.envs import gym as gym_adapter
+
+    monkeypatch.chdir(tmp_path)
+    capfd.readouterr()
+    with caplog.at_level(logging.WARNING, logger="rlexp.envs.gym"):
+        GymnasiumEnv("Hopper-v5", num_envs=2).reset()
+        out, err = capfd.readouterr()
+        assert "settotalmass" not in out + err
+        assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+        assert not caplog.records
+        with gym_adapter.mujoco_build_warnings("Hopper-v5"):
+            mujoco.get_mju_user_warning()("something the user should see")
+    assert [r.getMessage() for r in caplog.records] == ["[mujoco] something the user should see"]
+    assert mujoco.get_mju_user_warning() is None

@@ -13,6 +13,8 @@ previous step's done flags and per-term rewards, which nothing reads (GAE and th
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
@@ -68,19 +70,27 @@ class RolloutCollector(Collector):
         if not self._fast:
             return super().rollout()
         env, sample = self.env, self._sampler.sampler()  # constants of this rollout computed once
+        # A flat dict of tensors per step where the env offers one (the Gymnasium adapter), else
+        # its TensorDict (native tasks: nested per-term entries).
+        step = getattr(env, "step_tensors", None) or env.step_action
         steps = self.frames_per_batch  # per env
         obs = self._obs if self._obs is not None else self._carrier.get("observation")
         keys = ("observation", "loc", "scale", "action", "action_log_prob")
         root: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
-        nexts: list[TensorDictBase] = []
+        nexts: list[Any] = []
         for _ in range(steps):
             loc, scale, action, log_prob = sample(obs)
-            nxt = env.step_action(action)
+            nxt = step(action)
             for k, v in zip(keys, (obs, loc, scale, action, log_prob), strict=True):
                 root[k].append(v)
             nexts.append(nxt)
             obs = env.autoreset_observation(nxt)
         self._obs = obs
+        size = [*env.batch_size, steps]
         batch = {k: torch.stack(v, dim=1) for k, v in root.items()}  # [num_envs, T, ...]
-        batch["next"] = torch.stack(nexts, dim=1)
-        return TensorDict(batch, batch_size=[*env.batch_size, steps], device=env.device)
+        if isinstance(nexts[0], dict):
+            nxt = {k: torch.stack([n[k] for n in nexts], dim=1) for k in nexts[0]}
+            batch["next"] = TensorDict._new_unsafe(nxt, batch_size=size, device=env.device)
+        else:
+            batch["next"] = torch.stack(nexts, dim=1)
+        return TensorDict(batch, batch_size=size, device=env.device)
