@@ -261,3 +261,26 @@ def test_the_gc_is_off_while_a_run_builds_and_walks_only_what_training_creates(
     assert frozen1 > 10_000  # the imports' objects: out of the collector's reach while training
     assert frozen2 == 0  # the second run released the first one's before building
     assert enabled_after
+
+
+def test_a_run_imports_nothing_it_does_not_use(tmp_path):
+    """The default run (TensorBoard, evaluation, checkpoints) imports no W&B, plotting, statistics,
+    launcher, sweeper, video or export library (``python -X importtime``, #18's fixed costs)."""
+    proc = run_train(
+        [*TINY, "trainer.eval_every=256", "trainer.eval_episodes=1"],
+        cwd=tmp_path,
+        env_extra={"PYTHONPROFILEIMPORTTIME": "1"},
+    )
+    imported = {
+        line.split("|")[-1].strip().split(".")[0]
+        for line in proc.stderr.splitlines()
+        if line.startswith("import time:") and "|" in line
+    }
+    assert {"torch", "torchrl", "hydra", "tensorboard"} <= imported  # (the profile was read)
+    # (imageio itself comes with Gymnasium's MuJoCo envs, which import their renderer; Hydra
+    # imports every installed plugin's module, submitit's launcher config and ours, not submitit)
+    unused = {
+        "wandb", "matplotlib", "scipy", "submitit", "optuna", "imageio_ffmpeg", "onnx",
+        "onnxruntime", "onnxscript", "stable_baselines3", "pandas",
+    }  # fmt: skip
+    assert not imported & unused, sorted(imported & unused)
