@@ -284,3 +284,28 @@ def test_a_run_imports_nothing_it_does_not_use(tmp_path):
         "onnxruntime", "onnxscript", "stable_baselines3", "pandas",
     }  # fmt: skip
     assert not imported & unused, sorted(imported & unused)
+
+
+def test_a_sweeps_own_loop_keeps_the_gc_and_a_single_run_starts_without_it(monkeypatch):
+    """``python train.py -m``: the sweeper, the launcher and its SLURM polling run for hours in the
+    parent, with the GC (each job builds without it, in app.train); a single run starts without."""
+    import gc
+
+    import hydra
+
+    from rlexp import _speedups, app
+
+    seen: list[bool] = []
+
+    def fake_main(**kwargs):
+        return lambda task: lambda: seen.append(gc.isenabled())
+
+    monkeypatch.setattr(hydra, "main", fake_main)
+    monkeypatch.setattr(app, "_prompt_exit", lambda: None)
+    monkeypatch.setattr(app, "_PRECHECKED", {})  # main records its check for the job: not kept
+    for argv in (["-m", "seed=0,1", *TINY], TINY):
+        monkeypatch.setattr(sys, "argv", ["train.py", *argv])
+        with _speedups.startup_gc():  # as rlexp.cli.train runs app.main
+            app.main()
+    assert seen == [True, False]
+    assert gc.isenabled()

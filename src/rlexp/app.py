@@ -9,6 +9,7 @@ docs/faults.md.
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import sys
@@ -478,8 +479,11 @@ def main() -> None:
         print(f"config error: {hint(str(exc))}", file=sys.stderr)
         sys.exit(EXIT_CONFIG)
     sys.argv = [sys.argv[0], *rest]
+    multirun = any(a in ("-m", "--multirun") for a in rest)
+    if multirun:  # the sweep's own loop (sweeper, launcher, SLURM polling for hours) keeps the GC;
+        gc.enable()  # each job builds without it (train: rlexp._speedups.startup_gc)
     hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")(_task)()
-    if not any(a in ("-m", "--multirun") for a in rest):
+    if not multirun:
         _prompt_exit()
 
 
