@@ -19,7 +19,12 @@ first env step, against ``python -c "import torchrl"``. The first env step is re
     make bench ARGS="--settings standard --repeats 5"
 
 Whole runs from launch to exit (start-up, evaluation, checkpoints and logging included) are
-``benchmarks/end_to_end.py``; its sections of ``results.md`` are kept when this script rewrites it.
+``benchmarks/end_to_end.py``; its sections of ``results.md`` are kept when this script rewrites it,
+and ``--launch-to-exit whole,e2e`` runs its rows after the loop rows, into the same file (#18: the
+whole process at 61,440 steps, ~3 min; 1M steps with evaluation on the default schedule, ~13 min):
+
+    PYTHONPATH=src .venv/bin/python benchmarks/ppo_throughput.py --settings standard \
+        --launch-to-exit whole,e2e
 """
 
 from __future__ import annotations
@@ -616,6 +621,12 @@ def main() -> None:
         "--note", default="", help="a line for the table (e.g. other load on the machine)"
     )
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results.md"))
+    parser.add_argument(
+        "--launch-to-exit",
+        default="",
+        metavar="ROW[,ROW]",
+        help="then benchmarks/end_to_end.py's rows (whole: 61,440 steps; e2e: 1M with evaluation)",
+    )
     parser.add_argument("--worker", choices=CONTENDERS, help=argparse.SUPPRESS)
     parser.add_argument("--setting", choices=list(SETTINGS), help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -632,6 +643,12 @@ def main() -> None:
     for x in contenders:
         if x not in CONTENDERS:
             parser.error(f"--contenders: unknown {x!r}; choose from {list(CONTENDERS)}")
+    from end_to_end import ROWS, kept_sections
+
+    rows = [x for x in args.launch_to_exit.split(",") if x]
+    for x in rows:
+        if x not in ROWS:
+            parser.error(f"--launch-to-exit: unknown {x!r}; choose from {list(ROWS)}")
     started = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     results: dict[str, dict[str, list[float]]] = {x: {c: [] for c in contenders} for x in settings}
     first: dict[str, dict[str, list[float]]] = {x: {c: [] for c in contenders} for x in settings}
@@ -656,10 +673,11 @@ def main() -> None:
     print("\n" + text)
     out = Path(args.out)
     # benchmarks/end_to_end.py's sections (hours of runs) stay in the file
-    from end_to_end import kept_sections
-
     out.write_text(text + (kept_sections(out.read_text()) if out.exists() else ""))
     print(f"written to {args.out}")
+    for row in rows:  # each replaces its own section of the same file
+        cmd = [sys.executable, str(Path(__file__).with_name("end_to_end.py")), "--row", row]
+        subprocess.run([*cmd, "--out", str(out)], check=True)
 
 
 if __name__ == "__main__":
