@@ -70,3 +70,9 @@ def release_frozen() -> None:
     if gc.get_freeze_count():
         gc.unfreeze()
         gc.collect()
+
+
+def sweep_gc() -> None:
+    """A sweep's own loop (sweeper, launcher, SLURM polling for hours) runs with the GC; each of its
+    jobs builds without it (``rlexp.app.train``)."""
+    gc.enable()

@@ -9,7 +9,6 @@ docs/faults.md.
 
 from __future__ import annotations
 
-import gc
 import logging
 import os
 import sys
@@ -20,6 +19,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from rlexp import _speedups
 from rlexp.config.rules import first_line
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
@@ -75,7 +75,6 @@ def train(
     ``jobs``: the sweep's jobs running side by side on this machine (``trainer.eval_async=auto``)."""
     import torch
 
-    from rlexp import _speedups
     from rlexp.launch import distributed
     from rlexp.launch.signals import stop_on_signals
 
@@ -210,7 +209,6 @@ def _run(
     trainer: Any, run_dir: Path, total: int, stops: Any, ckpt: dict | None
 ) -> dict[str, float]:
     """Train; every way out leaves ``status.json`` saying how the run ended and why."""
-    from rlexp import _speedups
     from rlexp.algorithms.ppo import NonFiniteError
     from rlexp.launch.slurm import stop_requested_by_signal
     from rlexp.trainer import StopRequested
@@ -462,7 +460,8 @@ def main() -> None:
     register_configs()
     os.environ.setdefault("MUJOCO_GL", "egl")
     wanted, rest = distributed.split_flag(sys.argv[1:])
-    if wanted and any(a in ("-m", "--multirun") for a in rest):
+    multirun = any(a in ("-m", "--multirun") for a in rest)
+    if wanted and multirun:
         # A sweep: the launcher's jobs start the ranks (SLURM tasks_per_node); each job joins its group.
         os.environ["RLEXP_DISTRIBUTED"] = "1"
     elif wanted:
@@ -479,9 +478,8 @@ def main() -> None:
         print(f"config error: {hint(str(exc))}", file=sys.stderr)
         sys.exit(EXIT_CONFIG)
     sys.argv = [sys.argv[0], *rest]
-    multirun = any(a in ("-m", "--multirun") for a in rest)
-    if multirun:  # the sweep's own loop (sweeper, launcher, SLURM polling for hours) keeps the GC;
-        gc.enable()  # each job builds without it (train: rlexp._speedups.startup_gc)
+    if multirun:
+        _speedups.sweep_gc()
     hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")(_task)()
     if not multirun:
         _prompt_exit()
