@@ -39,6 +39,9 @@ class Job:
     curve: list[tuple[int, float]] = field(default_factory=list)  # (step, metric), one per step
     time_s: float = 0.0
     curves: dict[str, list[tuple[int, float]]] = field(default_factory=dict)  # every metric read
+    # per metric read, per step: the ``time`` of the row its value comes from (rows without one:
+    # left out), e.g. when a job first reached a return
+    logged_at: dict[str, dict[int, float]] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)  # what in its files could not be read
     env: str | None = None  # env.name of its config (e.g. Hopper-v5), None: no readable config
     backend: str | None = None  # env.backend of its config: gymnasium | native
@@ -131,10 +134,16 @@ def read_metrics(
 
 
 def read_histories(
-    path: Path, metrics: Sequence[str], problems: list[str] | None = None
+    path: Path,
+    metrics: Sequence[str],
+    problems: list[str] | None = None,
+    logged_at: dict[str, dict[int, float]] | None = None,
 ) -> tuple[dict[str, list[tuple[int, float]]], float]:
-    """``read_metrics`` for several metrics in one pass over the file: each one's history."""
+    """``read_metrics`` for several metrics in one pass over the file: each one's history.
+    ``logged_at`` (when given) gets, per metric and step, the ``time`` (epoch seconds) of the row
+    the value comes from; steps whose row has none (an older rlexp) are left out."""
     values: dict[str, dict[int, float]] = {m: {} for m in metrics}
+    at: dict[str, dict[int, float]] = {m: {} for m in metrics}
     times: dict[int, float] = {}
     try:
         lines = _read_text(path).splitlines()
@@ -167,16 +176,23 @@ def read_histories(
         ]
         if wrong:
             bad.append((num, f"{wrong[0]} {row[wrong[0]]!r} is not a number"))
+        when = json_number(row.get("time"))
         for metric in metrics:
             value = json_number(row.get(metric))
             if value is not None and math.isfinite(value):
                 values[metric][step] = value
+                if when is not None and math.isfinite(when):
+                    at[metric][step] = when
+                else:
+                    at[metric].pop(step, None)
         if any(k in row for k in TIME_KEYS):
             parts = [json_number(row.get(k)) for k in TIME_KEYS]
             times[step] = sum(p for p in parts if p is not None and math.isfinite(p))
     if bad and problems is not None:
         num, why = bad[0]
         problems.append(f"{path.name}: {len(bad)} line(s) skipped (first: line {num}, {why})")
+    if logged_at is not None:
+        logged_at.update(at)
     return {m: sorted(v.items()) for m, v in values.items()}, float(sum(times.values()))
 
 
@@ -186,7 +202,7 @@ def add_histories(jobs: Sequence[Job], metrics: Sequence[str]) -> None:
     for job in jobs:
         missing = [m for m in metrics if m not in job.curves]
         if missing:
-            curves, _ = read_histories(job.path / "metrics.jsonl", missing)
+            curves, _ = read_histories(job.path / "metrics.jsonl", missing, None, job.logged_at)
             job.curves.update(curves)
 
 
@@ -249,10 +265,10 @@ def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = (
     overrides = read_overrides(job_dir / ".hydra" / "overrides.yaml", problems)
     seed = next((v for k, v in map(split_override, overrides) if k in SEED_KEYS), None)
     status = read_status(job_dir / "status.json", problems)
-    curve, time_s, curves = [], 0.0, {}
+    curve, time_s, curves, logged_at = [], 0.0, {}, {}
     if metric is not None:
         names = [metric, *(m for m in other_metrics if m != metric)]
-        curves, time_s = read_histories(job_dir / "metrics.jsonl", names, problems)
+        curves, time_s = read_histories(job_dir / "metrics.jsonl", names, problems, logged_at)
         curve = curves[metric]
     if status is None:
         state, status = "unreadable", {}
@@ -288,6 +304,7 @@ def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = (
         curve=curve,
         time_s=time_s,
         curves=curves,
+        logged_at=logged_at,
         problems=problems,
     )
 
@@ -373,32 +390,6 @@ def wall_of(start: float | None, status: dict[str, Any]) -> float | None:
 
     end = parse_time(status.get("time"))
     return end - start if start is not None and end is not None and end >= start else None
-
-
-def metric_times(path: Path, metric: str) -> dict[int, float]:
-    """Per step, the ``time`` (epoch seconds, when the row was written) of the ``metrics.jsonl``
-    row its value of ``metric`` comes from: the last row of the step with a finite value of it,
-    as ``read_histories``. Steps whose row has no time (an older rlexp) are left out."""
-    times: dict[int, float] = {}
-    try:
-        lines = _read_text(path).splitlines()
-    except OSError:
-        return times
-    for line in lines:
-        try:
-            row = json.loads(line)
-        except ValueError:
-            continue
-        if not isinstance(row, dict) or (step := _step(row.get("step"))) is None:
-            continue
-        value = json_number(row.get(metric))
-        if value is not None and math.isfinite(value):
-            t = json_number(row.get("time"))
-            if t is not None and math.isfinite(t):
-                times[step] = t
-            else:
-                times.pop(step, None)
-    return times
 
 
 def find_jobs(

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rlexp.reporting.anchors import CLEANRL, EVAL, SOURCES, TRAIN, Anchor, Source, anchors_for
-from rlexp.reporting.jobs import STOPPED_EARLY, Job, metric_times, split_override
+from rlexp.reporting.jobs import STOPPED_EARLY, Job, split_override
 from rlexp.reporting.summary import common_overrides, config_key
 from rlexp.stats import bootstrap_ci, iqm, steps_to_threshold
 from rlexp.table import fixed, format_duration
@@ -134,7 +134,7 @@ def time_to(jobs: list[Job], target: float) -> TimeTo:
         if step is None:
             continue
         steps.append(step)
-        times = metric_times(job.path / "metrics.jsonl", TRAIN_METRIC)
+        times = job.logged_at.get(TRAIN_METRIC, {})
         one_attempt = job.start is not None and all(t >= job.start for t in times.values())
         if one_attempt and step in times:
             seconds.append(times[step] - job.start)
