@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -217,7 +218,8 @@ def _run(
         path = trainer.last_checkpoint or (ckpt and ckpt["path"])
         return f"the last good checkpoint is {path}" if path else "no checkpoint was written"
 
-    write_status(run_dir, "running", trainer.global_step)
+    status = partial(write_status, run_dir, env_resume=trainer.env_resume)  # docs/envs.md
+    status("running", trainer.global_step)
     # heartbeat.json while it trains: how `rlexp runs` tells a killed run from a live one
     beat = Heartbeat(run_dir, lambda: _progress(trainer, total)) if trainer.dist.is_main else None
     try:
@@ -231,25 +233,24 @@ def _run(
         if trainer.eval_env is not None and not trainer.last_eval:
             trainer.eval_once()
         if trainer.stopped_early is not None:  # a hook ended it: a result, not a failure (exit 0)
-            write_status(
-                run_dir,
+            status(
                 "stopped_early",
                 trainer.global_step,
                 trainer.last_eval,
                 reason=trainer.stopped_early,
             )
         else:
-            write_status(run_dir, "finished", trainer.global_step, trainer.last_eval)
+            status("finished", trainer.global_step, trainer.last_eval)
     except StopRequested as exc:
         step = trainer.global_step
         if stop_requested_by_signal():  # SLURM preemption: the launcher requeues the job
             log.warning(
                 "stopped at step %d (%s): checkpoint %s", step, exc, trainer.last_checkpoint
             )
-            write_status(run_dir, "stopped", step, trainer.last_eval, reason=str(exc))
+            status("stopped", step, trainer.last_eval, reason=str(exc))
             raise
         log.warning("interrupted at step %d (%s): %s", step, exc, last_good())
-        write_status(run_dir, "interrupted", step, trainer.last_eval, reason=str(exc))
+        status("interrupted", step, trainer.last_eval, reason=str(exc))
         raise RunEnded(f"interrupted ({exc})", EXIT_SIGNAL_BASE + (stops.signum or 2)) from None
     except (
         KeyboardInterrupt
@@ -257,11 +258,11 @@ def _run(
         step = trainer.global_step
         reason = f"interrupted twice at step {step}: stopped without a checkpoint; {last_good()}"
         log.warning("%s", reason)
-        write_status(run_dir, "interrupted", step, trainer.last_eval, reason=reason)
+        status("interrupted", step, trainer.last_eval, reason=reason)
         raise RunEnded(reason, EXIT_SIGNAL_BASE + 2) from None
     except NonFiniteError as exc:
         reason = f"{exc}; {last_good()}"
-        write_status(run_dir, "failed", trainer.global_step, trainer.last_eval, reason=reason)
+        status("failed", trainer.global_step, trainer.last_eval, reason=reason)
         raise RunEnded(f"stopped: {reason}", EXIT_NONFINITE) from None
     except OSError as exc:  # an unwritable checkpoints/, a full disk
         where = f" ({exc.filename})" if exc.filename else ""

@@ -75,14 +75,17 @@ class RolloutCollector(Collector):
         step = getattr(env, "step_tensors", None) or env.step_action
         steps = self.frames_per_batch  # per env
         obs = self._obs if self._obs is not None else self._carrier.get("observation")
-        keys = ("observation", "loc", "scale", "action", "action_log_prob")
+        keys = ("observation", *self._sampler.out_keys)  # the head's parameters, action, log-prob
         root: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
+        lists = [root[k] for k in keys]
+        action_at = keys.index("action") - 1
         nexts: list[Any] = []
         for _ in range(steps):
-            loc, scale, action, log_prob = sample(obs)
-            nxt = step(action)
-            for k, v in zip(keys, (obs, loc, scale, action, log_prob), strict=True):
-                root[k].append(v)
+            out = sample(obs)
+            nxt = step(out[action_at])
+            lists[0].append(obs)
+            for values, v in zip(lists[1:], out, strict=True):
+                values.append(v)
             nexts.append(nxt)
             obs = env.autoreset_observation(nxt)
         self._obs = obs

@@ -138,7 +138,7 @@ def run_round(
     events: Any = None,
     ctx: Callable[..., Any] | None = None,
 ) -> dict[str, float]:
-    """An eval round of ``policy`` (a ``GaussianPolicy``), in the training process or in the eval
+    """An eval round of ``policy`` (a ``Policy``), in the training process or in the eval
     worker: the eval env reseeded, its deterministic episodes; with the eval events (``events``, an
     ``EventManager``; ``ctx(**kw)`` its EventContext), which are finalised and told ``eval_end``.
     The metrics without the count."""
@@ -198,7 +198,7 @@ def _lean_loop(env: EnvBase, policy, obs: torch.Tensor, tally: EpisodeTally) -> 
     success_key = None
     first = True
     while not tally.finished:
-        action = sample(obs)[2]
+        action = sample(obs)[-2]  # (..., action, log-prob)
         nxt = env.step_action(action)
         if first:  # an env's step output always has the same keys
             first = False

@@ -1,9 +1,12 @@
 """``rlexp export``: a checkpoint's deterministic policy as one self-contained file, TorchScript or
 ONNX, and a metadata JSON beside it (``<file>.json``; docs/export.md).
 
-The file maps a float32 ``observation`` [batch, obs_dim] to the ``action`` [batch, act_dim] that
-``rlexp eval`` applies to the env: the Gaussian's mean, i.e. the actor MLP on the normalised
-observation. Folded in:
+The file maps a float32 ``observation`` [batch, obs_dim] (the env's observation flattened as the
+metadata's ``observation_layout`` says) to the ``action`` [batch, act_dim] that ``rlexp eval``
+applies to the env: for Box actions the Gaussian's mean, i.e. the actor MLP on the normalised
+observation; for categorical actions (Discrete, MultiDiscrete, MultiBinary) the most likely value of
+each component as an int64 in the env's own range (``start`` added; metadata ``action_space``).
+Folded in:
 
 - the observation normaliser. rlexp normalises inside the policy (``ObservationNormalizer``, whose
   statistics are checkpointed), not with a TorchRL transform on the env: ``(x - mean) / sqrt(var +
@@ -48,13 +51,23 @@ CHOICES = ("best", "last")
 
 
 class DeterministicActor(nn.Module):
-    """observation [batch, obs_dim] float32 -> the Gaussian's mean action [batch, act_dim], the
-    normaliser folded in and (``clamp_actions``) clipped to the action bounds as the env does."""
+    """observation [batch, obs_dim] float32 -> the deterministic action, the normaliser folded in.
 
-    __constants__ = ["normalize", "clip", "clamp_actions"]  # TorchScript: fixed branches
+    Box actions: the Gaussian's mean [batch, act_dim] float32, (``clamp_actions``) clipped to the
+    action bounds as the env does. Categorical actions (``nvec``): the most likely value of each
+    component, plus its ``start``: int64 [batch, K], the values of the env's own action space
+    (``Discrete``: column 0; ``MultiDiscrete`` / ``MultiBinary``: reshape to the space's shape)."""
+
+    # TorchScript: fixed branches
+    __constants__ = ["normalize", "clip", "clamp_actions", "categorical", "uniform", "k", "n"]
 
     def __init__(
-        self, policy: nn.Module, low: torch.Tensor, high: torch.Tensor, clamp_actions: bool
+        self,
+        policy: nn.Module,
+        low: torch.Tensor,
+        high: torch.Tensor,
+        clamp_actions: bool,
+        start: list[int] | None = None,
     ) -> None:
         super().__init__()
         norm = policy.actor_net.normalizer
@@ -67,15 +80,27 @@ class DeterministicActor(nn.Module):
         self.mlp = copy.deepcopy(policy.actor_net.mlp).float().requires_grad_(False)
         self.register_buffer("action_low", low.detach().clone().float())
         self.register_buffer("action_high", high.detach().clone().float())
+        nvec = list(getattr(policy, "nvec", None) or [1])
+        self.categorical = getattr(policy, "nvec", None) is not None
+        self.nvec: list[int] = nvec
+        self.uniform = len(set(nvec)) == 1
+        self.k, self.n = len(nvec), nvec[0]
+        self.register_buffer("action_start", torch.tensor(start or [0] * self.k, dtype=torch.int64))
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         x = observation
         if self.normalize:
             x = torch.clamp(torch.addcmul(self.obs_shift, x, self.obs_scale), -self.clip, self.clip)
-        action = self.mlp(x)
+        out = self.mlp(x)
+        if self.categorical:
+            if self.uniform:
+                index = out.reshape(-1, self.k, self.n).argmax(-1)
+            else:
+                index = torch.stack([b.argmax(-1) for b in torch.split(out, self.nvec, -1)], -1)
+            return index + self.action_start
         if self.clamp_actions:
-            action = torch.clamp(action, self.action_low, self.action_high)
-        return action
+            out = torch.clamp(out, self.action_low, self.action_high)
+        return out
 
 
 @dataclass
@@ -200,21 +225,37 @@ def _actor_of(ckpt: dict[str, Any]) -> tuple[DeterministicActor, Any, dict[str, 
         policy = policy_for_env(config.policy, e, env)
         obs_dim = int(env.observation_spec["observation"].shape[-1])
         act_dim = int(env.action_spec.shape[-1])
-        check_checkpoint_fits(
-            ckpt, config, policy
-        )  # loads the weights; ValueError if they do not fit
-        space = env.action_spec.space
-        low = space.low.reshape(-1, act_dim)[0]
-        high = space.high.reshape(-1, act_dim)[0]
-        clamp = e.backend in CLIPPING_BACKENDS
-        actor = DeterministicActor(policy, low, high, clamp).eval()
+        from rlexp.envs.spaces import check_layout
+
+        check_layout(ckpt.get("observation_layout"), env, f"checkpoint {ckpt.get('path')!r}")
+        check_checkpoint_fits(ckpt, config, policy)  # loads the weights; ValueError if they don't
+        base = env
+        while hasattr(base, "base_env"):  # under TorchRL transforms
+            base = base.base_env
+        coding = getattr(base, "action_coding", None)  # rlexp's Gymnasium adapter
+        layout = getattr(base, "obs_layout", None)
+        if policy.categorical:
+            low = high = torch.zeros(act_dim)
+            start = list(coding.start) if coding is not None else [0] * act_dim
+            actor = DeterministicActor(policy, low, high, False, start).eval()
+        else:
+            space = env.action_spec.space
+            low = space.low.reshape(-1, act_dim)[0]
+            high = space.high.reshape(-1, act_dim)[0]
+            clamp = e.backend in CLIPPING_BACKENDS
+            actor = DeterministicActor(policy, low, high, clamp).eval()
         info = {
             "observation_dim": obs_dim,
             "action_dim": act_dim,
             **_names(env, config),
-            "action_low": _finite_or_none(low),
-            "action_high": _finite_or_none(high),
-            "actions_clamped": clamp,
+            # how the env's observation became the input vector (Dict / Tuple / Discrete parts)
+            "observation_layout": layout.record() if layout is not None else None,
+            # what the output is and how it becomes the env's action (docs/export.md)
+            "action_space": coding.record() if coding is not None else None,
+            "action_dtype": "int64" if policy.categorical else "float32",
+            "action_low": None if policy.categorical else _finite_or_none(low),
+            "action_high": None if policy.categorical else _finite_or_none(high),
+            "actions_clamped": actor.clamp_actions,
             "observation_normalizer": {
                 "enabled": actor.normalize,
                 "clip": actor.clip if actor.normalize else None,
@@ -270,7 +311,7 @@ def _io_fields(info: dict[str, Any]) -> dict[str, Any]:
         "output_name": OUTPUT_NAME,
         "input_shape": ["batch", info["observation_dim"]],
         "output_shape": ["batch", info["action_dim"]],
-        "dtype": "float32",
+        "dtype": "float32",  # the input's; the output's is action_dtype
     }
 
 
@@ -340,7 +381,9 @@ def _check_file(path: Path, meta: dict[str, Any], actor: DeterministicActor) -> 
     with torch.no_grad():
         want = actor(probe)
         got = load_exported(path, meta)(probe)
-    if got.shape != want.shape or not torch.allclose(got, want, rtol=1e-5, atol=1e-5):
+    if got.shape != want.shape or not torch.allclose(
+        got.double(), want.double(), rtol=1e-5, atol=1e-5
+    ):
         raise ValueError(
             f"the exported {meta['format']} file {str(path)!r} does not reproduce the policy "
             f"(max difference {float((got - want).abs().max()):.3g}); please report it"

@@ -1,9 +1,10 @@
 """Small helpers of the training loop: one torch thread while envs step, crossing a multiple of a
-step count, the base env under transforms, a digest of a module's parameters, and the NaN guard's
-check of a rollout."""
+step count, the base env under transforms, a digest of a module's parameters, the NaN guard's
+check of a rollout, and the training envs put back from a checkpoint."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -13,6 +14,8 @@ from torchrl.envs import EnvBase
 
 from rlexp.algorithms.base import NonFiniteError
 from rlexp.launch.distributed import DistInfo, all_reduce_sum
+
+log = logging.getLogger(__name__)
 
 
 def base_env(env: EnvBase | None) -> EnvBase | None:
@@ -74,3 +77,35 @@ def check_rollout_finite(
         ranks = [str(r) for r, k in bad if k == key]
         where = f" on rank{'s' if len(ranks) > 1 else ''} {', '.join(ranks)}"
     raise NonFiniteError(f"non-finite {'/'.join(key)} from the env{where} at step {step}")
+
+
+def envs_state(env: EnvBase | None) -> dict:
+    """The checkpoint's ``envs`` (the training envs mid-episode; eval rounds start from fresh
+    resets) and ``observation_layout`` (how a Gymnasium env's observations were flattened)."""
+    base = base_env(env)
+    envs = {"train": base.env_state()} if hasattr(base, "env_state") else {}
+    layout = getattr(base, "obs_layout", None)
+    return {"envs": envs, "observation_layout": None if layout is None else layout.record()}
+
+
+def restore_envs(env: EnvBase | None, sd: dict, is_main: bool) -> str | None:
+    """Put the training envs back as checkpoint ``sd`` holds them (rank 0's; other ranks continue
+    with fresh episodes): what happened (restored, or new episodes, and why), or None. ValueError
+    when the checkpoint's observations were flattened otherwise than this env's."""
+    from rlexp.envs.spaces import check_layout
+
+    check_layout(sd.get("observation_layout"), env, f"checkpoint {sd.get('path')!r}")
+    base = base_env(env)
+    if not (is_main and "train" in sd.get("envs", {}) and hasattr(base, "load_env_state")):
+        return None
+    base.load_env_state(sd["envs"]["train"])
+    mode = getattr(base, "resume_mode", None) or "restored"
+    log.info("[resume] training envs: %s", mode)
+    return mode
+
+
+def restart_returns(algorithm: object) -> None:
+    """The envs start new episodes: a reward normaliser's running returns start again from 0."""
+    normalizer = getattr(algorithm, "reward_normalizer", None)
+    if normalizer is not None:
+        normalizer.returns = None  # zeros at the next rollout

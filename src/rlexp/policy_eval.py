@@ -145,8 +145,10 @@ def _is_torchscript(path: Path) -> bool:
 def _from_ckpt(ckpt: dict[str, Any]) -> PolicyBuilder:
     def build(config: Any, env: Any) -> Callable[[Any], Any]:
         from rlexp.checkpoint import check_checkpoint_fits
+        from rlexp.envs.spaces import check_layout
         from rlexp.policies.actor_critic import policy_for_env
 
+        check_layout(ckpt.get("observation_layout"), env, f"checkpoint {ckpt.get('path')!r}")
         policy = policy_for_env(config.policy, config.env, env)
         check_checkpoint_fits(
             ckpt, config, policy
@@ -187,7 +189,17 @@ def _exported_source(path: Path) -> EvalSource:
                 f"exported policy {str(path)!r} takes {meta['observation_dim']} observations; "
                 f"the env of its config gives {obs_dim}"
             )
-        return ExportedPolicy(load_exported(path, meta))
+        from rlexp.envs.spaces import check_layout
+
+        check_layout(meta.get("observation_layout"), env, f"exported policy {str(path)!r}")
+        act = load_exported(path, meta)
+        space = meta.get("action_space") or {}
+        if space.get("kind", "box") != "box":  # the file gives the env's values: back to indices
+            import torch
+
+            start = torch.tensor(space["start"], dtype=torch.int64)
+            return ExportedPolicy(lambda obs: act(obs) - start)
+        return ExportedPolicy(act)
 
     return EvalSource(
         str(path), meta["format"], int(meta["global_step"]), meta["config"], build,

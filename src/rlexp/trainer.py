@@ -15,6 +15,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, TransformedEnv
 
+from rlexp import loop
 from rlexp.algorithms.base import Algorithm, NonFiniteError
 from rlexp.checkpoint import (
     checkpoint_path,
@@ -33,8 +34,8 @@ from rlexp.events.transform import EventTransform
 from rlexp.hooks import HookManager, HookState
 from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
 from rlexp.logging import MetricLogger
-from rlexp.loop import base_env, check_rollout_finite, crossed, one_torch_thread, parameter_digest
-from rlexp.policies.actor_critic import GaussianPolicy
+from rlexp.loop import check_rollout_finite, crossed, one_torch_thread, parameter_digest
+from rlexp.policies.actor_critic import Policy
 from rlexp.progress import Progress
 
 log = logging.getLogger(__name__)
@@ -51,7 +52,7 @@ class Trainer:
         self,
         *,
         cfg: TrainerConfig,
-        policy: GaussianPolicy,
+        policy: Policy,
         algorithm: Algorithm,
         env: EnvBase,
         eval_env: EnvBase | None,
@@ -87,6 +88,8 @@ class Trainer:
         self.best_metric = -float("inf")
         self.last_checkpoint: Path | None = None
         self.resumed_from: str | None = None
+        #: how the training envs came back on resume (docs/envs.md), for status.json
+        self.env_resume: str | None = None
         self.episodes = EpisodeStats(int(env.batch_size.numel()) if len(env.batch_size) else 1)
         self._timing = {"collect": 0.0, "update": 0.0, "eval": 0.0}
         self.collector: RolloutCollector | None = None  # built when training starts, after a resume
@@ -264,7 +267,7 @@ class Trainer:
         self._eval_done(self.global_step, metrics)
         return metrics
 
-    def _run_round(self, policy: GaussianPolicy) -> dict[str, float]:
+    def _run_round(self, policy: Policy) -> dict[str, float]:
         t_start = time.perf_counter()
         ctx = functools.partial(self._ctx, self.eval_env)
         with one_torch_thread():
@@ -352,10 +355,6 @@ class Trainer:
     # -- state ---------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         """Everything a bit-exact continuation needs (see docs/checkpoints.md)."""
-        envs = {}  # the training envs mid-episode; eval rounds start from fresh resets
-        base = base_env(self.env)
-        if base is not None and hasattr(base, "env_state"):
-            envs["train"] = base.env_state()
         return {
             "global_step": self.global_step,
             "policy": self.policy.state_dict(),
@@ -365,7 +364,7 @@ class Trainer:
                 "train": self.event_manager.state_dict(),
                 "eval": self.eval_event_manager.state_dict(),
             },
-            "envs": envs,
+            **loop.envs_state(self.env),  # "envs", "observation_layout"
             "rng": rng_state(),
             "last_eval": dict(self.last_eval),
             "best_metric": self.best_metric,
@@ -380,14 +379,11 @@ class Trainer:
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         """Continue from a checkpoint: call before ``train``."""
+        self.env_resume = loop.restore_envs(self.env, sd, self.dist.is_main)  # docs/envs.md
         self.global_step = int(sd["global_step"])
         self.policy.load_state_dict(sd["policy"])
         self.algorithm.load_state_dict(sd["algorithm"])
         self.episodes.load_state_dict(sd["windows"])
-        base = base_env(self.env)
-        # The checkpoint holds rank 0's envs; other ranks continue with fresh episodes.
-        if self.dist.is_main and "train" in sd.get("envs", {}) and hasattr(base, "load_env_state"):
-            base.load_env_state(sd["envs"]["train"])
         self.event_manager.load_state_dict(sd["events"]["train"], self.env)
         self.eval_event_manager.load_state_dict(sd["events"]["eval"], self.eval_env)
         self.last_eval = dict(sd.get("last_eval", {}))
@@ -398,6 +394,10 @@ class Trainer:
         self._resume_rng = sd["rng"]
         if self.dist.is_main:  # with the env state it belongs to (rank 0's)
             self._resume_obs = sd.get("pending_observation")
+        if self.env_resume is not None and self.env_resume.startswith("restarted"):
+            self._resume_obs = None  # new episodes: nothing of the interrupted ones carries over
+            self.episodes.drop_running()
+            loop.restart_returns(self.algorithm)
         if not self.dist.is_main:  # rank 0's RNG would give every rank the same noise
             self._resume_rng = None
             torch.manual_seed(torch.initial_seed() + self.global_step)

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from rlexp.algorithms.base import Algorithm, GradSync
     from rlexp.config.schema import BaseAlgorithmConfig
-    from rlexp.policies.actor_critic import GaussianPolicy
+    from rlexp.policies.actor_critic import Policy
 
 #: ``algorithm.name`` values make_algorithm builds.
 ALGORITHMS = ("ppo", "grpo")
@@ -18,7 +18,7 @@ ALGORITHMS = ("ppo", "grpo")
 
 def make_algorithm(
     cfg: BaseAlgorithmConfig,
-    policy: GaussianPolicy,
+    policy: Policy,
     total_iterations: int,
     nan_guard: bool = True,
     grad_sync: GradSync | None = None,

@@ -45,7 +45,7 @@ from rlexp.algorithms.base import (
 )
 from rlexp.config.schema import GRPOConfig
 from rlexp.config.validate import ConfigError
-from rlexp.policies.actor_critic import GaussianPolicy
+from rlexp.policies.actor_critic import Policy
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +107,7 @@ class GRPO(MutableHyperparameters):
     def __init__(
         self,
         cfg: GRPOConfig,
-        policy: GaussianPolicy,
+        policy: Policy,
         total_iterations: int,
         nan_guard: bool = True,
         grad_sync: GradSync | None = None,
@@ -240,7 +240,7 @@ class GRPO(MutableHyperparameters):
             "loss/clip_fraction": means["clip_fraction"],
             "loss/approx_kl": means["approx_kl"],
             "loss/learning_rate": lr,
-            "loss/log_std": float(self.policy.actor_net.log_std.detach().mean()),
+            **self.policy.metrics(),  # loss/log_std for a Gaussian policy
             "grpo/mask_fraction": float(mask.mean()),
         }
         if self.reference is not None:

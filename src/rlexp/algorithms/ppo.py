@@ -3,7 +3,7 @@
 Options, all off by default (docs/ppo.md): reward scaling by the running std of the discounted
 return (``normalize_rewards``, ``normalize.py``) and reward clipping (``clip_rewards``), both applied
 to the rollout before GAE; rsl_rl's adaptive learning rate (``desired_kl``), adjusted before every
-minibatch step from the KL between the behaviour and the current Gaussian.
+minibatch step from the KL between the behaviour and the current policy (Gaussian or categorical).
 
 Speed (docs/performance.md): the loss can run through ``torch.compile`` (``algorithm.compile``), Adam
 is the fused kernel where torch has one, and the per-minibatch statistics stay tensors until the end
@@ -40,6 +40,7 @@ from rlexp.algorithms.normalize import ReduceSum, RewardNormalizer
 from rlexp.config.schema import AlgorithmConfig
 from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import POLICIES, ActorCritic
+from rlexp.policies.heads import gaussian_kl
 
 # NonFiniteError, make_optimizer, parse_compile, COMPILE_CHOICES (rlexp.algorithms.base) and
 # make_algorithm (rlexp.algorithms) are importable from here too, as they were before GRPO.
@@ -76,8 +77,9 @@ COMPILE_SAVING_PER_SAMPLE_S = 2.0e-6
 ADAPTIVE_LR_FACTOR = 1.5
 ADAPTIVE_LR_MIN = 1e-5
 ADAPTIVE_LR_MAX = 1e-2
-#: Where the behaviour policy's Gaussian rides in the flattened rollout (renamed from ``loc`` /
-#: ``scale``, so that the loss's actor, which writes those keys, never meets them).
+#: Where the behaviour policy's distribution rides in the flattened rollout (renamed from ``loc`` /
+#: ``scale`` or ``logits``, so that the loss's actor, which writes those keys, never meets them).
+BEHAVIOUR_PREFIX = "behaviour_"
 BEHAVIOUR_LOC, BEHAVIOUR_SCALE = "behaviour_loc", "behaviour_scale"
 
 
@@ -95,19 +97,6 @@ def make_gae(cfg: AlgorithmConfig, value_network=None) -> GAE:
         differentiable=False,
         vectorized=True,
     )
-
-
-def gaussian_kl(
-    old_loc: torch.Tensor, old_scale: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor
-) -> torch.Tensor:
-    """KL(old || new) of diagonal Gaussians, summed over the action dims, mean over the batch: rsl_rl's
-    formula to the letter, its 1e-5 inside the log included (it adds ~1e-5 per action dim)."""
-    kl = (
-        torch.log(scale / old_scale + 1.0e-5)
-        + (old_scale.square() + (old_loc - loc).square()) / (2.0 * scale.square())
-        - 0.5
-    ).sum(-1)
-    return kl.mean()
 
 
 def adaptive_learning_rate(lr: float, kl: float, desired_kl: float) -> float:
@@ -247,6 +236,7 @@ class PPO(MutableHyperparameters):
             batch = self.scale_rewards(batch)
         self.compute_advantages(batch)
         adaptive = self.cfg.desired_kl is not None
+        dist_keys = self.policy.actor_net.dist_keys  # loc, scale (Gaussian) or logits
         flat = batch.reshape(-1).select(
             "observation",
             "action",
@@ -254,16 +244,18 @@ class PPO(MutableHyperparameters):
             "advantage",
             "value_target",
             "state_value",
-            *(("loc", "scale") if adaptive else ()),
+            *(dist_keys if adaptive else ()),
             strict=False,
         )
         if adaptive:
-            if "loc" not in flat.keys() or "scale" not in flat.keys():
+            missing = [k for k in dist_keys if k not in flat.keys()]
+            if missing:
                 raise KeyError(
-                    "algorithm.desired_kl needs the behaviour policy's 'loc' and 'scale' in the "
-                    "rollout (the sampling policy writes them)"
+                    f"algorithm.desired_kl needs the behaviour policy's {missing} in the rollout "
+                    "(the sampling policy writes them)"
                 )
-            flat.rename_key_("loc", BEHAVIOUR_LOC).rename_key_("scale", BEHAVIOUR_SCALE)
+            for key in dist_keys:
+                flat.rename_key_(key, BEHAVIOUR_PREFIX + key)
         n = flat.shape[0]
         mb = min(self.cfg.mini_batch_size, n)
         if not self._compile_decided:
@@ -320,7 +312,7 @@ class PPO(MutableHyperparameters):
             "loss/approx_kl": metrics["kl_approx"],
             # adaptive: the rate the last step took and the next update starts from (as rsl_rl logs)
             "loss/learning_rate": self.cfg.lr if adaptive else lr,
-            "loss/log_std": float(self.policy.actor_net.log_std.detach().mean()),
+            **self.policy.metrics(),  # loss/log_std for a Gaussian policy
         }
         if self.reward_normalizer is not None:
             out["loss/reward_std"] = self.reward_normalizer.std()
@@ -335,8 +327,9 @@ class PPO(MutableHyperparameters):
         """``algorithm.desired_kl``: the KL of the current policy to the behaviour policy on this
         minibatch (averaged over ranks, so all ranks take the same rate) moves ``lr``; it lives in
         ``self.cfg`` so that ``hyperparameters()`` and checkpoints carry it."""
-        loc, scale = self.policy.actor_net(minibatch.get("observation"))
-        kl = gaussian_kl(minibatch.get(BEHAVIOUR_LOC), minibatch.get(BEHAVIOUR_SCALE), loc, scale)
+        net = self.policy.actor_net
+        behaviour = {k: minibatch.get(BEHAVIOUR_PREFIX + k) for k in net.dist_keys}
+        kl = net.kl(behaviour, minibatch.get("observation"))
         if self.grad_sync is not None:
             kl = kl.reshape(1).clone()
             self.grad_sync([kl])

@@ -1,8 +1,9 @@
-"""Gymnasium MuJoCo tasks as batched TorchRL environments.
+"""Gymnasium environments (the MuJoCo suite, classic control, the user's own) as batched TorchRL
+environments.
 
 ``GymnasiumEnv`` is a lean ``EnvBase`` over ``num_envs`` Gymnasium copies: specs come from TorchRL's
-own space conversion, observations are cast to float32, actions are clipped to the action box, and
-a finished copy is reset inside ``_step`` (its true final observation goes to ``"next"`` so truncated
+spaces (``spaces.py``): observations flattened to one float32 vector, Box actions clipped to the box,
+categorical actions decoded to the env's space), and a finished copy is reset inside ``_step`` (its true final observation goes to ``"next"`` so truncated
 episodes bootstrap correctly; the following masked ``_reset`` hands back the cached reset
 observation). It exists because TorchRL's ``GymEnv`` + ``DoubleToFloat`` costs ~0.4 ms of Python per
 step here (measured: 1,065 steps/s for collection alone on HalfCheetah-v5 against 15,000 for raw
@@ -20,8 +21,19 @@ import gymnasium as gym
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Unbounded
 from torchrl.envs import EnvBase
+
+from rlexp.envs.env_state import (
+    env_state_kind,
+    has_reset,
+    mujoco_state,
+    plain_state,
+    rng_state,
+    set_mujoco_state,
+    time_limit,
+)
+from rlexp.envs.spaces import action_coding, obs_layout
 
 log = logging.getLogger(__name__)
 
@@ -40,16 +52,38 @@ GYM_MUJOCO_TASKS = (
 
 
 def check_gym_id(env_id: str) -> None:
-    """Raise a KeyError naming close matches when ``env_id`` is not a registered Gymnasium id."""
-    if env_id in gym.registry:
+    """Raise a KeyError naming close matches when ``env_id`` is not a registered Gymnasium id.
+
+    ``module:EnvId`` (Gymnasium's own syntax) imports ``module`` first, so that the package that
+    registers ``EnvId`` does so; ids registered by an ``rlexp.plugins`` entry point are in the
+    registry once the plugins are loaded (``rlexp train`` loads them at start-up)."""
+    name = env_id
+    if ":" in env_id:
+        module, name = env_id.split(":", 1)
+        import importlib
+
+        try:
+            importlib.import_module(module)
+        except Exception as exc:  # ModuleNotFoundError, or the module's own failure
+            raise KeyError(
+                f"env.name={env_id!r}: module {module!r} could not be imported "
+                f"({type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}); "
+                "install the package that registers the env (pip install -e PATH)"
+            ) from None
+    if name in gym.registry:
         return
     import difflib
 
-    close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
+    close = difflib.get_close_matches(name, list(gym.registry), n=3)
     hint = f"; did you mean {close[0]!r}?" if close else ""
+    where = (
+        f" (module {env_id.split(':', 1)[0]!r} was imported but did not register it)"
+        if (":" in env_id)
+        else ""
+    )
     raise KeyError(
-        f"env.name={env_id!r} is not a registered Gymnasium environment; "
-        f"MuJoCo tasks: {list(GYM_MUJOCO_TASKS)}{hint}"
+        f"env.name={env_id!r} is not a registered Gymnasium environment{where}; "
+        f"MuJoCo tasks: {list(GYM_MUJOCO_TASKS)}{hint}; your own env: docs/envs.md"
     )
 
 
@@ -64,7 +98,10 @@ def mujoco_build_warnings(env_id: str) -> Iterator[None]:
     logger instead of stdout and a ``MUJOCO_LOG.TXT`` in the working directory, and the deprecation
     of Gymnasium's own XML (twice per env copy, 22 lines per HalfCheetah run) is dropped. A handler
     someone else installed is left alone; stepping keeps MuJoCo's own handler."""
-    entry = str(getattr(gym.spec(env_id), "entry_point", ""))
+    try:
+        entry = str(getattr(gym.spec(env_id), "entry_point", ""))
+    except Exception:  # checked (and reported) by check_gym_id
+        entry = ""
     if "mujoco" not in entry:  # a Gymnasium task that is not MuJoCo's: MuJoCo is not imported
         yield
         return
@@ -107,29 +144,39 @@ class GymnasiumEnv(EnvBase):
             self._envs = [gym.make(env_id, **kwargs) for _ in range(num_envs)]
         obs_space = self._envs[0].observation_space
         act_space = self._envs[0].action_space
-        if not isinstance(act_space, gym.spaces.Box) or not isinstance(obs_space, gym.spaces.Box):
-            raise TypeError(
-                f"env.name={env_id!r}: rlexp's PPO needs Box observation and action spaces, got "
-                f"{type(obs_space).__name__} / {type(act_space).__name__}"
-            )
+        where = f"env.name={env_id!r}"
+        #: how observations become the policy's flat vector, and actions the env's (spaces.py)
+        self.obs_layout = obs_layout(obs_space, where)
+        self.action_coding = action_coding(act_space, where)
         super().__init__(batch_size=torch.Size([num_envs]), device=device)
-        self.obs_dim = int(np.prod(obs_space.shape))
-        self.act_dim = int(np.prod(act_space.shape))
-        self._low = act_space.low.astype(np.float64).reshape(-1)
-        self._high = act_space.high.astype(np.float64).reshape(-1)
+        self.obs_dim = self.obs_layout.dim
+        self.act_dim = self.action_coding.dim
         n = num_envs
         self.observation_spec = Composite(
             observation=Unbounded(shape=(n, self.obs_dim), dtype=torch.float32, device=self.device),
             shape=(n,),
             device=self.device,
         )
-        self.action_spec = Bounded(
-            low=torch.as_tensor(self._low, dtype=torch.float32).expand(n, self.act_dim).clone(),
-            high=torch.as_tensor(self._high, dtype=torch.float32).expand(n, self.act_dim).clone(),
-            shape=(n, self.act_dim),
-            dtype=torch.float32,
-            device=self.device,
-        )
+        if self.action_coding.categorical:
+            self._low = self._high = None
+            self.action_spec = MultiCategorical(
+                nvec=list(self.action_coding.nvec),
+                shape=(n, self.act_dim),
+                dtype=torch.int64,
+                device=self.device,
+            )
+        else:
+            self._low = np.asarray(self.action_coding.low, dtype=np.float64)
+            self._high = np.asarray(self.action_coding.high, dtype=np.float64)
+            self.action_spec = Bounded(
+                low=torch.as_tensor(self._low, dtype=torch.float32).expand(n, self.act_dim).clone(),
+                high=torch.as_tensor(self._high, dtype=torch.float32)
+                .expand(n, self.act_dim)
+                .clone(),
+                shape=(n, self.act_dim),
+                dtype=torch.float32,
+                device=self.device,
+            )
         self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32, device=self.device)
         self.done_spec = Composite(
             done=Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device),
@@ -138,25 +185,35 @@ class GymnasiumEnv(EnvBase):
             shape=(n,),
             device=self.device,
         )
+        #: how a checkpoint holds these envs mid-episode (``env_state``): mujoco | state | restart
+        self.state_kind = env_state_kind(self._envs[0])
         self._seed: int | None = None
+        self._base_seed: int | None = (
+            None  # the seed given to set_seed (restart seeds derive from it)
+        )
+        self._steps = 0  # env steps taken by each copy so far (restart seeds derive from it)
         self._reset_obs = np.zeros((n, self.obs_dim), dtype=np.float32)
+        self._obs_now = np.zeros((n, self.obs_dim), dtype=np.float32)  # what each copy shows now
         self._pending_reset = np.zeros(n, dtype=bool)
         self._restored = np.zeros(n, dtype=bool)  # copies whose state came from load_env_state
         self.last_reset_was_restore = False
+        #: what the last load_env_state did (None before one): restored | restarted, and how
+        self.resume_mode: str | None = None
 
     # -- TorchRL API -------------------------------------------------------------------------------
     def _set_seed(self, seed: int | None) -> None:
-        self._seed = seed
+        self._seed = self._base_seed = seed
         for i, env in enumerate(self._envs):
             env.action_space.seed(None if seed is None else seed + i)
 
     def _reset_one(self, i: int) -> np.ndarray:
+        """Reset copy ``i``; its first observation, flattened."""
         if self._seed is not None:
             # Seed each copy once; later resets continue its own RNG stream.
             obs, _ = self._envs[i].reset(seed=self._seed + i)
         else:
             obs, _ = self._envs[i].reset()
-        return obs
+        return self.obs_layout.flatten(obs)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None
@@ -173,6 +230,7 @@ class GymnasiumEnv(EnvBase):
                     for i in range(self.num_envs)
                 ]
             ).astype(np.float32)
+            self._obs_now[:] = obs
             return TensorDict(
                 {"observation": torch.from_numpy(obs)},
                 batch_size=self.batch_size,
@@ -187,6 +245,7 @@ class GymnasiumEnv(EnvBase):
             else:
                 obs[i] = self._reset_one(i)
             self._pending_reset[i] = False
+            self._obs_now[i] = obs[i]
         if self._seed is not None and mask is None:
             self._seed = None  # seeded once: further resets draw from each env's own stream
         return TensorDict(
@@ -207,6 +266,7 @@ class GymnasiumEnv(EnvBase):
             obs = obs.clone()
             idx = np.flatnonzero(self._pending_reset)
             obs[idx] = torch.from_numpy(self._reset_obs[idx])
+            self._obs_now[idx] = self._reset_obs[idx]
             self._pending_reset[:] = False
         return obs
 
@@ -222,22 +282,35 @@ class GymnasiumEnv(EnvBase):
     def step_tensors(self, action: torch.Tensor) -> dict[str, torch.Tensor]:
         """``step_action``'s entries as a plain dict (the collector stacks a rollout's per key:
         ~15 ms less per 2048 steps than building and stacking a TensorDict per step)."""
-        actions = action.detach().cpu().numpy().astype(np.float64)
-        np.clip(actions, self._low, self._high, out=actions)
         n = self.num_envs
+        coding = self.action_coding
+        if coding.categorical:
+            raw = action.detach().cpu().numpy()
+            actions = [coding.decode(raw[i]) for i in range(n)]
+        else:
+            actions = action.detach().cpu().numpy().astype(np.float64)
+            np.clip(actions, self._low, self._high, out=actions)
+            if len(coding.shape) != 1:
+                actions = [coding.decode(actions[i]) for i in range(n)]
+        layout = self.obs_layout
         obs = np.empty((n, self.obs_dim), dtype=np.float32)
         reward = np.empty((n, 1), dtype=np.float32)
         terminated = np.zeros((n, 1), dtype=bool)
         truncated = np.zeros((n, 1), dtype=bool)
         for i, env in enumerate(self._envs):
             o, r, term, trunc, _ = env.step(actions[i])
-            obs[i] = o
+            if layout.plain:
+                obs[i] = o
+            else:
+                layout.flatten_into(obs[i], o)
             reward[i, 0] = r
             terminated[i, 0] = term
             truncated[i, 0] = trunc
             if term or trunc:
                 self._reset_obs[i] = self._reset_one(i)
                 self._pending_reset[i] = True
+        self._steps += 1
+        self._obs_now[:] = obs  # a copy: obs is shared with the returned tensor
         return {
             "observation": torch.from_numpy(obs),
             "reward": torch.from_numpy(reward),
@@ -246,63 +319,100 @@ class GymnasiumEnv(EnvBase):
             "truncated": torch.from_numpy(truncated),
         }
 
-    # -- exact resume --------------------------------------------------------------------------------
+    # -- resume ------------------------------------------------------------------------------------
+    # A checkpoint holds the training envs mid-episode in one of three ways (``state_kind``,
+    # docs/envs.md): ``mujoco`` (the integration state of a Gymnasium MuJoCo env: bit-exact),
+    # ``state`` (the env's own ``get_state()`` / ``set_state(state)``: plain arrays, exact as far as
+    # the env's state is complete), ``restart`` (nothing of the env: on resume every copy starts a
+    # new episode, seeded from the checkpoint). Env objects are never pickled.
     def _current_obs(self, i: int) -> np.ndarray:
         if self._pending_reset[i]:
             return self._reset_obs[i]
-        return np.asarray(self._envs[i].unwrapped._get_obs(), dtype=np.float32).reshape(-1)
+        if self.state_kind == "mujoco":
+            return self.obs_layout.flatten(self._envs[i].unwrapped._get_obs())
+        return self._obs_now[i]
 
     def env_state(self) -> dict:
-        """MuJoCo integration state, RNG and time-limit counter of every copy (for bit-exact resume)."""
-        import mujoco
-
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        """The state of every copy mid-episode, as plain data (``state_kind`` says what it holds)."""
         copies = []
         for env in self._envs:
-            u = env.unwrapped
-            state = np.empty(mujoco.mj_stateSize(u.model, spec))
-            mujoco.mj_getState(u.model, u.data, state, spec)
-            copies.append(
-                {
-                    "physics": state,
-                    "rng": u.np_random.bit_generator.state,
-                    "elapsed_steps": -1
-                    if _time_limit(env) is None or _time_limit(env)._elapsed_steps is None
-                    else _time_limit(env)._elapsed_steps,
-                }
-            )
+            limit = time_limit(env)
+            copy = {
+                "rng": rng_state(env.unwrapped),
+                "has_reset": has_reset(env),
+                "elapsed_steps": -1  # no time limit, or not started
+                if limit is None or limit._elapsed_steps is None
+                else limit._elapsed_steps,
+            }
+            if self.state_kind == "mujoco":
+                copy["physics"] = mujoco_state(env.unwrapped)
+            elif self.state_kind == "state":
+                copy["state"] = plain_state(env.unwrapped.get_state(), self.env_id)
+            copies.append(copy)
         return {
             "env_id": self.env_id,
+            "kind": self.state_kind,
             "copies": copies,
+            "obs": self._obs_now.copy(),
             "reset_obs": self._reset_obs.copy(),
             "pending_reset": self._pending_reset.copy(),
+            "steps": self._steps,
+            "seed": self._base_seed,
         }
 
     def load_env_state(self, sd: dict) -> None:
-        """Restore ``env_state()``; the next full ``reset()`` continues from it instead of resetting."""
-        import mujoco
-
+        """Restore ``env_state()``: the next full ``reset()`` continues from it instead of resetting
+        (``mujoco``, ``state``), or starts new episodes seeded from the checkpoint (``restart``);
+        ``resume_mode`` says which happened."""
         if sd["env_id"] != self.env_id or len(sd["copies"]) != self.num_envs:
             raise ValueError(
                 f"env state is for {sd['env_id']} x{len(sd['copies'])}; this env is "
                 f"{self.env_id} x{self.num_envs}"
             )
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        kind = sd.get("kind", "mujoco")  # checkpoints before #28 held MuJoCo envs only
+        self._steps = int(sd.get("steps", 0))
+        if kind != self.state_kind or kind == "restart":
+            self._restart_from(sd, kind)
+            return
         for i, (env, c) in enumerate(zip(self._envs, sd["copies"], strict=True)):
-            if int(c["elapsed_steps"]) < 0:
+            if not c.get("has_reset", int(c["elapsed_steps"]) >= 0):
                 continue  # never reset when saved: it will be reset as usual
             u = env.unwrapped
-            if not _has_reset(env):
+            if not has_reset(env):
                 env.reset()  # gymnasium's OrderEnforcing wants a reset before step
-            mujoco.mj_setState(u.model, u.data, np.asarray(c["physics"], dtype=np.float64), spec)
-            mujoco.mj_forward(u.model, u.data)
-            u.np_random.bit_generator.state = c["rng"]
-            if _time_limit(env) is not None:
-                _time_limit(env)._elapsed_steps = int(c["elapsed_steps"])
+            if kind == "mujoco":
+                set_mujoco_state(u, c["physics"])
+            else:
+                u.set_state(c["state"])
+            if c.get("rng") is not None:
+                u.np_random.bit_generator.state = c["rng"]
+            if time_limit(env) is not None and int(c["elapsed_steps"]) >= 0:
+                time_limit(env)._elapsed_steps = int(c["elapsed_steps"])
             self._restored[i] = True
+        if "obs" in sd:
+            self._obs_now[:] = np.asarray(sd["obs"])
         self._reset_obs[:] = np.asarray(sd["reset_obs"])
         self._pending_reset[:] = np.asarray(sd["pending_reset"])
         self._seed = None
+        self.resume_mode = (
+            "restored (MuJoCo state)" if kind == "mujoco" else "restored (the env's get_state)"
+        )
+
+    def _restart_from(self, sd: dict, kind: str) -> None:
+        """Every copy starts a new episode at the next full reset, seeded from the checkpoint's
+        seed and step count (the same checkpoint always restarts the same way)."""
+        base = sd.get("seed")
+        base = self._base_seed if base is None else int(base)
+        seed = ((0 if base is None else base) + 1_000_003 * self._steps) % 2**31
+        self._seed = seed
+        self._restored[:] = False
+        self._pending_reset[:] = False
+        why = (
+            "the env offers no get_state()/set_state()"
+            if kind == "restart"
+            else f"the checkpoint holds a {kind!r} env state, this env's is {self.state_kind!r}"
+        )
+        self.resume_mode = f"restarted (new episodes seeded {seed}: {why})"
 
     # -- extras ------------------------------------------------------------------------------------
     def render(self, env_id: int = 0, **camera) -> np.ndarray:
@@ -322,22 +432,6 @@ class GymnasiumEnv(EnvBase):
         super().close(raise_if_closed=raise_if_closed)
 
 
-def _time_limit(env: gym.Env) -> gym.wrappers.TimeLimit | None:
-    while isinstance(env, gym.Wrapper):
-        if isinstance(env, gym.wrappers.TimeLimit):
-            return env
-        env = env.env
-    return None
-
-
-def _has_reset(env: gym.Env) -> bool:
-    while isinstance(env, gym.Wrapper):
-        if isinstance(env, gym.wrappers.OrderEnforcing):
-            return env.has_reset
-        env = env.env
-    return True
-
-
 def make_torchrl_gym_env(
     env_id: str, num_envs: int, max_episode_steps: int | None, make_kwargs: dict
 ):
@@ -345,6 +439,12 @@ def make_torchrl_gym_env(
     from torchrl.envs import DoubleToFloat, GymEnv, TransformedEnv
 
     check_gym_id(env_id)
+    space = gym.make(env_id, **dict(make_kwargs)).action_space
+    if not isinstance(space, gym.spaces.Box):
+        raise TypeError(
+            f"env.name={env_id!r}: env.backend=torchrl_gym takes Box actions only (got "
+            f"{type(space).__name__}); use env.backend=gymnasium"
+        )
     kwargs = dict(make_kwargs)
     if max_episode_steps is not None:
         kwargs["max_episode_steps"] = max_episode_steps

@@ -1,27 +1,31 @@
-"""Gaussian policies: MLP actor with a state-independent log-std and an observation normaliser;
-``ActorCritic`` (PPO) adds an MLP critic, ``ActorOnly`` (GRPO) has none.
+"""Policies: an MLP actor with an action head (``heads.py``: Gaussian for Box actions, categorical
+for Discrete / MultiDiscrete / MultiBinary) and an observation normaliser; ``ActorCritic`` (PPO) adds
+an MLP critic, ``ActorOnly`` (GRPO) has none.
 
-The TorchRL modules (``ProbabilisticActor`` over an ``IndependentNormal``, ``ValueOperator``) are what
-the loss and evaluation use. Collection uses ``SamplingPolicy``: the same parameters, but it samples
-and scores actions with three tensor ops instead of building a distribution object per env step.
+The TorchRL modules (``ProbabilisticActor`` over an ``IndependentNormal`` or a ``MultiCategorical``,
+``ValueOperator``) are what the loss and evaluation use. Collection uses ``SamplingPolicy``: the same
+parameters, but it samples and scores actions with a few tensor ops instead of building a
+distribution object per env step.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
 from torch.nn import functional as F
+from torchrl.data import MultiCategorical as MultiCategoricalSpec
 from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
 from rlexp.config.schema import BasePolicyConfig, EnvConfig, MLPConfig
+from rlexp.policies.heads import CategoricalActorNet, GaussianActorNet, MultiCategorical, Sampler
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
@@ -31,7 +35,6 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
     "silu": nn.SiLU,
     "swish": nn.SiLU,  # swish is SiLU
 }
-_LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 
 
 class ObservationNormalizer(nn.Module):
@@ -115,33 +118,6 @@ def _ortho_init(mlp: nn.Sequential, last_gain: float) -> None:
         nn.init.zeros_(lin.bias)
 
 
-class GaussianActorNet(nn.Module):
-    """obs -> (loc, scale) with a learned state-independent log-std, clamped to its bounds."""
-
-    def __init__(
-        self,
-        normalizer: ObservationNormalizer,
-        mlp: nn.Sequential,
-        act_dim: int,
-        cfg: BasePolicyConfig,
-    ):
-        super().__init__()
-        self.normalizer = normalizer
-        self.mlp = mlp
-        self.log_std = nn.Parameter(torch.full((act_dim,), float(cfg.init_log_std)))
-        self.min_log_std = cfg.min_log_std
-        self.max_log_std = cfg.max_log_std
-
-    def log_scale(self) -> torch.Tensor:
-        """The clamped log standard deviation, [act_dim]."""
-        return torch.clamp(self.log_std, self.min_log_std, self.max_log_std)
-
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc = self.mlp(self.normalizer(obs))
-        scale = self.log_scale().exp().expand_as(loc)
-        return loc, scale
-
-
 class CriticNet(nn.Module):
     """obs -> state value."""
 
@@ -154,68 +130,44 @@ class CriticNet(nn.Module):
         return self.mlp(self.normalizer(obs))
 
 
-SampleFn = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
-
-
 class SamplingPolicy(TensorDictModuleBase):
-    """Collection policy: samples a ~ N(loc, scale) and writes its log-prob, with plain tensor ops.
+    """Collection policy: samples actions and writes their log-prob, with plain tensor ops.
 
-    Same parameters as the ``ProbabilisticActor``, same keys (``loc``, ``scale``, ``action``,
-    ``action_log_prob``), and the same log-density as ``IndependentNormal`` (tested).
+    Same parameters as the ``ProbabilisticActor``, same keys (the head's distribution parameters:
+    ``loc`` / ``scale`` or ``logits``; then ``action``, ``action_log_prob``), and the same
+    log-density as the distribution TorchRL's loss uses (tested).
     """
 
-    def __init__(self, actor_net: GaussianActorNet, deterministic: bool = False) -> None:
+    def __init__(
+        self, actor_net: GaussianActorNet | CategoricalActorNet, deterministic: bool = False
+    ) -> None:
         super().__init__()
         self.actor_net = actor_net
         self.deterministic = deterministic
         self.in_keys = ["observation"]
-        self.out_keys = ["loc", "scale", "action", "action_log_prob"]
+        self.out_keys = [*actor_net.dist_keys, "action", "action_log_prob"]
 
-    def sampler(self) -> SampleFn:
-        """``obs -> (loc, scale, action, log-probability of the action)`` for one rollout.
+    def sampler(self) -> Sampler:
+        """``obs -> (*distribution parameters, action, log-probability of the action)`` for one
+        rollout, in ``out_keys`` order.
 
         What cannot change while a rollout is collected (the clamped log-std, the log-density's
         constant, the list of layers) is computed once here; each call then runs the normaliser,
-        the MLP's layers as plain functions (no ``nn.Module`` dispatch) and five tensor ops. Build
+        the MLP's layers as plain functions (no ``nn.Module`` dispatch) and a few tensor ops. Build
         a new one after the parameters change shape or identity (every rollout, in practice).
         """
-        net = self.actor_net
-        norm = net.normalizer
-        log_scale = net.log_scale().detach()
-        scale = log_scale.exp()
-        log_norm = (log_scale + _LOG_SQRT_2PI).sum()  # -log of the density's normalising constant
-        layers = [_as_function(m) for m in net.mlp]
-        deterministic = self.deterministic
+        layers = [_as_function(m) for m in self.actor_net.mlp]
+        return self.actor_net.sampler(self.deterministic, layers)
 
-        def sample(
-            obs: torch.Tensor,
-        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-            x = norm(obs)
-            for layer in layers:
-                x = layer(x)
-            loc = x
-            scales = scale.expand_as(loc)
-            if deterministic:
-                return loc, scales, loc, (-log_norm).expand(loc.shape[:-1])
-            noise = torch.randn_like(loc)
-            action = torch.addcmul(loc, scales, noise)
-            log_prob = noise.pow(2).sum(-1).mul(-0.5) - log_norm
-            return loc, scales, action, log_prob
-
-        return sample
-
-    def sample(
-        self, obs: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(loc, scale, action, log-probability of the action) for a batch of observations."""
+    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The ``out_keys``' tensors for a batch of observations."""
         return self.sampler()(obs)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        loc, scale, action, log_prob = self.sample(tensordict.get("observation"))
-        tensordict.set("loc", loc)
-        tensordict.set("scale", scale)
-        tensordict.set("action", action)
-        tensordict.set("action_log_prob", log_prob)
+        for key, value in zip(
+            self.out_keys, self.sample(tensordict.get("observation")), strict=True
+        ):
+            tensordict.set(key, value)
         return tensordict
 
 
@@ -234,13 +186,15 @@ _FUNCTIONAL: dict[type[nn.Module], Callable[[torch.Tensor], torch.Tensor]] = {
 }
 
 
-class GaussianPolicy(nn.Module):
-    """The normaliser, the Gaussian actor and, when the config has one, the critic; its
-    ``state_dict`` is the policy part of a checkpoint.
+class Policy(nn.Module):
+    """The normaliser, the actor and, when the config has one, the critic; its ``state_dict`` is the
+    policy part of a checkpoint.
 
-    ``actor`` is TorchRL's ``ProbabilisticActor`` (``IndependentNormal``: log-prob and entropy summed
-    over the action dimensions, no squashing); ``sampling_policy`` the fast collection policy;
-    ``critic`` TorchRL's ``ValueOperator`` (None without a critic)."""
+    ``actor`` is TorchRL's ``ProbabilisticActor``: over an ``IndependentNormal`` for Box actions
+    (``nvec=None``; log-prob and entropy summed over the action dimensions, no squashing), over a
+    ``MultiCategorical`` for categorical ones (``nvec``: values per action component).
+    ``sampling_policy`` is the fast collection policy; ``critic`` TorchRL's ``ValueOperator`` (None
+    without a critic)."""
 
     def __init__(
         self,
@@ -250,11 +204,14 @@ class GaussianPolicy(nn.Module):
         action_spec: TensorSpec,
         normalize_observations: bool = True,
         clip_observations: float = 10.0,
+        nvec: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         critic_cfg: MLPConfig | None = getattr(cfg, "critic", None)
         self.normalizer = ObservationNormalizer(obs_dim, clip_observations, normalize_observations)
-        actor_mlp = make_mlp(obs_dim, act_dim, cfg.actor, "policy.actor")
+        self.nvec = None if nvec is None else tuple(int(n) for n in nvec)
+        out_dim = act_dim if self.nvec is None else sum(self.nvec)
+        actor_mlp = make_mlp(obs_dim, out_dim, cfg.actor, "policy.actor")
         critic_mlp = None
         if critic_cfg is not None:
             critic_mlp = make_mlp(obs_dim, 1, critic_cfg, "policy.critic")
@@ -262,15 +219,32 @@ class GaussianPolicy(nn.Module):
             _ortho_init(actor_mlp, 0.01)
             if critic_mlp is not None:
                 _ortho_init(critic_mlp, 1.0)
-        self.actor_net = GaussianActorNet(self.normalizer, actor_mlp, act_dim, cfg)
+        self.actor_net: GaussianActorNet | CategoricalActorNet
+        if self.nvec is None:
+            self.actor_net = GaussianActorNet(
+                self.normalizer,
+                actor_mlp,
+                act_dim,
+                cfg.init_log_std,
+                cfg.min_log_std,
+                cfg.max_log_std,
+            )
+            dist: dict = {"distribution_class": IndependentNormal}
+        else:
+            self.actor_net = CategoricalActorNet(self.normalizer, actor_mlp, self.nvec)
+            dist = {
+                "distribution_class": MultiCategorical,
+                "distribution_kwargs": {"nvec": self.nvec},
+            }
+        keys = list(self.actor_net.dist_keys)
         self.actor = ProbabilisticActor(
-            TensorDictModule(self.actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
-            in_keys=["loc", "scale"],
-            distribution_class=IndependentNormal,
+            TensorDictModule(self.actor_net, in_keys=["observation"], out_keys=keys),
+            in_keys=keys,
             return_log_prob=True,
             log_prob_key="action_log_prob",
             spec=action_spec,
             default_interaction_type=ExplorationType.RANDOM,
+            **dist,
         )
         self.critic_net: CriticNet | None = None
         self.critic: ValueOperator | None = None
@@ -278,24 +252,40 @@ class GaussianPolicy(nn.Module):
             self.critic_net = CriticNet(self.normalizer, critic_mlp)
             self.critic = ValueOperator(self.critic_net, in_keys=["observation"])
 
+    @property
+    def categorical(self) -> bool:
+        """Whether the actions are categorical (Discrete / MultiDiscrete / MultiBinary)."""
+        return self.nvec is not None
+
     def sampling_policy(self, deterministic: bool = False) -> SamplingPolicy:
-        """The fast collection policy (``deterministic``: the mean action, for evaluation)."""
+        """The fast collection policy (``deterministic``: the mean action or the most likely one,
+        for evaluation)."""
         return SamplingPolicy(self.actor_net, deterministic)
 
+    def metrics(self) -> dict[str, float]:
+        """What the policy itself shows after an update (the Gaussian's mean log-std)."""
+        if isinstance(self.actor_net, GaussianActorNet):
+            return {"loss/log_std": float(self.actor_net.log_std.detach().mean())}
+        return {}
 
-class ActorCritic(GaussianPolicy):
-    """The Gaussian actor and an MLP critic sharing the normaliser (``policy.name=actor_critic``)."""
+
+#: The name policies had when every action was a Box (kept for code that imports it).
+GaussianPolicy = Policy
+
+
+class ActorCritic(Policy):
+    """The actor and an MLP critic sharing the normaliser (``policy.name=actor_critic``)."""
 
     critic_net: CriticNet
     critic: ValueOperator
 
 
-class ActorOnly(GaussianPolicy):
-    """The Gaussian actor alone (``policy.name=actor_only``, GRPO): no critic."""
+class ActorOnly(Policy):
+    """The actor alone (``policy.name=actor_only``, GRPO): no critic."""
 
 
 #: ``policy.name`` -> the policy class.
-POLICIES: dict[str, type[GaussianPolicy]] = {"actor_critic": ActorCritic, "actor_only": ActorOnly}
+POLICIES: dict[str, type[Policy]] = {"actor_critic": ActorCritic, "actor_only": ActorOnly}
 
 
 def make_policy(
@@ -305,18 +295,36 @@ def make_policy(
     action_spec: TensorSpec,
     normalize_observations: bool = True,
     clip_observations: float = 10.0,
-) -> GaussianPolicy:
-    """Build the configured policy for an env with ``obs_dim`` observations and ``act_dim`` actions."""
+    nvec: Sequence[int] | None = None,
+) -> Policy:
+    """Build the configured policy for an env with ``obs_dim`` observations and ``act_dim`` actions
+    (``nvec``: categorical actions with these numbers of values per component)."""
     if cfg.name not in POLICIES:
         raise ValueError(f"policy.name={cfg.name!r}; choose from {sorted(POLICIES)}")
     return POLICIES[cfg.name](
-        cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations
+        cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations, nvec
     )
 
 
-def policy_for_env(cfg: BasePolicyConfig, env_cfg: EnvConfig, env: EnvBase) -> GaussianPolicy:
-    """The configured policy for a built env: its observation and action sizes and bounds from the
-    env's specs, the observation normaliser as ``env_cfg`` says (training, eval, export, checks)."""
+def action_nvec(action_spec: TensorSpec) -> tuple[int, ...] | None:
+    """The values per component of a categorical action spec (``MultiCategorical``: int actions
+    [..., K]); None for a continuous one. Other discrete specs are refused with one line."""
+    if isinstance(action_spec, MultiCategoricalSpec):
+        nvec = action_spec.nvec.reshape(-1, action_spec.shape[-1])[0]
+        return tuple(int(n) for n in nvec)
+    if action_spec.domain == "discrete":
+        raise TypeError(
+            f"the env's action spec is {type(action_spec).__name__}; rlexp's categorical policies "
+            "take a MultiCategorical spec of int actions [..., K] (rlexp's Gymnasium adapter, "
+            "env.backend=gymnasium, makes one for Discrete / MultiDiscrete / MultiBinary spaces)"
+        )
+    return None
+
+
+def policy_for_env(cfg: BasePolicyConfig, env_cfg: EnvConfig, env: EnvBase) -> Policy:
+    """The configured policy for a built env: its observation and action sizes, bounds and kind
+    from the env's specs, the observation normaliser as ``env_cfg`` says (training, eval, export,
+    checks)."""
     return make_policy(
         cfg,
         int(env.observation_spec["observation"].shape[-1]),
@@ -324,4 +332,5 @@ def policy_for_env(cfg: BasePolicyConfig, env_cfg: EnvConfig, env: EnvBase) -> G
         env.action_spec,
         env_cfg.normalize_observations,
         env_cfg.clip_observations,
+        action_nvec(env.action_spec),
     )

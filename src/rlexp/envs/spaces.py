@@ -1,0 +1,291 @@
+"""Gymnasium spaces as what rlexp's policies see: one flat float32 observation vector and one action
+tensor, with the layout written down so that checkpoints and exported files can never silently
+disagree with the env.
+
+Observations (``ObsLayout``): ``Box`` (flattened in C order, cast to float32), ``Discrete`` (one-hot),
+``MultiBinary`` (0/1 floats), ``MultiDiscrete`` (one one-hot per component), and ``Dict`` / ``Tuple``
+of those, nested to any depth. Containers are flattened depth-first: a ``Dict``'s keys in sorted
+order (``str`` order of the key, whatever order the space lists them in), a ``Tuple``'s entries by
+index; a part's key is its path joined with ``/`` (``"goal/position"``, ``"0"``). Images (uint8
+``Box`` of rank 3 or more), ``Text``, ``Graph``, ``Sequence``, ``OneOf`` are refused.
+
+Actions (``ActionCoding``): ``Box`` (a Gaussian head; actions clipped to the box), ``Discrete``,
+``MultiDiscrete`` and ``MultiBinary`` (a categorical head per component). A categorical action is an
+int64 vector ``[K]`` of component indices counted from 0 (``K = 1`` for ``Discrete``); ``decode``
+adds each component's ``start`` and gives the env the shape and dtype its space has.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+#: What the two tables above say, for error messages and docs.
+SUPPORTED_OBSERVATIONS = (
+    "Box, Discrete, MultiBinary, MultiDiscrete, and Dict/Tuple of them (nested; flattened)"
+)
+SUPPORTED_ACTIONS = "Box (Gaussian), Discrete, MultiDiscrete, MultiBinary (categorical)"
+#: How containers are flattened (recorded in checkpoints and export metadata).
+FLATTEN_ORDER = "depth-first; Dict keys sorted by str(key), Tuple entries by index"
+
+
+class UnsupportedSpace(TypeError):
+    """An observation or action space rlexp's MLP policies cannot take; the message is one line."""
+
+
+@dataclass(frozen=True)
+class ObsPart:
+    """One leaf of the observation space and where it lands in the flat vector."""
+
+    key: str  # path in the space ("" for a plain Box at the root)
+    kind: str  # box | discrete | multi_binary | multi_discrete
+    shape: tuple[int, ...]  # the space's own shape
+    offset: int  # first index in the flat vector
+    size: int  # width in the flat vector
+    nvec: tuple[int, ...] = ()  # discrete / multi_discrete: number of values per component
+    start: tuple[int, ...] = ()  # discrete / multi_discrete: the smallest value per component
+
+    def record(self) -> dict[str, Any]:
+        out = {
+            "key": self.key,
+            "kind": self.kind,
+            "shape": list(self.shape),
+            "offset": self.offset,
+            "size": self.size,
+        }
+        if self.nvec:
+            out["nvec"], out["start"] = list(self.nvec), list(self.start)
+        return out
+
+
+@dataclass(frozen=True)
+class ObsLayout:
+    """How an observation becomes the flat float32 vector the policy reads."""
+
+    space_name: str
+    parts: tuple[ObsPart, ...]
+    dim: int
+    #: a 1-D float Box at the root: the observation is the vector (the fast path)
+    plain: bool = False
+    _encoders: tuple[Callable[[Any], np.ndarray], ...] = field(default=(), compare=False)
+
+    def flatten(self, obs: Any) -> np.ndarray:
+        """The observation as a float32 vector [dim]."""
+        if self.plain:
+            return np.asarray(obs, dtype=np.float32).reshape(-1)
+        out = np.empty(self.dim, dtype=np.float32)
+        self.flatten_into(out, obs)
+        return out
+
+    def flatten_into(self, out: np.ndarray, obs: Any) -> None:
+        """Write the flattened observation into ``out`` [dim] (no allocation for a plain Box)."""
+        if self.plain:
+            out[:] = obs
+            return
+        for part, encode in zip(self.parts, self._encoders, strict=True):
+            out[part.offset : part.offset + part.size] = encode(_leaf(obs, part.key))
+
+    def record(self) -> dict[str, Any]:
+        """Plain data for checkpoints and export metadata (compared on load)."""
+        return {
+            "space": self.space_name,
+            "dim": self.dim,
+            "order": FLATTEN_ORDER,
+            "parts": [p.record() for p in self.parts],
+        }
+
+
+def _leaf(obs: Any, key: str) -> Any:
+    if not key:
+        return obs
+    for name in key.split("/"):
+        obs = obs[int(name)] if isinstance(obs, tuple | list) else obs[_dict_key(obs, name)]
+    return obs
+
+
+def _dict_key(obs: Any, name: str) -> Any:
+    if name in obs:
+        return name
+    for k in obs:  # a non-str key (Gymnasium allows any hashable): matched by str()
+        if str(k) == name:
+            return k
+    raise KeyError(f"observation has no key {name!r} (its keys: {sorted(map(str, obs))})")
+
+
+def _one_hot(n: int, start: int) -> Callable[[Any], np.ndarray]:
+    eye = np.eye(n, dtype=np.float32)
+    return lambda x: eye[int(x) - start]
+
+
+def _multi_one_hot(nvec: np.ndarray, start: np.ndarray) -> Callable[[Any], np.ndarray]:
+    offsets = np.concatenate([[0], np.cumsum(nvec)[:-1]]).astype(np.int64)
+    total = int(nvec.sum())
+
+    def encode(x: Any) -> np.ndarray:
+        out = np.zeros(total, dtype=np.float32)
+        out[offsets + (np.asarray(x, dtype=np.int64).reshape(-1) - start)] = 1.0
+        return out
+
+    return encode
+
+
+def _box(x: Any) -> np.ndarray:
+    return np.asarray(x, dtype=np.float32).reshape(-1)
+
+
+def _describe(space: spaces.Space) -> str:
+    text = repr(space)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def obs_layout(space: spaces.Space, where: str) -> ObsLayout:
+    """The layout of ``space``; ``UnsupportedSpace`` naming the part that cannot be flattened
+    (``where``: the config key and value the env came from, for the message)."""
+    parts: list[ObsPart] = []
+    encoders: list[Callable[[Any], np.ndarray]] = []
+
+    def visit(sp: spaces.Space, key: str) -> None:
+        offset = sum(p.size for p in parts)
+        at = f" at key {key!r}" if key else ""
+        if isinstance(sp, spaces.Dict):
+            for k in sorted(sp.spaces, key=str):
+                visit(sp.spaces[k], f"{key}/{k}" if key else str(k))
+        elif isinstance(sp, spaces.Tuple):
+            for i, sub in enumerate(sp.spaces):
+                visit(sub, f"{key}/{i}" if key else str(i))
+        elif isinstance(sp, spaces.Box):
+            if np.dtype(sp.dtype) == np.uint8 and len(sp.shape) >= 3:
+                raise UnsupportedSpace(
+                    f"{where}: the observation{at} is an image ({_describe(sp)}); rlexp's MLP "
+                    f"policies take {SUPPORTED_OBSERVATIONS}, not images (no CNN policy)"
+                )
+            size = int(np.prod(sp.shape))
+            parts.append(ObsPart(key, "box", tuple(sp.shape), offset, size))
+            encoders.append(_box)
+        elif isinstance(sp, spaces.Discrete):
+            n, start = int(sp.n), int(sp.start)
+            parts.append(ObsPart(key, "discrete", (), offset, n, (n,), (start,)))
+            encoders.append(_one_hot(n, start))
+        elif isinstance(sp, spaces.MultiBinary):
+            size = int(np.prod(sp.shape))
+            parts.append(ObsPart(key, "multi_binary", tuple(sp.shape), offset, size))
+            encoders.append(_box)
+        elif isinstance(sp, spaces.MultiDiscrete):
+            nvec = np.asarray(sp.nvec, dtype=np.int64).reshape(-1)
+            start = np.asarray(sp.start, dtype=np.int64).reshape(-1)
+            nv, st = tuple(int(v) for v in nvec), tuple(int(v) for v in start)
+            parts.append(
+                ObsPart(key, "multi_discrete", tuple(sp.shape), offset, int(nvec.sum()), nv, st)
+            )
+            encoders.append(_multi_one_hot(nvec, start))
+        else:
+            raise UnsupportedSpace(
+                f"{where}: the observation space{at} is {type(sp).__name__} "
+                f"({_describe(sp)}); rlexp takes {SUPPORTED_OBSERVATIONS}"
+            )
+
+    visit(space, "")
+    if not parts:
+        raise UnsupportedSpace(f"{where}: the observation space {_describe(space)} is empty")
+    dim = sum(p.size for p in parts)
+    plain = (
+        isinstance(space, spaces.Box)
+        and len(space.shape) == 1
+        and np.issubdtype(np.dtype(space.dtype), np.floating)
+    )
+    return ObsLayout(type(space).__name__, tuple(parts), dim, plain, tuple(encoders))
+
+
+@dataclass(frozen=True)
+class ActionCoding:
+    """What the policy outputs for an action space and how it becomes the env's action."""
+
+    kind: str  # box | discrete | multi_discrete | multi_binary
+    shape: tuple[int, ...]  # the space's shape
+    dim: int  # box: number of action dims; categorical: number of components K
+    nvec: tuple[int, ...] = ()  # categorical: values per component
+    start: tuple[int, ...] = ()  # categorical: the smallest value per component
+    low: tuple[float, ...] = ()  # box: bounds, flattened
+    high: tuple[float, ...] = ()
+    dtype: str = "float32"  # the space's dtype
+
+    @property
+    def categorical(self) -> bool:
+        return self.kind != "box"
+
+    def decode(self, action: np.ndarray) -> Any:
+        """One env's policy output (box: float [dim], clipped; categorical: int [K]) as the env's
+        action."""
+        if self.kind == "discrete":
+            return int(action[0]) + self.start[0]
+        if self.kind == "box":
+            return action.reshape(self.shape) if len(self.shape) != 1 else action
+        return (np.asarray(action) + np.asarray(self.start)).reshape(self.shape).astype(self.dtype)
+
+    def record(self) -> dict[str, Any]:
+        """Plain data for checkpoints and export metadata."""
+        out: dict[str, Any] = {
+            "kind": self.kind,
+            "shape": list(self.shape),
+            "dim": self.dim,
+            "dtype": self.dtype,
+        }
+        if self.categorical:
+            out["nvec"], out["start"] = list(self.nvec), list(self.start)
+        else:
+            out["low"], out["high"] = list(self.low), list(self.high)
+        return out
+
+
+def action_coding(space: spaces.Space, where: str) -> ActionCoding:
+    """The coding of ``space``; ``UnsupportedSpace`` for anything else (one line)."""
+    dtype = str(np.dtype(space.dtype)) if space.dtype is not None else "int64"
+    if isinstance(space, spaces.Box):
+        low = np.asarray(space.low, dtype=np.float64).reshape(-1)
+        high = np.asarray(space.high, dtype=np.float64).reshape(-1)
+        return ActionCoding(
+            "box",
+            tuple(space.shape),
+            int(low.size),
+            low=tuple(float(v) for v in low),
+            high=tuple(float(v) for v in high),
+            dtype=dtype,
+        )
+    if isinstance(space, spaces.Discrete):
+        return ActionCoding("discrete", (), 1, (int(space.n),), (int(space.start),), dtype=dtype)
+    if isinstance(space, spaces.MultiDiscrete):
+        nvec = tuple(int(v) for v in np.asarray(space.nvec).reshape(-1))
+        start = tuple(int(v) for v in np.asarray(space.start).reshape(-1))
+        return ActionCoding(
+            "multi_discrete", tuple(space.shape), len(nvec), nvec, start, dtype=dtype
+        )
+    if isinstance(space, spaces.MultiBinary):
+        k = int(np.prod(space.shape))
+        return ActionCoding("multi_binary", tuple(space.shape), k, (2,) * k, (0,) * k, dtype=dtype)
+    raise UnsupportedSpace(
+        f"{where}: the action space is {type(space).__name__} ({_describe(space)}); rlexp's "
+        f"policies take {SUPPORTED_ACTIONS}"
+    )
+
+
+def check_layout(saved: dict[str, Any] | None, env: Any, what: str) -> None:
+    """ValueError when ``saved`` (an observation layout a checkpoint or export recorded) is not the
+    layout of ``env``'s observations: the same vector would mean other things."""
+    base = env
+    while hasattr(base, "base_env"):
+        base = base.base_env
+    layout = getattr(base, "obs_layout", None)
+    if saved is None or layout is None:
+        return
+    current = layout.record()
+    if saved.get("parts") != current["parts"]:
+        have = [p["key"] or "(root)" for p in saved.get("parts", [])]
+        now = [p["key"] or "(root)" for p in current["parts"]]
+        raise ValueError(
+            f"{what} was made for observations flattened as {have} ({saved.get('dim')} values); "
+            f"the env now gives {now} ({current['dim']} values): the observation space changed"
+        )
