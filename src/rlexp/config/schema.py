@@ -11,9 +11,22 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from omegaconf import MISSING
+import re
+
+from omegaconf import MISSING, OmegaConf
 
 from rlexp.config.native_task import EventTermConfig, NativeTaskConfig
+
+
+def file_name(value: object) -> str:
+    """``${file_name:${env.name}}``: a value as one safe file-name component (run and checkpoint
+    names): an env id in Gymnasium's ``module:EnvId`` form or a namespace ``ns/Env-v0`` keeps its
+    letters, each run of other characters becomes ``-``."""
+    return re.sub(r"[^A-Za-z0-9._=+-]+", "-", str(value)).strip("-.") or "env"
+
+
+# Registered on import: every process that composes or converts a config imports this module.
+OmegaConf.register_new_resolver("file_name", file_name, replace=True)
 
 
 @dataclass

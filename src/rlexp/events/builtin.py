@@ -217,6 +217,19 @@ def action_noise(ctx: EventContext, std: float = 0.05) -> None:
     ctx.tensordict.set("action", act + noise.to(act.device))
 
 
+def _check_continuous_actions(env: Any, where: str, num_envs: int | None = None, **_: Any) -> None:
+    """Gaussian noise on an action needs continuous (Box) actions."""
+    if getattr(env.action_spec, "domain", "continuous") == "discrete":
+        name = getattr(base_env(env), "env_id", type(base_env(env)).__name__)
+        raise TypeError(
+            f"{where}: action_noise adds Gaussian noise to continuous (Box) actions; "
+            f"env.name={name!r} has discrete actions (observation_noise and record_rollouts work)"
+        )
+
+
+action_noise.check_env = _check_continuous_actions  # type: ignore[attr-defined]
+
+
 @register_event(
     "record_rollouts",
     params=save_params("rollouts"),

@@ -49,8 +49,10 @@ def nominal_model(env: Any):
         return env.model
     model = getattr(getattr(env, "_envs", [None])[0], "unwrapped", None)
     model = getattr(model, "model", None)
-    if model is None:
-        raise TypeError(f"{type(env).__name__} exposes no MuJoCo models to randomise")
+    if model is None or not type(model).__module__.startswith("mujoco"):
+        name = getattr(env, "env_id", None)
+        what = f"env.name={name!r}" if name else type(env).__name__
+        raise TypeError(f"{what} has no MuJoCo model (events that change physics need one)")
     return model
 
 

@@ -1,0 +1,118 @@
+"""Small Gymnasium envs of the kinds users bring, registered when this module is imported, so that
+tests name them as ``env.name=toy_envs:<Id>`` (Gymnasium's ``module:EnvId`` syntax).
+
+- ``DictGoal-v0``: Dict observations (a Box, a nested Dict, a Discrete), MultiDiscrete actions,
+  ``get_state`` / ``set_state`` (exact resume), its own RNG draws at every reset and step.
+- ``NoStateWalk-v0``: Box observations, Discrete actions (``start=-1``), no state protocol.
+- ``ImageObs-v0``, ``TextObs-v0``, ``TupleAction-v0``: spaces rlexp refuses.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+
+class DictGoal(gym.Env):
+    """Move a point on a 5x5 grid towards a goal: actions (dx, dy) in {-1, 0, 1}^2 as
+    MultiDiscrete([3, 3]); reward -distance, +1 and done on the goal; a noisy "wind" from the
+    env's own RNG at every step (so restoring the RNG matters)."""
+
+    def __init__(self, size: int = 5) -> None:
+        self.size = size
+        self.observation_space = spaces.Dict(
+            {
+                "pos": spaces.Box(0, size - 1, (2,), np.float32),
+                "target": spaces.Dict({"xy": spaces.Box(0, size - 1, (2,), np.float32)}),
+                "phase": spaces.Discrete(3, start=1),
+            }
+        )
+        self.action_space = spaces.MultiDiscrete([3, 3])
+        self.pos = np.zeros(2)
+        self.goal = np.zeros(2)
+        self.t = 0
+
+    def _obs(self):
+        return {
+            "pos": self.pos.astype(np.float32),
+            "target": {"xy": self.goal.astype(np.float32)},
+            "phase": 1 + self.t % 3,
+        }
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.pos = self.np_random.integers(0, self.size, 2).astype(float)
+        self.goal = self.np_random.integers(0, self.size, 2).astype(float)
+        self.t = 0
+        return self._obs(), {}
+
+    def step(self, action):
+        move = np.asarray(action, dtype=float) - 1.0
+        wind = self.np_random.normal(0.0, 0.1, 2)
+        self.pos = np.clip(self.pos + move + wind, 0, self.size - 1)
+        self.t += 1
+        dist = float(np.abs(self.pos - self.goal).sum())
+        reached = dist < 0.5
+        return self._obs(), (1.0 if reached else -0.1 * dist), reached, False, {}
+
+    def get_state(self):
+        return {"pos": self.pos.copy(), "goal": self.goal.copy(), "t": self.t}
+
+    def set_state(self, state):
+        self.pos = np.asarray(state["pos"], dtype=float).copy()
+        self.goal = np.asarray(state["goal"], dtype=float).copy()
+        self.t = int(state["t"])
+
+
+class NoStateWalk(gym.Env):
+    """A 1-D walk on [-3, 3]: Discrete(3, start=-1) actions are the step; reward = -|x|; no
+    get_state (resume restarts its episodes)."""
+
+    observation_space = spaces.Box(-3.0, 3.0, (1,), np.float32)
+    action_space = spaces.Discrete(3, start=-1)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x = float(self.np_random.uniform(-3, 3))
+        return np.array([self.x], np.float32), {}
+
+    def step(self, action):
+        assert action in (-1, 0, 1), action
+        self.x = float(np.clip(self.x + 0.5 * int(action), -3, 3))
+        return np.array([self.x], np.float32), -abs(self.x), False, False, {}
+
+
+class _Refused(gym.Env):
+    action_space = spaces.Box(-1, 1, (1,), np.float32)
+    observation_space = spaces.Box(-1, 1, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+class ImageObs(_Refused):
+    observation_space = spaces.Box(0, 255, (8, 8, 3), np.uint8)
+
+
+class TextObs(_Refused):
+    observation_space = spaces.Text(5)
+
+
+class TupleAction(_Refused):
+    action_space = spaces.Tuple((spaces.Discrete(2), spaces.Box(-1, 1, (1,), np.float32)))
+
+
+for _name, _cls, _steps in (
+    ("DictGoal-v0", DictGoal, 30),
+    ("NoStateWalk-v0", NoStateWalk, 25),
+    ("ImageObs-v0", ImageObs, 10),
+    ("TextObs-v0", TextObs, 10),
+    ("TupleAction-v0", TupleAction, 10),
+):
+    if _name not in gym.registry:
+        gym.register(_name, entry_point=f"{__name__}:{_cls.__name__}", max_episode_steps=_steps)
