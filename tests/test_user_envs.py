@@ -101,13 +101,16 @@ def test_cartpole_trains_and_evaluates_with_a_categorical_policy(tmp_path, algor
     assert "mean return" in out.stdout
 
 
-def _kill_after(args: list[str], cwd: Path, ckpt_dir: Path, step: int) -> None:
-    """Start ``train.py args`` and SIGKILL it once the checkpoint of ``step`` exists."""
+def _kill_after(
+    args: list[str], cwd: Path, ckpt_dir: Path, step: int, pypath: dict[str, str] = PYPATH
+) -> None:
+    """Start ``train.py args`` and SIGKILL it once the checkpoint of ``step`` exists (the process
+    group is killed on the way out, pass or fail)."""
     with open(cwd / "killed.txt", "w") as out:
         proc = subprocess.Popen(
             [sys.executable, str(REPO / "train.py"), *args],
             cwd=cwd,
-            env={**os.environ, **PYPATH},
+            env={**os.environ, **pypath},
             stdout=out,
             stderr=subprocess.STDOUT,
             start_new_session=True,
