@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 ARGS ?=
 export MUJOCO_GL ?= egl
 
-.PHONY: install train test test-slow test-slurm test-package lint format bench bench-e2e clean
+.PHONY: install train test test-slow test-slurm test-package lint format bench bench-e2e results-classic clean
 
 $(VENV)/.created:
 	$(PYTHON) -m venv $(VENV)
@@ -72,6 +72,13 @@ bench: $(VENV)/.bench
 ## (1M steps with evaluation, rlexp eval sync + async and SB3, ~35 min); --env, --anchor, --variant.
 bench-e2e: $(VENV)/.bench
 	$(PY) benchmarks/end_to_end.py $(ARGS)
+
+## Learning, measured (#28): the classic-control presets (+experiment=cartpole_ppo, acrobot_ppo,
+## pendulum_ppo, lunar_lander_ppo) x seeds 0 1 2, one run at a time, and the steps and seconds each
+## takes to its threshold (docs/results.md, "Classic control"); ~20 min on 2 cores.
+## ARGS="--presets cartpole_ppo --seeds 0" for one run, ARGS="--out FILE" to keep the table.
+results-classic: install
+	$(PY) benchmarks/classic_control.py $(ARGS)
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache
