@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -287,3 +288,34 @@ def test_exported_discrete_policy_acts_as_the_checkpoint_without_rlexp(tmp_path)
     assert torch.equal(torch.tensor(got["torchscript"]), want)  # the env's values (start 0)
     assert torch.equal(torch.tensor(got["onnx"]), want)
     assert len(set(map(tuple, got["torchscript"]))) > 1, "a constant policy: vacuous comparison"
+
+
+def test_rlexp_eval_of_an_exported_discrete_policy_with_start_equals_its_checkpoint(tmp_path):
+    """Discrete(3, start=-1): the file outputs the env's values (-1..1), rlexp eval maps them back;
+    the same episodes, the same mean return as the checkpoint's own policy."""
+    run_dir, _ = _train(
+        tmp_path,
+        "r",
+        ["env=hopper", "env.name=toy_envs:NoStateWalk-v0", "trainer.total_frames=512"],
+    )
+
+    def rlexp(*args: str) -> str:
+        out = subprocess.run(
+            [sys.executable, "-m", "rlexp", *args],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={**os.environ, **PYPATH},
+        )
+        assert out.returncode == 0, out.stderr
+        return out.stdout
+
+    rlexp("export", str(run_dir), "--format", "torchscript")
+    meta = json.loads((run_dir / "exported" / "best.pt.json").read_text())
+    assert meta["action_space"]["start"] == [-1] and meta["action_dtype"] == "int64"
+    ret = re.compile(r"mean return (-?[\d.]+) \+- ([\d.]+) over 4 episodes")
+    from_ckpt = ret.search(
+        rlexp("eval", str(run_dir / "checkpoints" / "best.pt"), "--episodes", "4")
+    )
+    from_file = ret.search(rlexp("eval", str(run_dir / "exported" / "best.pt"), "--episodes", "4"))
+    assert from_ckpt and from_file and from_ckpt.groups() == from_file.groups()
