@@ -310,3 +310,61 @@ def test_a_checkpoint_made_for_another_flattening_is_refused():
     check_layout(old.record(), SimpleNamespace(obs_layout=old), "checkpoint 'c.pt'")  # same: ok
     with pytest.raises(ValueError, match=r"checkpoint 'c.pt' was made for observations flattened"):
         check_layout(old.record(), env, "checkpoint 'c.pt'")
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "toy_envs:DictGoal-v0"])
+def test_fast_collector_equals_torchrl_loop_with_a_categorical_policy(env_id):
+    """The lean rollout loop with categorical actions (and a Dict observation) gives exactly the
+    batches of TorchRL's generic Collector."""
+    import toy_envs  # noqa: F401  (registers DictGoal-v0)
+    from torchrl.collectors import Collector
+
+    from rlexp.collector import RolloutCollector
+    from rlexp.config.schema import EnvConfig
+    from rlexp.envs.factory import make_env
+    from rlexp.policies.actor_critic import policy_for_env
+
+    def batches(cls):
+        torch.manual_seed(0)
+        env = make_env(EnvConfig(name=env_id, max_episode_steps=40), 3, seed=2)
+        pol = policy_for_env(PolicyConfig(), EnvConfig(), env)
+        col = cls(env, pol.sampling_policy(), frames_per_batch=3 * 60, total_frames=-1,
+                  trust_policy=True, track_traj_ids=False)  # fmt: skip
+        it = iter(col)
+        out = [next(it) for _ in range(2)]
+        col.shutdown()
+        return out
+
+    slow, fast = batches(Collector), batches(RolloutCollector)
+    assert any(b["next", "done"].any() for b in slow)
+    for s, f in zip(slow, fast, strict=True):
+        assert f["action"].dtype == torch.int64
+        for key in f.keys(True, True):
+            assert torch.equal(f[key], s[key]), f"{key} differs"
+
+
+@pytest.mark.parametrize(
+    "env_id",
+    ["FrozenLake-v1", "Taxi-v4", "Blackjack-v1", "MountainCar-v0", "MountainCarContinuous-v0",
+     "Acrobot-v1", "CliffWalking-v1"],
+)  # fmt: skip
+def test_registered_gymnasium_envs_of_every_space_step_and_checkpoint(env_id):
+    """Gymnasium's own envs with Discrete / Tuple observations and Discrete / Box actions: built,
+    stepped with the policy, their state saved and put back (restart: no get_state)."""
+    from rlexp.config.schema import EnvConfig
+    from rlexp.envs.factory import make_env
+    from rlexp.policies.actor_critic import policy_for_env
+
+    env = make_env(EnvConfig(name=env_id), 2, seed=0)
+    pol = policy_for_env(PolicyConfig(), EnvConfig(), env)
+    sample = pol.sampling_policy().sampler()
+    obs = env.reset()["observation"]
+    for _ in range(30):
+        nxt = env.step_tensors(sample(obs)[-2])
+        obs = env.autoreset_observation(nxt)
+    assert obs.dtype == torch.float32 and torch.isfinite(obs).all()
+    state = env.env_state()
+    env.load_env_state(state)
+    assert env.resume_mode.startswith("restarted")
+    assert env.reset()["observation"].shape == obs.shape
+    env.close()
