@@ -3,7 +3,9 @@ project (examples/user_project) extends rlexp with its own task, reward term, ev
 
 ``test_fresh_venv_user_project`` is the whole story on a clean machine: build rlexp's wheel and the
 example's, install both into a new virtualenv (not the editable one), train the example's task from
-the example's directory, and check its reward term is logged and its event fired (~1 min).
+the example's directory, and check its reward term is logged and its event fired (~1 min, the venv
+included). ``test_fresh_venv_own_gymnasium_env``, in the same venv, does the same for the example's
+own Gymnasium env (GridReach-v0): trained, resumed exactly, exported and run without rlexp (~40 s).
 """
 
 from __future__ import annotations
@@ -13,11 +15,14 @@ import os
 import shutil
 import subprocess
 import sys
+import textwrap
 import zipfile
 from importlib import metadata
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 
 from conftest import CONF_DIR, REPO
 from rlexp import paths, plugins
@@ -37,6 +42,9 @@ def _clean_env(**extra: str) -> dict[str, str]:
     """The environment of a fresh shell: nothing points Python at this checkout."""
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
     env.pop("VIRTUAL_ENV", None)
+    # the fresh venv (installed --no-compile) keeps the bytecode its first process compiles: each
+    # later process then starts in ~4 s instead of ~12 s recompiling torch
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
     env.setdefault("MUJOCO_GL", "egl")
     return {**env, **extra}
 
@@ -88,22 +96,33 @@ def test_wheel_ships_every_config_and_the_launcher_plugin(wheels):
     assert "[rlexp.plugins]" in entry and "reach_lab.plugin:register" in entry
 
 
-def test_fresh_venv_user_project(wheels, tmp_path):
-    """Only the two wheels (and their dependencies) in a new venv; the example's directory as the
-    working directory; its task trained, its reward term logged, its event fired."""
-    venv = tmp_path / "venv"
-    _run([sys.executable, "-m", "venv", venv], tmp_path)
+@pytest.fixture(scope="module")
+def user_venv(wheels, tmp_path_factory) -> Path:
+    """A new venv holding only the two wheels (and their dependencies)."""
+    venv = tmp_path_factory.mktemp("fresh") / "venv"
+    _run([sys.executable, "-m", "venv", venv], venv.parent)
     pip = [venv / "bin" / "python", "-m", "pip", "install", "-q", "--no-compile"]
-    _run([*pip, "torch==2.13.0"], tmp_path)  # first: the CPU wheel, never the CUDA build
-    _run([*pip, wheels["rlexp"], wheels["reach_lab"]], tmp_path)
+    _run([*pip, "torch==2.13.0"], venv.parent)  # first: the CPU wheel, never the CUDA build
+    _run([*pip, wheels["rlexp"], wheels["reach_lab"]], venv.parent)
+    return venv
 
-    project = tmp_path / "user_project"  # the example's directory, a git repository of its own
+
+@pytest.fixture
+def user_project(wheels, tmp_path) -> Path:
+    """The example's directory, a git repository of its own (as a user's project is)."""
+    project = tmp_path / "user_project"
     shutil.copytree(wheels["user_project"], project, ignore=_NOT_SOURCE)
     git = ["git", "-c", "user.name=t", "-c", "user.email=t@example.invalid"]
     _run([*git, "init", "-q"], project)
     _run([*git, "add", "."], project)
     _run([*git, "commit", "-q", "-m", "example"], project)
+    return project
 
+
+def test_fresh_venv_user_project(user_venv, user_project):
+    """Only the two wheels (and their dependencies) in a new venv; the example's directory as the
+    working directory; its task trained, its reward term logged, its event fired."""
+    venv, project = user_venv, user_project
     rlexp = venv / "bin" / "rlexp"
     where = _run([venv / "bin" / "python", "-c", "import rlexp, reach_lab; print(rlexp.__file__, reach_lab.__file__)"], project)  # fmt: skip
     assert str(REPO) not in where.stdout and where.stdout.count(str(venv)) == 2, where.stdout
@@ -112,8 +131,11 @@ def test_fresh_venv_user_project(wheels, tmp_path):
     )
     helped = _run([venv / "bin" / "python", "-m", "rlexp", "train", "--help"], project).stdout
     experiments = next(ln for ln in helped.splitlines() if ln.startswith("experiment: "))
-    assert {"point_reach_ppo", "push_cube_ppo"} <= set(experiments[12:].split(", ")), experiments
-    assert "env: ant," in helped
+    assert {"point_reach_ppo", "grid_reach_ppo", "push_cube_ppo"} <= set(
+        experiments[12:].split(", ")
+    ), experiments
+    envs = next(ln for ln in helped.splitlines() if ln.startswith("env: "))
+    assert {"ant", "point_reach", "grid_reach"} <= set(envs[5:].split(", ")), envs
 
     _run(
         [
@@ -150,6 +172,152 @@ def test_fresh_venv_user_project(wheels, tmp_path):
         env=_clean_env(),
     )  # fmt: skip
     assert report.returncode == 2 and "pip install 'rlexp[report]'" in report.stderr, report.stderr
+
+
+#: Runs in the venv without importing rlexp: the exported TorchScript policy plays GridReach-v0
+#: episodes, its input flattened by hand as the metadata's observation_layout says.
+_DEPLOY = textwrap.dedent(
+    """
+    import json, sys
+    import gymnasium as gym
+    import numpy as np
+    import torch
+    import reach_lab.gridworld  # registers GridReach-v0 (imports gymnasium and numpy only)
+
+    path, out = sys.argv[1], sys.argv[2]
+    meta = json.load(open(path + ".json"))
+    layout = meta["observation_layout"]
+    policy = torch.jit.load(path)
+
+    def flatten(obs):
+        vec = np.empty(layout["dim"], dtype=np.float32)
+        for part in layout["parts"]:
+            assert part["kind"] == "box", part  # GridReach: two Box entries of a Dict
+            start = part["offset"]
+            vec[start : start + part["size"]] = np.asarray(obs[part["key"]]).reshape(-1)
+        return vec
+
+    env = gym.make(meta["env_id"], **meta["config"]["env"]["kwargs"])
+    seen, actions, returns = [], [], []
+    for episode in range(8):
+        obs, _ = env.reset(seed=100 + episode)
+        done, total = False, 0.0
+        while not done:
+            vec = flatten(obs)
+            action = int(policy(torch.from_numpy(vec[None]))[0, 0])
+            seen.append(vec)
+            actions.append(action)
+            obs, reward, terminated, truncated, _ = env.step(action)
+            total += reward
+            done = terminated or truncated
+        returns.append(total)
+    np.savez(out, obs=np.stack(seen), actions=np.array(actions), returns=np.array(returns))
+    assert "rlexp" not in sys.modules, sorted(m for m in sys.modules if m.startswith("rlexp"))
+    print("episodes", len(returns))
+    """
+)
+
+#: Runs in the venv with rlexp: the checkpoint's deterministic policy (what ``rlexp eval`` runs)
+#: on the observations the exported file saw.
+_REFERENCE = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    import torch
+    from tensordict import TensorDict
+    from rlexp.config.validate import to_root_config
+    from rlexp.envs.factory import make_env
+    from rlexp.plugins import load_plugins
+    from rlexp.policy_eval import eval_config, open_source
+
+    checkpoint, data, out = sys.argv[1:4]
+    load_plugins()  # GridReach-v0 is the plugin's id
+    source = open_source(checkpoint)
+    config = to_root_config(eval_config(source.config))
+    env = make_env(config.env, 1, seed=0)
+    policy = source.build(config, env)
+    obs = torch.from_numpy(np.load(data)["obs"])
+    with torch.no_grad():
+        action = policy(TensorDict({"observation": obs}, batch_size=[len(obs)]))["action"]
+    np.save(out, action.reshape(len(obs), -1)[:, 0].numpy())
+    """
+)
+
+
+def _grid_run(rlexp: Path, project: Path, run_dir: str, *extra: str) -> Path:
+    _run(
+        [
+            rlexp, "train", "+experiment=grid_reach_ppo", "trainer.progress=false", "logger=none",
+            "seed=1", f"hydra.run.dir={run_dir}", *extra,
+        ],
+        project,
+    )  # fmt: skip
+    return project / run_dir
+
+
+def _metric_rows(run: Path, after: int) -> list[dict]:
+    """metrics.jsonl rows past ``after``, without wall-clock fields (time, perf/*)."""
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    return [
+        {k: v for k, v in row.items() if k != "time" and not k.startswith("perf/")}
+        for row in rows
+        if row["step"] > after
+    ]
+
+
+def test_fresh_venv_own_gymnasium_env(user_venv, user_project):
+    """The example's own Gymnasium env (GridReach-v0, Dict observations, Discrete actions, its own
+    get_state/set_state) from the installed packages: learned under the plugin's id; resumed from
+    a mid-run checkpoint with the same result as the uninterrupted run; exported to TorchScript
+    that acts as the checkpoint in a process without rlexp; and named as module:EnvId."""
+    venv, project = user_venv, user_project
+    rlexp, python = venv / "bin" / "rlexp", venv / "bin" / "python"
+
+    # (1) the plugin's id (conf/env/grid_reach.yaml: env.name=GridReach-v0): 16k steps learn it
+    whole = _grid_run(rlexp, project, "grid_whole")
+    status = json.loads((whole / "status.json").read_text())
+    assert status["state"] == "finished" and status["env_resume"] is None, status
+    assert status["final_eval"]["eval/episode_return"] > 0.9, status  # the optimum is ~0.98
+    log = (whole / "train.log").read_text()
+    assert "env GridReach-v0 x8: obs 4, action 1" in log, log[:2000]
+
+    # (2) resumed from the uninterrupted run's mid-run checkpoint into a new dir: the envs are put
+    # back mid-episode through GridReach.get_state/set_state, and the run ends where it did
+    half = whole / "checkpoints" / "grid_reach_ppo_step_000008192.pt"
+    mid = torch.load(half, map_location="cpu", weights_only=False)["envs"]["train"]
+    assert mid["kind"] == "state" and any(c["elapsed_steps"] > 0 for c in mid["copies"]), mid
+    resumed = _grid_run(rlexp, project, "grid_resumed", f"trainer.resume={half}")
+    status = json.loads((resumed / "status.json").read_text())
+    assert status["env_resume"] == "restored (the env's get_state)", status
+    last = "checkpoints/grid_reach_ppo_step_000016384.pt"
+    a, b = (torch.load(r / last, map_location="cpu", weights_only=False) for r in (whole, resumed))
+    assert a["global_step"] == b["global_step"] == 16384
+    for key, value in a["policy"].items():
+        assert torch.equal(value, b["policy"][key]), f"policy.{key} differs after resume"
+    assert a["windows"]["returns"] == b["windows"]["returns"]
+    assert _metric_rows(whole, 8192) == _metric_rows(resumed, 8192)
+
+    # (3) exported; played by plain torch + gymnasium; the same actions as the checkpoint's policy
+    out = _run([rlexp, "export", "grid_whole", "--format", "torchscript"], project).stdout
+    exported = whole / "exported" / "best.pt"
+    assert "as torchscript: grid_whole/exported/best.pt" in out, out
+    (project / "deploy.py").write_text(_DEPLOY)
+    (project / "reference.py").write_text(_REFERENCE)
+    played = _run([python, "deploy.py", exported, "played.npz"], project, timeout=120)
+    assert "episodes 8" in played.stdout, played.stdout
+    data = np.load(project / "played.npz")
+    assert data["returns"].mean() > 0.9, data["returns"]  # every goal reached, near the shortest
+    _run([python, "reference.py", whole / "checkpoints" / "best.pt", "played.npz", "ref.npy"], project, timeout=120)  # fmt: skip
+    np.testing.assert_array_equal(np.load(project / "ref.npy"), data["actions"])
+
+    # (4) Gymnasium's module:EnvId syntax: the module registers the id as it is imported
+    named = _grid_run(
+        rlexp, project, "grid_module", "env.name=reach_lab.gridworld:GridReach-v0",
+        "trainer.total_frames=2048", "trainer.eval_every=2048", "trainer.save_every=2048",
+    )  # fmt: skip
+    log = (named / "train.log").read_text()
+    assert "env reach_lab.gridworld:GridReach-v0 x8: obs 4, action 1" in log, log[:2000]
+    assert json.loads((named / "status.json").read_text())["global_step"] == 2048
 
 
 # -- configs: rlexp's own and the user's ----------------------------------------------------------
