@@ -368,3 +368,55 @@ def test_registered_gymnasium_envs_of_every_space_step_and_checkpoint(env_id):
     assert env.resume_mode.startswith("restarted")
     assert env.reset()["observation"].shape == obs.shape
     env.close()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("compile_loss", ["false", "true"])
+def test_categorical_ppo_update_on_cuda_matches_cpu(compile_loss):
+    """The categorical head and PPO's update on a GPU: the same parameters as on the CPU (float
+    tolerance), the sampler's log-probs those of the loss's distribution."""
+    from rlexp.algorithms.ppo import make_algorithm
+
+    torch.manual_seed(0)
+    envs, steps, nvec = 4, 32, (3, 5)
+    cfg = AlgorithmConfig(
+        num_epochs=2, mini_batch_size=32, lr=1e-2, entropy_coeff=0.01, compile=compile_loss,
+        **PLAIN_PPO,
+    )  # fmt: skip
+    cpu = _categorical_policy(nvec, n=envs)
+    gpu = copy.deepcopy(cpu).cuda()
+    obs = torch.randn(envs, steps, 5)
+    with torch.no_grad():
+        logits, action, log_prob = cpu.sampling_policy().sample(obs)
+        g = gpu.sampling_policy().sample(obs.cuda())
+        dist = gpu.actor.get_dist(TensorDict({"observation": obs.cuda()}, batch_size=[envs, steps]))
+    torch.testing.assert_close(g[2], dist.log_prob(g[1]), rtol=1e-5, atol=1e-5)
+    done = torch.zeros(envs, steps, 1, dtype=torch.bool)
+    done[1, 9] = True
+    batch = TensorDict(
+        {
+            "observation": obs,
+            "action": action,
+            "action_log_prob": log_prob,
+            "next": {
+                "observation": torch.randn(envs, steps, 5),
+                "reward": torch.randn(envs, steps, 1),
+                "terminated": done,
+                "truncated": torch.zeros_like(done),
+                "done": done.clone(),
+            },
+        },
+        batch_size=[envs, steps],
+    )
+    for pol, b in ((cpu, batch), (gpu, batch.to("cuda"))):
+        algo = make_algorithm(dataclasses_replace(cfg), pol, total_iterations=10**6)
+        torch.manual_seed(5)
+        algo.update(b.clone())
+    for (name, p), q in zip(cpu.named_parameters(), gpu.parameters(), strict=True):
+        torch.testing.assert_close(p, q.cpu(), rtol=1e-3, atol=1e-4, msg=f"{name} differs")
+
+
+def dataclasses_replace(cfg):
+    import dataclasses
+
+    return dataclasses.replace(cfg)

@@ -82,7 +82,7 @@ class DeterministicActor(nn.Module):
         self.register_buffer("action_high", high.detach().clone().float())
         nvec = list(getattr(policy, "nvec", None) or [1])
         self.categorical = getattr(policy, "nvec", None) is not None
-        self.nvec: list[int] = nvec
+        self.nvec = nvec  # TorchScript infers List[int] from the value (no annotation: no warning)
         self.uniform = len(set(nvec)) == 1
         self.k, self.n = len(nvec), nvec[0]
         self.register_buffer("action_start", torch.tensor(start or [0] * self.k, dtype=torch.int64))

@@ -8,10 +8,9 @@ constructor arguments they feed (``clip_epsilon``, ``entropy_coeff``, ``lmbda``,
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any
-
-import re
 
 from omegaconf import MISSING, OmegaConf
 
