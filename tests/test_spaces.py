@@ -420,3 +420,23 @@ def dataclasses_replace(cfg):
     import dataclasses
 
     return dataclasses.replace(cfg)
+
+
+def test_a_get_state_a_checkpoint_cannot_hold_never_fails_a_save(caplog):
+    """Mid-run, saving falls back to new episodes on resume (logged once); strict (the config
+    check) names the culprit."""
+    import toy_envs  # noqa: F401
+
+    from rlexp.envs.gym import GymnasiumEnv
+
+    env = GymnasiumEnv("toy_envs:BadState-v0", num_envs=2)
+    env.set_seed(0)
+    env.reset()
+    with pytest.raises(TypeError, match=r"get_state\(\)\['sim'\] is a object"):
+        env.env_state(strict=True)
+    with caplog.at_level("WARNING"):
+        first, second = env.env_state(), env.env_state()
+    assert first["kind"] == second["kind"] == "restart" and env.state_kind == "state"
+    assert caplog.text.count("get_state() failed") == 1
+    env.load_env_state(first)
+    assert env.resume_mode.startswith("restarted")

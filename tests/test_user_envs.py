@@ -173,6 +173,7 @@ def test_dict_observation_env_by_module_syntax_resumes_exactly_through_get_state
         ("toy_envs:TupleAction-v0", "action space is Tuple"),
         ("no_such_module:Env-v0", "module 'no_such_module' could not be imported"),
         ("toy_envs:Missing-v0", "was imported but did not register it"),
+        ("toy_envs:BadState-v0", "get_state()['sim'] is a object; a checkpoint holds only plain"),
     ],
 )
 def test_unsupported_env_is_one_line_and_exit_2_before_the_run_dir(tmp_path, name, words):

@@ -4,6 +4,7 @@ tests name them as ``env.name=toy_envs:<Id>`` (Gymnasium's ``module:EnvId`` synt
 - ``DictGoal-v0``: Dict observations (a Box, a nested Dict, a Discrete), MultiDiscrete actions,
   ``get_state`` / ``set_state`` (exact resume), its own RNG draws at every reset and step.
 - ``NoStateWalk-v0``: Box observations, Discrete actions (``start=-1``), no state protocol.
+- ``BadState-v0``: a ``get_state`` with an object in it (refused at config check).
 - ``ImageObs-v0``, ``TextObs-v0``, ``TupleAction-v0``: spaces rlexp refuses.
 """
 
@@ -83,6 +84,16 @@ class NoStateWalk(gym.Env):
         return np.array([self.x], np.float32), -abs(self.x), False, False, {}
 
 
+class BadState(NoStateWalk):
+    """A state protocol whose state a checkpoint cannot hold (an object inside)."""
+
+    def get_state(self):
+        return {"x": self.x, "sim": object()}
+
+    def set_state(self, state):
+        self.x = state["x"]
+
+
 class _Refused(gym.Env):
     action_space = spaces.Box(-1, 1, (1,), np.float32)
     observation_space = spaces.Box(-1, 1, (1,), np.float32)
@@ -110,6 +121,7 @@ class TupleAction(_Refused):
 for _name, _cls, _steps in (
     ("DictGoal-v0", DictGoal, 30),
     ("NoStateWalk-v0", NoStateWalk, 25),
+    ("BadState-v0", BadState, 25),
     ("ImageObs-v0", ImageObs, 10),
     ("TextObs-v0", TextObs, 10),
     ("TupleAction-v0", TupleAction, 10),

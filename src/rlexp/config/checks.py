@@ -46,6 +46,7 @@ def check_buildable(config: RootConfig) -> None:
         raise ConfigError(msg) from None
     t = config.trainer
     try:
+        _check_env_state(env, e.name)
         policy = policy_for_env(config.policy, e, env)
         train_events = EventManager(config.events.train, "events.train")
         eval_events = EventManager(config.events.eval, "events.eval")
@@ -59,6 +60,23 @@ def check_buildable(config: RootConfig) -> None:
         env.close()
     if config.trainer.resume not in ("auto", "never", ""):
         check_resume_checkpoint(config, policy)
+
+
+def _check_env_state(env: Any, name: str) -> None:
+    """What a checkpoint will hold of the env: an env's ``get_state()`` that fails or returns
+    something a checkpoint cannot hold is one line now, not a surprise at the first checkpoint."""
+    if not hasattr(env, "env_state"):
+        return
+    env.reset()
+    try:
+        env.env_state(strict=True)
+    except Exception as exc:
+        if first_line(exc).startswith("env.name="):
+            raise TypeError(first_line(exc)) from None
+        raise TypeError(
+            f"env.name={name!r}: get_state() failed ({type(exc).__name__}: {first_line(exc)}); "
+            "docs/envs.md, 'The state protocol'"
+        ) from None
 
 
 def check_resume_checkpoint(config: RootConfig, policy: Any) -> dict[str, Any]:

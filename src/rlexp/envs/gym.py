@@ -187,6 +187,7 @@ class GymnasiumEnv(EnvBase):
         )
         #: how a checkpoint holds these envs mid-episode (``env_state``): mujoco | state | restart
         self.state_kind = env_state_kind(self._envs[0])
+        self._state_warned = False
         self._seed: int | None = None
         self._base_seed: int | None = (
             None  # the seed given to set_seed (restart seeds derive from it)
@@ -332,26 +333,32 @@ class GymnasiumEnv(EnvBase):
             return self.obs_layout.flatten(self._envs[i].unwrapped._get_obs())
         return self._obs_now[i]
 
-    def env_state(self) -> dict:
-        """The state of every copy mid-episode, as plain data (``state_kind`` says what it holds)."""
-        copies = []
-        for env in self._envs:
-            limit = time_limit(env)
-            copy = {
-                "rng": rng_state(env.unwrapped),
-                "has_reset": has_reset(env),
-                "elapsed_steps": -1  # no time limit, or not started
-                if limit is None or limit._elapsed_steps is None
-                else limit._elapsed_steps,
-            }
-            if self.state_kind == "mujoco":
-                copy["physics"] = mujoco_state(env.unwrapped)
-            elif self.state_kind == "state":
-                copy["state"] = plain_state(env.unwrapped.get_state(), self.env_id)
-            copies.append(copy)
+    def env_state(self, strict: bool = False) -> dict:
+        """The state of every copy mid-episode, as plain data (``state_kind`` says what it holds).
+
+        Saving never fails because of the env: a ``get_state()`` that raises or returns what a
+        checkpoint cannot hold is logged once and this checkpoint holds the ``restart`` kind
+        (``strict``: raise instead; the config check does, before the run starts)."""
+        kind = self.state_kind
+        try:
+            copies = [self._copy_state(env, kind) for env in self._envs]
+        except Exception as exc:
+            if strict or kind != "state":
+                raise
+            if not self._state_warned:
+                self._state_warned = True
+                log.warning(
+                    "env.name=%r: get_state() failed (%s: %s); checkpoints hold no env state and "
+                    "a resumed run starts new episodes",
+                    self.env_id,
+                    type(exc).__name__,
+                    exc,
+                )
+            kind = "restart"
+            copies = [self._copy_state(env, kind) for env in self._envs]
         return {
             "env_id": self.env_id,
-            "kind": self.state_kind,
+            "kind": kind,
             "copies": copies,
             "obs": self._obs_now.copy(),
             "reset_obs": self._reset_obs.copy(),
@@ -359,6 +366,21 @@ class GymnasiumEnv(EnvBase):
             "steps": self._steps,
             "seed": self._base_seed,
         }
+
+    def _copy_state(self, env: gym.Env, kind: str) -> dict:
+        limit = time_limit(env)
+        copy = {
+            "rng": rng_state(env.unwrapped),
+            "has_reset": has_reset(env),
+            "elapsed_steps": -1  # no time limit, or not started
+            if limit is None or limit._elapsed_steps is None
+            else limit._elapsed_steps,
+        }
+        if kind == "mujoco":
+            copy["physics"] = mujoco_state(env.unwrapped)
+        elif kind == "state":
+            copy["state"] = plain_state(env.unwrapped.get_state(), self.env_id)
+        return copy
 
     def load_env_state(self, sd: dict) -> None:
         """Restore ``env_state()``: the next full ``reset()`` continues from it instead of resetting
@@ -407,11 +429,12 @@ class GymnasiumEnv(EnvBase):
         self._seed = seed
         self._restored[:] = False
         self._pending_reset[:] = False
-        why = (
-            "the env offers no get_state()/set_state()"
-            if kind == "restart"
-            else f"the checkpoint holds a {kind!r} env state, this env's is {self.state_kind!r}"
-        )
+        if kind == self.state_kind:
+            why = "the env offers no get_state()/set_state()"
+        elif kind == "restart":
+            why = "the checkpoint holds no env state (get_state() failed when it was saved)"
+        else:
+            why = f"the checkpoint holds a {kind!r} env state, this env's is {self.state_kind!r}"
         self.resume_mode = f"restarted (new episodes seeded {seed}: {why})"
 
     # -- extras ------------------------------------------------------------------------------------
