@@ -77,14 +77,14 @@ class RolloutCollector(Collector):
         obs = self._obs if self._obs is not None else self._carrier.get("observation")
         keys = ("observation", *self._sampler.out_keys)  # the head's parameters, action, log-prob
         root: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
-        lists = [root[k] for k in keys]
+        observations, outputs = root["observation"], [root[k] for k in keys[1:]]
         action_at = keys.index("action") - 1
         nexts: list[Any] = []
         for _ in range(steps):
             out = sample(obs)
             nxt = step(out[action_at])
-            lists[0].append(obs)
-            for values, v in zip(lists[1:], out, strict=True):
+            observations.append(obs)
+            for values, v in zip(outputs, out):  # noqa: B905  (same length: the policy's out_keys)
                 values.append(v)
             nexts.append(nxt)
             obs = env.autoreset_observation(nxt)

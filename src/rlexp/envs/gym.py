@@ -151,6 +151,8 @@ class GymnasiumEnv(EnvBase):
         super().__init__(batch_size=torch.Size([num_envs]), device=device)
         self.obs_dim = self.obs_layout.dim
         self.act_dim = self.action_coding.dim
+        self._plain_obs = self.obs_layout.plain
+        self._reshape_actions = len(self.action_coding.shape) != 1
         n = num_envs
         self.observation_spec = Composite(
             observation=Unbounded(shape=(n, self.obs_dim), dtype=torch.float32, device=self.device),
@@ -284,23 +286,22 @@ class GymnasiumEnv(EnvBase):
         """``step_action``'s entries as a plain dict (the collector stacks a rollout's per key:
         ~15 ms less per 2048 steps than building and stacking a TensorDict per step)."""
         n = self.num_envs
-        coding = self.action_coding
-        if coding.categorical:
+        if self._low is None:  # categorical: int indices [n, K] -> the env's values
             raw = action.detach().cpu().numpy()
-            actions = [coding.decode(raw[i]) for i in range(n)]
+            actions = [self.action_coding.decode(raw[i]) for i in range(n)]
         else:
             actions = action.detach().cpu().numpy().astype(np.float64)
             np.clip(actions, self._low, self._high, out=actions)
-            if len(coding.shape) != 1:
-                actions = [coding.decode(actions[i]) for i in range(n)]
-        layout = self.obs_layout
+            if self._reshape_actions:  # a Box of another shape than [act_dim]
+                actions = [self.action_coding.decode(actions[i]) for i in range(n)]
+        plain, layout = self._plain_obs, self.obs_layout
         obs = np.empty((n, self.obs_dim), dtype=np.float32)
         reward = np.empty((n, 1), dtype=np.float32)
         terminated = np.zeros((n, 1), dtype=bool)
         truncated = np.zeros((n, 1), dtype=bool)
         for i, env in enumerate(self._envs):
             o, r, term, trunc, _ = env.step(actions[i])
-            if layout.plain:
+            if plain:
                 obs[i] = o
             else:
                 layout.flatten_into(obs[i], o)
