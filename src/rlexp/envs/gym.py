@@ -194,9 +194,9 @@ class GymnasiumEnv(EnvBase):
         self._base_seed: int | None = (
             None  # the seed given to set_seed (restart seeds derive from it)
         )
-        self._steps = 0  # env steps taken by each copy so far (restart seeds derive from it)
         self._reset_obs = np.zeros((n, self.obs_dim), dtype=np.float32)
-        self._obs_now = np.zeros((n, self.obs_dim), dtype=np.float32)  # what each copy shows now
+        # What changes every step lives in a plain object: EnvBase's __setattr__ costs ~3 us a call.
+        self._live = _Live(np.zeros((n, self.obs_dim), dtype=np.float32))
         self._pending_reset = np.zeros(n, dtype=bool)
         self._restored = np.zeros(n, dtype=bool)  # copies whose state came from load_env_state
         self.last_reset_was_restore = False
@@ -233,7 +233,7 @@ class GymnasiumEnv(EnvBase):
                     for i in range(self.num_envs)
                 ]
             ).astype(np.float32)
-            self._obs_now[:] = obs
+            self._live.obs_now = obs
             return TensorDict(
                 {"observation": torch.from_numpy(obs)},
                 batch_size=self.batch_size,
@@ -248,7 +248,12 @@ class GymnasiumEnv(EnvBase):
             else:
                 obs[i] = self._reset_one(i)
             self._pending_reset[i] = False
-            self._obs_now[i] = obs[i]
+        if mask is None:
+            self._live.obs_now = obs
+        else:
+            now = self._live.obs_now.copy()
+            now[mask] = obs[mask]
+            self._live.obs_now = now
         if self._seed is not None and mask is None:
             self._seed = None  # seeded once: further resets draw from each env's own stream
         return TensorDict(
@@ -269,7 +274,7 @@ class GymnasiumEnv(EnvBase):
             obs = obs.clone()
             idx = np.flatnonzero(self._pending_reset)
             obs[idx] = torch.from_numpy(self._reset_obs[idx])
-            self._obs_now[idx] = self._reset_obs[idx]
+            self._live.obs_now = obs.numpy()
             self._pending_reset[:] = False
         return obs
 
@@ -294,25 +299,25 @@ class GymnasiumEnv(EnvBase):
             np.clip(actions, self._low, self._high, out=actions)
             if self._reshape_actions:  # a Box of another shape than [act_dim]
                 actions = [self.action_coding.decode(actions[i]) for i in range(n)]
-        plain, layout = self._plain_obs, self.obs_layout
         obs = np.empty((n, self.obs_dim), dtype=np.float32)
         reward = np.empty((n, 1), dtype=np.float32)
         terminated = np.zeros((n, 1), dtype=bool)
         truncated = np.zeros((n, 1), dtype=bool)
+        flatten = None if self._plain_obs else self.obs_layout.flatten_into
         for i, env in enumerate(self._envs):
             o, r, term, trunc, _ = env.step(actions[i])
-            if plain:
+            if flatten is None:
                 obs[i] = o
             else:
-                layout.flatten_into(obs[i], o)
+                flatten(obs[i], o)
             reward[i, 0] = r
             terminated[i, 0] = term
             truncated[i, 0] = trunc
             if term or trunc:
                 self._reset_obs[i] = self._reset_one(i)
                 self._pending_reset[i] = True
-        self._steps += 1
-        self._obs_now[:] = obs  # a copy: obs is shared with the returned tensor
+        self._live.steps += 1
+        self._live.obs_now = obs
         return {
             "observation": torch.from_numpy(obs),
             "reward": torch.from_numpy(reward),
@@ -332,7 +337,7 @@ class GymnasiumEnv(EnvBase):
             return self._reset_obs[i]
         if self.state_kind == "mujoco":
             return self.obs_layout.flatten(self._envs[i].unwrapped._get_obs())
-        return self._obs_now[i]
+        return self._live.obs_now[i]
 
     def env_state(self, strict: bool = False) -> dict:
         """The state of every copy mid-episode, as plain data (``state_kind`` says what it holds).
@@ -361,10 +366,10 @@ class GymnasiumEnv(EnvBase):
             "env_id": self.env_id,
             "kind": kind,
             "copies": copies,
-            "obs": self._obs_now.copy(),
+            "obs": self._live.obs_now.copy(),
             "reset_obs": self._reset_obs.copy(),
             "pending_reset": self._pending_reset.copy(),
-            "steps": self._steps,
+            "steps": self._live.steps,
             "seed": self._base_seed,
         }
 
@@ -393,7 +398,7 @@ class GymnasiumEnv(EnvBase):
                 f"{self.env_id} x{self.num_envs}"
             )
         kind = sd.get("kind", "mujoco")  # checkpoints before #28 held MuJoCo envs only
-        self._steps = int(sd.get("steps", 0))
+        self._live.steps = int(sd.get("steps", 0))
         if kind != self.state_kind or kind == "restart":
             self._restart_from(sd, kind)
             return
@@ -413,7 +418,7 @@ class GymnasiumEnv(EnvBase):
                 time_limit(env)._elapsed_steps = int(c["elapsed_steps"])
             self._restored[i] = True
         if "obs" in sd:
-            self._obs_now[:] = np.asarray(sd["obs"])
+            self._live.obs_now = np.array(sd["obs"], dtype=np.float32)
         self._reset_obs[:] = np.asarray(sd["reset_obs"])
         self._pending_reset[:] = np.asarray(sd["pending_reset"])
         self._seed = None
@@ -426,7 +431,7 @@ class GymnasiumEnv(EnvBase):
         seed and step count (the same checkpoint always restarts the same way)."""
         base = sd.get("seed")
         base = self._base_seed if base is None else int(base)
-        seed = ((0 if base is None else base) + 1_000_003 * self._steps) % 2**31
+        seed = ((0 if base is None else base) + 1_000_003 * self._live.steps) % 2**31
         self._seed = seed
         self._restored[:] = False
         self._pending_reset[:] = False
@@ -454,6 +459,17 @@ class GymnasiumEnv(EnvBase):
         for env in self._envs:
             env.close()
         super().close(raise_if_closed=raise_if_closed)
+
+
+class _Live:
+    """Per-step state of ``GymnasiumEnv``: the steps taken (restart seeds derive from it) and what
+    each copy shows now (replaced, never written in place: it may be a step's returned array)."""
+
+    __slots__ = ("obs_now", "steps")
+
+    def __init__(self, obs_now: np.ndarray) -> None:
+        self.obs_now = obs_now
+        self.steps = 0
 
 
 def make_torchrl_gym_env(
