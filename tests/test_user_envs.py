@@ -165,10 +165,18 @@ def test_dict_observation_env_by_module_syntax_resumes_exactly_through_get_state
     assert a["last_eval"] == b["last_eval"] and a["last_eval"]
 
 
+def test_an_unsupported_space_is_one_line_and_exit_2_before_the_run_dir(tmp_path):
+    name = "toy_envs:ImageObs-v0"
+    run_dir, proc = _train(tmp_path, "r", ["env=hopper", f"env.name={name}"], check=False)
+    assert proc.returncode == 2, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "is an image" in lines[0] and name in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr and not run_dir.exists()
+
+
 @pytest.mark.parametrize(
     ("name", "words"),
     [
-        ("toy_envs:ImageObs-v0", "is an image"),
         ("toy_envs:TextObs-v0", "observation space is Text"),
         ("toy_envs:TupleAction-v0", "action space is Tuple"),
         ("no_such_module:Env-v0", "module 'no_such_module' could not be imported"),
@@ -176,12 +184,18 @@ def test_dict_observation_env_by_module_syntax_resumes_exactly_through_get_state
         ("toy_envs:BadState-v0", "get_state()['sim'] is a object; a checkpoint holds only plain"),
     ],
 )
-def test_unsupported_env_is_one_line_and_exit_2_before_the_run_dir(tmp_path, name, words):
-    run_dir, proc = _train(tmp_path, "r", ["env=hopper", f"env.name={name}"], check=False)
-    assert proc.returncode == 2, proc.stderr
-    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and words in lines[0] and name in lines[0], proc.stderr
-    assert "Traceback" not in proc.stderr and not run_dir.exists()
+def test_what_cannot_run_is_one_line_at_the_config_check(name, words):
+    """The check ``train.py`` runs before the run dir exists (the subprocess test above shows the
+    exit code and the missing run dir for one of them)."""
+    from conftest import compose
+    from rlexp.config.checks import check_buildable
+    from rlexp.config.validate import ConfigError, to_root_config
+
+    config = to_root_config(compose(["env=hopper", f"env.name={name}"]))
+    with pytest.raises(ConfigError) as err:
+        check_buildable(config)
+    msg = str(err.value)
+    assert "\n" not in msg and words in msg and name in msg
 
 
 @pytest.mark.parametrize(
