@@ -523,3 +523,27 @@ def test_without_observation_normalisation_the_networks_see_the_raw_observations
     torch.testing.assert_close(pol.normalizer(x), x, rtol=0, atol=0)
     with torch.no_grad():
         torch.testing.assert_close(pol.critic_net(x), pol.critic_net.mlp(x), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize(("shift", "rate"), [(0.2, 1e-3), (0.1, 1.5e-3)], ids=["in-band", "below"])
+def test_adaptive_lr_compares_the_kl_with_the_configured_target(shift, rate):
+    """desired_kl 0.05 (test_ppo_options uses 0.01): a behaviour mean 0.2 away (KL ~0.04) is
+    within [0.025, 0.1], the rate stays; 0.1 away (KL ~0.01) is below 0.025, the rate goes up 1.5x.
+    With a target of 0.01 both would go the other way.
+
+    Catches: desired_kl hard-coded to 0.01 (or any target outside [0.02, 0.08])."""
+    torch.manual_seed(0)
+    pol = make_policy(PolicyConfig(), OBS, ACT, Bounded(-1.0, 1.0, shape=(ACT,)))
+    batch = _rollout(pol, seed=3, loc_shift=shift)
+    with torch.no_grad():  # the KL the rule sees, in plain torch
+        loc, scale = pol.actor_net(batch["observation"])
+    kl = torch.distributions.kl_divergence(
+        torch.distributions.Normal(batch["loc"], batch["scale"]), torch.distributions.Normal(loc, scale)
+    ).sum(-1).mean()  # fmt: skip
+    assert (0.025 < float(kl) < 0.1) if rate == 1e-3 else (0.0 < float(kl) < 0.02)
+    cfg = AlgorithmConfig(
+        desired_kl=0.05, lr=1e-3, num_epochs=1, mini_batch_size=48, compile="false", **PLAIN_PPO
+    )
+    algo = make_algorithm(cfg, pol, total_iterations=10)
+    algo.update(batch)
+    assert algo.cfg.lr == pytest.approx(rate, rel=1e-12)
