@@ -1,10 +1,14 @@
-"""Shared test fixtures: Hydra composition of the real conf/, and the repository's paths."""
+"""Shared test fixtures: Hydra composition of the real conf/, the repository's paths, and the
+processes a test starts (ended on teardown, pass or fail)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -61,6 +65,66 @@ def run_train(
             f"train.py {args} exited {proc.returncode}\nSTDOUT:\n{proc.stdout}\nSTDERR:\n{proc.stderr}"
         )
     return proc
+
+
+#: What rlexp stops on (rlexp.launch.signals.STOP_SIGNALS).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _default_stop_signals() -> None:
+    """In the child, before exec: the stop signals as a terminal delivers them. An ignored signal
+    survives exec, and a test runner started by a shell's ``&`` ignores SIGINT, under ``nohup``
+    SIGHUP; rlexp rightly keeps an ignored signal ignored, so a test that sends one must not
+    depend on what the runner inherited."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_DFL)
+
+
+class Children:
+    """The processes a test starts: each leads a process group of its own (its own children
+    included: eval workers, sweep jobs) and starts with the default stop-signal dispositions."""
+
+    def __init__(self) -> None:
+        self.started: list[subprocess.Popen] = []
+
+    def popen(self, args: list[str], **kw) -> subprocess.Popen:
+        """``subprocess.Popen(args, **kw)``, recorded, so that teardown kills its group."""
+        proc = subprocess.Popen(
+            args, start_new_session=True, preexec_fn=_default_stop_signals, **kw
+        )
+        self.started.append(proc)
+        return proc
+
+    def train(
+        self, args: list[str], cwd: Path, console: Path, env_extra: dict[str, str] | None = None
+    ) -> subprocess.Popen:
+        """``python train.py ARGS`` in the background, stdout and stderr to the file ``console``
+        (a file, not a pipe: a full pipe would block the child)."""
+        env = {**os.environ, "PYTHONPATH": str(REPO / "src"), **(env_extra or {})}
+        with open(console, "w") as out:
+            return self.popen(
+                [sys.executable, str(REPO / "train.py"), *args],
+                cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT,
+            )  # fmt: skip
+
+    def kill_all(self) -> None:
+        """SIGKILL every recorded process group (a no-op for groups already gone) and reap."""
+        for proc in self.started:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=30)
+
+
+@pytest.fixture
+def children() -> Iterator[Children]:
+    """Start background processes through this; teardown kills their process groups, pass or
+    fail (a failed test once left a 100M-frame train.py running for half an hour)."""
+    started = Children()
+    try:
+        yield started
+    finally:
+        started.kill_all()
 
 
 def only_run_dir(root: Path) -> Path:
