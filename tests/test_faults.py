@@ -7,14 +7,13 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import torch
 
-from conftest import CONF_DIR, REPO, SHORT, run_train
+from conftest import CONF_DIR, SHORT, Children, run_train
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint, step_checkpoints
 from rlexp.config.validate import ConfigError
 
@@ -29,15 +28,12 @@ LONG = [
 ]
 
 
-def _start(args: list[str], cwd: Path, name: str) -> tuple[subprocess.Popen, Path]:
-    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+def _start(
+    children: Children, args: list[str], cwd: Path, name: str
+) -> tuple[subprocess.Popen, Path]:
+    """train.py in the background, killed on teardown if the test fails before it ends."""
     console = cwd / f"{name}.txt"
-    with open(console, "w") as out:  # a file, not a pipe: a full pipe would block the child
-        proc = subprocess.Popen(
-            [sys.executable, str(REPO / "train.py"), *args],
-            cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT,
-        )  # fmt: skip
-    return proc, console
+    return children.train(args, cwd, console), console
 
 
 def _wait_for(proc: subprocess.Popen, console: Path, text: str, timeout: float = 180) -> None:
@@ -57,9 +53,11 @@ def _status(run_dir: Path) -> dict:
 
 
 # -- one run per dir; SIGTERM / SIGHUP save ----------------------------------------------------------
-def test_a_second_run_on_a_busy_dir_exits_2_and_sigterm_saves_and_the_dir_resumes(tmp_path):
+def test_a_second_run_on_a_busy_dir_exits_2_and_sigterm_saves_and_the_dir_resumes(
+    tmp_path, children
+):
     run_dir = tmp_path / "run"
-    first, console = _start([*LONG, f"hydra.run.dir={run_dir}"], tmp_path, "first")
+    first, console = _start(children, [*LONG, f"hydra.run.dir={run_dir}"], tmp_path, "first")
     _wait_for(first, console, "[train] step=512")
     hydra_files = {p: p.read_bytes() for p in (run_dir / ".hydra").iterdir()}
 
@@ -88,9 +86,9 @@ def test_a_second_run_on_a_busy_dir_exits_2_and_sigterm_saves_and_the_dir_resume
     assert _status(run_dir)["state"] == "finished" and _status(run_dir)["global_step"] == target
 
 
-def test_sighup_checkpoints_like_ctrl_c(tmp_path):
+def test_sighup_checkpoints_like_ctrl_c(tmp_path, children):
     run_dir = tmp_path / "run"
-    proc, console = _start([*LONG, f"hydra.run.dir={run_dir}"], tmp_path, "hup")
+    proc, console = _start(children, [*LONG, f"hydra.run.dir={run_dir}"], tmp_path, "hup")
     _wait_for(proc, console, "[train] step=256")
     proc.send_signal(signal.SIGHUP)
     assert proc.wait(timeout=120) == 128 + signal.SIGHUP, console.read_text()
@@ -118,11 +116,11 @@ def _evals(run_dir: Path) -> dict[int, float]:
     return {r["step"]: r["eval/episode_return"] for r in rows if "eval/episode_return" in r}
 
 
-def test_ctrl_c_mid_update_and_resume_is_bit_identical_and_evaluates_the_same(tmp_path):
+def test_ctrl_c_mid_update_and_resume_is_bit_identical_and_evaluates_the_same(tmp_path, children):
     whole, broken = tmp_path / "whole", tmp_path / "broken"
     run_train([*EXACT, f"hydra.run.dir={whole}"], cwd=tmp_path, timeout=600)
 
-    proc, console = _start([*EXACT, f"hydra.run.dir={broken}"], tmp_path, "broken")
+    proc, console = _start(children, [*EXACT, f"hydra.run.dir={broken}"], tmp_path, "broken")
     _wait_for(proc, console, "[train] step=768")  # the next update is under way
     proc.send_signal(signal.SIGINT)
     assert proc.wait(timeout=120) == 128 + signal.SIGINT, console.read_text()

@@ -87,29 +87,17 @@ def test_same_seed_gives_identical_parameters(tmp_path):
     assert any(not torch.equal(a[k], c[k]) for k in a), "a different seed gave identical parameters"
 
 
-def test_ctrl_c_saves_a_checkpoint_and_exits_130(tmp_path):
+def test_ctrl_c_saves_a_checkpoint_and_exits_130(tmp_path, children):
     """Ctrl-C stops at the end of the iteration with a checkpoint; exit 130 (128 + SIGINT), so a
     shell loop around train.py stops too (docs/faults.md)."""
-    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    console = open(
-        tmp_path / "console.txt", "w"
-    )  # a file, not a pipe: a full pipe would block the child
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            str(REPO / "train.py"),
-            "env=inverted_pendulum",
-            "trainer.total_frames=10000000",
-            "trainer.frames_per_batch=256",
-            "trainer.save_every=0",
-            "trainer.eval_every=0",
-        ],
-        cwd=tmp_path,
-        env=env,
-        stdout=console,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
+    args = [
+        "env=inverted_pendulum",
+        "trainer.total_frames=10000000",
+        "trainer.frames_per_batch=256",
+        "trainer.save_every=0",
+        "trainer.eval_every=0",
+    ]
+    proc = children.train(args, tmp_path, tmp_path / "console.txt")  # killed on teardown
     deadline = time.time() + 120
     log_file = None
     while time.time() < deadline:
@@ -121,7 +109,6 @@ def test_ctrl_c_saves_a_checkpoint_and_exits_130(tmp_path):
     assert log_file is not None, "training did not start"
     proc.send_signal(signal.SIGINT)
     proc.wait(timeout=120)
-    console.close()
     assert proc.returncode == 128 + signal.SIGINT, (tmp_path / "console.txt").read_text()
     run_dir = log_file.parent
     ckpt = load_checkpoint(latest_checkpoint(run_dir))
