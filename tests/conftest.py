@@ -115,16 +115,79 @@ class Children:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 proc.wait(timeout=30)
 
+    def __enter__(self) -> Children:
+        """``with Children() as children:`` in a helper or a module fixture that waits for what
+        it starts: the groups are killed when the block ends, however it ends."""
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.kill_all()
+
 
 @pytest.fixture
 def children() -> Iterator[Children]:
     """Start background processes through this; teardown kills their process groups, pass or
     fail (a failed test once left a 100M-frame train.py running for half an hour)."""
-    started = Children()
-    try:
+    with Children() as started:
         yield started
-    finally:
-        started.kill_all()
+
+
+def _live_descendants(root: int) -> dict[int, list[str]]:
+    """The processes below ``root`` that still run (zombies excluded): PID -> argv. Linux only."""
+    parents: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            state, ppid = stat.read_text().rsplit(")", 1)[1].split()[:2]
+        except (OSError, ValueError):  # gone meanwhile
+            continue
+        if state != "Z":
+            parents.setdefault(int(ppid), []).append(int(stat.parent.name))
+    found: dict[int, list[str]] = {}
+    todo = list(parents.get(root, []))
+    while todo:
+        pid = todo.pop()
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().rstrip(b"\0").split(b"\0")
+        except OSError:
+            continue
+        found[pid] = [arg.decode(errors="replace") for arg in argv]
+        todo += parents.get(pid, [])
+    return found
+
+
+def _leftover_train_runs() -> dict[int, list[str]]:
+    """``train.py`` processes below this one (a sweep's, a torchrun's, a test's own) still running."""
+    return {
+        pid: argv
+        for pid, argv in _live_descendants(os.getpid()).items()
+        if any(Path(arg).name == "train.py" for arg in argv)
+    }
+
+
+@pytest.fixture(scope="session", autouse=True)
+def no_train_run_outlives_the_session() -> Iterator[None]:
+    """At the end of the session, a ``train.py`` started by this pytest and still running is an
+    error (a test that does not end what it starts: use ``children``); it is killed, its group too
+    where it leads one. Orphans (their parent gone) are no longer below this process: not seen."""
+    yield
+    if not Path("/proc/self/stat").exists():
+        return
+    left = _leftover_train_runs()
+    if not left:
+        return
+    own_group = os.getpgrp()
+    for pid in left:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            if os.getpgid(pid) == pid != own_group:
+                os.killpg(pid, signal.SIGKILL)
+            else:
+                os.kill(pid, signal.SIGKILL)
+    lines = "\n".join(f"  PID {pid}: {' '.join(argv)[:400]}" for pid, argv in sorted(left.items()))
+    pytest.fail(
+        f"{len(left)} train.py process(es) started by this test session still ran at its end "
+        f"(killed now; start background processes through the `children` fixture):\n{lines}",
+        pytrace=False,
+    )
 
 
 def only_run_dir(root: Path) -> Path:

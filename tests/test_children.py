@@ -4,6 +4,7 @@ dispositions the test runner inherited (``&`` and ``nohup`` ignore SIGINT / SIGH
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -98,3 +99,33 @@ def test_children_start_with_the_default_stop_signals_whatever_this_process_igno
         "an ignored signal survives exec"
     )
     assert out.split() == ["default", "default", "default"]
+
+
+def test_a_train_py_left_running_at_the_end_of_the_session_fails_it_and_is_killed(tmp_path):
+    """conftest's session guard: a test that starts train.py without ``children`` and leaves it
+    running passes on its own; the session ends in an error naming it, and it is killed."""
+    pid_file = tmp_path / "pid"
+    (tmp_path / "train.py").write_text("import time\ntime.sleep(600)\n")
+    (tmp_path / "test_inner.py").write_text(
+        f"import subprocess, sys\n"
+        f"def test_leaks():\n"
+        f"    proc = subprocess.Popen([sys.executable, {str(tmp_path / 'train.py')!r}])\n"
+        f"    open({str(pid_file)!r}, 'w').write(f'{{proc.pid}}\\n')\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO / "src")])}
+    try:
+        inner = subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "-p", "conftest", "-p", "no:cacheprovider",
+             "--rootdir", str(tmp_path), str(tmp_path / "test_inner.py")],
+            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        pid = _read_pids(pid_file)[0]
+        assert inner.returncode == 1, inner.stdout + inner.stderr
+        assert "1 passed, 1 error" in inner.stdout, inner.stdout
+        assert "train.py process(es) started by this test session still ran" in inner.stdout
+        assert f"PID {pid}:" in inner.stdout
+        assert _wait_gone([pid]) == [], "the guard did not kill it"
+    finally:
+        if pid_file.exists():
+            with contextlib.suppress(ProcessLookupError, ValueError):
+                os.kill(int(pid_file.read_text()), signal.SIGKILL)
