@@ -206,15 +206,12 @@ def test_a_hook_stopping_on_eval_metrics_still_stops_one_iteration_later(tmp_pat
     assert ends == {"false": (256, [256]), "true": (512, [256, 512])}
 
 
-def test_sigterm_with_a_round_in_flight_exits_promptly_and_leaves_no_worker(tmp_path):
+def test_sigterm_with_a_round_in_flight_exits_promptly_and_leaves_no_worker(tmp_path, children):
     run_dir = tmp_path / "run"
     args = [*RUN, "trainer.total_frames=100000000", "trainer.eval_async=true",
             "trainer.save_every=0", f"hydra.run.dir={run_dir}"]  # fmt: skip
     console = tmp_path / "console.txt"
-    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    with open(console, "w") as out:
-        proc = subprocess.Popen([sys.executable, str(REPO / "train.py"), *args], cwd=tmp_path,
-                                env=env, stdout=out, stderr=subprocess.STDOUT)  # fmt: skip
+    proc = children.train(args, tmp_path, console)  # its group (the worker too) killed on teardown
     deadline = time.time() + 180
     while "[eval] step=" not in console.read_text() and time.time() < deadline:
         assert proc.poll() is None, console.read_text()
@@ -242,7 +239,7 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def test_the_worker_dies_with_a_killed_training_process(tmp_path):
+def test_the_worker_dies_with_a_killed_training_process(tmp_path, children):
     """SIGKILL leaves no chance to clean up: the worker follows its parent (PR_SET_PDEATHSIG)."""
     code = (
         "import os, sys, time\n"
@@ -257,7 +254,7 @@ def test_the_worker_dies_with_a_killed_training_process(tmp_path):
         "time.sleep(600)\n"
     )
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    proc = subprocess.Popen(
+    proc = children.popen(  # the worker is in its group: killed on teardown if it outlived it
         [sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True
     )
     worker = int(proc.stdout.readline())

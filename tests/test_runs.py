@@ -290,7 +290,7 @@ def test_two_thousand_runs_list_fast(tmp_path, monkeypatch):
 
 
 # -- a real run, killed and resumed ----------------------------------------------------------------
-def test_a_sigkilled_run_shows_died_and_its_resume_command_finishes_it(tmp_path):
+def test_a_sigkilled_run_shows_died_and_its_resume_command_finishes_it(tmp_path, children):
     run_dir = tmp_path / "outputs" / "killed"
     args = [
         "env=inverted_pendulum",
@@ -302,22 +302,14 @@ def test_a_sigkilled_run_shows_died_and_its_resume_command_finishes_it(tmp_path)
         "trainer.progress=false",
         f"hydra.run.dir={run_dir}",
     ]
-    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    with open(tmp_path / "killed.txt", "w") as log:
-        proc = subprocess.Popen(
-            [sys.executable, str(REPO / "train.py"), *args],
-            cwd=tmp_path,
-            env=env,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-        )
-        deadline = time.time() + 300
-        while time.time() < deadline and proc.poll() is None:
-            if list((run_dir / "checkpoints").glob("*_step_000001024.pt")):
-                proc.send_signal(signal.SIGKILL)
-                break
-            time.sleep(0.02)
-        proc.wait(timeout=60)
+    proc = children.train(args, tmp_path, tmp_path / "killed.txt")  # its group killed on teardown
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if list((run_dir / "checkpoints").glob("*_step_000001024.pt")):
+            proc.send_signal(signal.SIGKILL)
+            break
+        time.sleep(0.02)
+    proc.wait(timeout=60)
     assert proc.returncode == -signal.SIGKILL, (tmp_path / "killed.txt").read_text()
     assert json.loads((run_dir / "status.json").read_text())["state"] == "running"
     assert read_heartbeat(run_dir)["pid"] == proc.pid

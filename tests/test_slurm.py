@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from conftest import REPO
+from conftest import REPO, Children
 
 
 class FakeTrainer:
@@ -138,9 +138,10 @@ def env() -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": str(REPO / "src"), "WANDB_MODE": "offline"}
 
 
-def sweep(args: list[str], cwd: Path) -> subprocess.Popen:
-    """``python train.py -m ARGS`` in the background (the launcher blocks until all jobs finish)."""
-    return subprocess.Popen(
+def sweep(children: Children, args: list[str], cwd: Path) -> subprocess.Popen:
+    """``python train.py -m ARGS`` in the background (the launcher blocks until all jobs finish);
+    its process group is killed on the test's teardown (the jobs: ``cluster`` cancels them)."""
+    return children.popen(
         [sys.executable, str(REPO / "train.py"), "-m", *args],
         cwd=cwd,
         env=env(),
@@ -177,10 +178,11 @@ def scontrol_job(job_id: str) -> dict[str, str]:
 
 
 @pytest.mark.slurm
-def test_array_sweep_runs_every_job_as_an_array_task(cluster, tmp_path):
+def test_array_sweep_runs_every_job_as_an_array_task(cluster, tmp_path, children):
     sweep_dir = tmp_path / "sweep"
     out = finish(
         sweep(
+            children,
             [
                 *SLURM,
                 "seed=0,1",
@@ -205,9 +207,12 @@ def test_array_sweep_runs_every_job_as_an_array_task(cluster, tmp_path):
 
 
 @pytest.mark.slurm
-def test_preempted_job_checkpoints_requeues_and_resumes_in_the_same_run_dir(cluster, tmp_path):
+def test_preempted_job_checkpoints_requeues_and_resumes_in_the_same_run_dir(
+    cluster, tmp_path, children
+):
     total = 32768  # 128 iterations: the signal lands mid-run
     proc = sweep(
+        children,
         [
             *SLURM,
             "seed=0",
@@ -295,11 +300,11 @@ def _status(run_dir: Path) -> dict:
 
 
 @pytest.mark.slurm
-def test_distributed_job_on_slurm_starts_its_ranks_as_tasks(cluster, tmp_path):
+def test_distributed_job_on_slurm_starts_its_ranks_as_tasks(cluster, tmp_path, children):
     """--distributed with tasks_per_node=2: one SLURM job, two ranks (submitit's environment),
     gradients averaged, one run dir."""
     sweep_dir = tmp_path / "sweep"
-    proc = subprocess.Popen(
+    proc = children.popen(  # its process group killed on teardown
         [
             sys.executable,
             str(REPO / "train.py"),
