@@ -12,12 +12,11 @@ import pty
 import re
 import select
 import struct
-import subprocess
 import sys
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, Children
 
 #: Hydra's console format (hydra/job_logging/default.yaml).
 HYDRA_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"
@@ -134,34 +133,33 @@ def run_on_pty(args: list[str], cwd, timeout: float = 240) -> str:
     env = {**os.environ, "PYTHONPATH": str(REPO / "src"), "TERM": "xterm-256color"}
     for var in ("NO_COLOR", "FORCE_COLOR", "COLUMNS", "LINES", "CI", "TTY_COMPATIBLE"):
         env.pop(var, None)
-    proc = subprocess.Popen(
-        [sys.executable, str(REPO / "train.py"), *args],
-        stdin=slave,
-        stdout=slave,
-        stderr=slave,
-        cwd=cwd,
-        env=env,
-    )
-    os.close(slave)
     out = bytearray()
-    try:
-        while True:
-            ready, _, _ = select.select([master], [], [], 1.0)
-            if ready:
-                try:
-                    data = os.read(master, 65536)
-                except OSError:  # the child closed the terminal (EIO)
+    with Children() as children:  # its process group is killed when this returns or fails
+        proc = children.popen(
+            [sys.executable, str(REPO / "train.py"), *args],
+            stdin=slave,
+            stdout=slave,
+            stderr=slave,
+            cwd=cwd,
+            env=env,
+        )
+        os.close(slave)
+        try:
+            while True:
+                ready, _, _ = select.select([master], [], [], 1.0)
+                if ready:
+                    try:
+                        data = os.read(master, 65536)
+                    except OSError:  # the child closed the terminal (EIO)
+                        break
+                    if not data:
+                        break
+                    out += data
+                elif proc.poll() is not None:
                     break
-                if not data:
-                    break
-                out += data
-            elif proc.poll() is not None:
-                break
-        proc.wait(timeout=timeout)
-    finally:
-        os.close(master)
-        if proc.poll() is None:
-            proc.kill()
+            proc.wait(timeout=timeout)
+        finally:
+            os.close(master)
     assert proc.returncode == 0, out.decode(errors="replace")[-3000:]
     return out.decode(errors="replace")
 

@@ -11,7 +11,7 @@ import sys
 import pytest
 import torch
 
-from conftest import PLAIN_PPO, REPO, only_run_dir, run_train
+from conftest import PLAIN_PPO, REPO, Children, only_run_dir, run_train
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint
 
 ARGS = [
@@ -144,23 +144,18 @@ def _rank_env(rank: int, port: int) -> dict[str, str]:
 def run_worker_on_two_ranks(script: str, args: list[str], timeout: float = 120) -> list[str]:
     """``python -c script *args`` as ranks 0 and 1 of a gloo group; both must exit 0. Their outputs."""
     port = _free_port()
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", script, *args],
-            env=_rank_env(rank, port),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        for rank in (0, 1)
-    ]
-    try:
+    with Children() as children:  # both ranks' groups killed when this returns or fails
+        procs = [
+            children.popen(
+                [sys.executable, "-c", script, *args],
+                env=_rank_env(rank, port),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
+            for rank in (0, 1)
+        ]
         outs = [p.communicate(timeout=timeout)[0] for p in procs]
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.communicate()
     assert [p.returncode for p in procs] == [0, 0], "\n".join(outs)
     return outs
 
@@ -173,33 +168,26 @@ def _two_ranks(
     import time
 
     port = _free_port()
-    procs = []
-    for rank, extra in ((0, []), (1, rank1_args)):
-        env = _rank_env(rank, port)
-        procs.append(
-            subprocess.Popen(
+    done = []
+    with Children() as children:  # both ranks' groups killed when this returns or fails
+        procs = [
+            children.popen(
                 [sys.executable, str(REPO / "train.py"), "--distributed", *args, *extra],
                 cwd=cwd,
-                env=env,
+                env=_rank_env(rank, port),
                 stdout=subprocess.PIPE,
                 stderr=subprocess.STDOUT,
                 text=True,
             )
-        )
-    deadline = time.monotonic() + timeout
-    done = []
-    try:
+            for rank, extra in ((0, []), (1, rank1_args))
+        ]
+        deadline = time.monotonic() + timeout
         for rank, proc in enumerate(procs):
             try:
                 out, _ = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 raise AssertionError(f"rank {rank} still running after {timeout} s") from None
             done.append(subprocess.CompletedProcess(proc.args, proc.returncode, out, ""))
-    finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
     return done
 
 

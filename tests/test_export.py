@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO
+from conftest import REPO, Children
 from rlexp import cli
 from rlexp.checkpoint import load_checkpoint, save_checkpoint, step_checkpoints
 from rlexp.policy_eval import evaluate, metadata_path, open_source
@@ -80,20 +80,26 @@ def runs(tmp_path_factory) -> dict[str, Path]:
     """The two tiny runs, trained side by side (a few seconds each)."""
     root = tmp_path_factory.mktemp("export_runs")
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    procs = {
-        name: subprocess.Popen(
-            [sys.executable, str(REPO / "train.py"), *overrides, f"hydra.run.dir={root / name}"],
-            cwd=root,
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )  # fmt: skip
-        for name, overrides in (("hopper", HOPPER), ("cart_pole", CART_POLE))
-    }
-    for name, proc in procs.items():
-        out, _ = proc.communicate(timeout=300)
-        assert proc.returncode == 0, f"{name}: train.py exited {proc.returncode}\n{out}"
+    with Children() as children:  # both killed (process groups) if one fails or times out
+        procs = {
+            name: children.popen(
+                [
+                    sys.executable,
+                    str(REPO / "train.py"),
+                    *overrides,
+                    f"hydra.run.dir={root / name}",
+                ],
+                cwd=root,
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
+            for name, overrides in (("hopper", HOPPER), ("cart_pole", CART_POLE))
+        }
+        for name, proc in procs.items():
+            out, _ = proc.communicate(timeout=300)
+            assert proc.returncode == 0, f"{name}: train.py exited {proc.returncode}\n{out}"
     return {name: root / name for name in procs}
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, SWEEP_TINY, run_train
+from conftest import REPO, SWEEP_TINY, Children, run_train
 
 #: A trial trains 512 env steps of InvertedPendulum (about a second), without TensorBoard.
 TINY = [*SWEEP_TINY, "logger=none"]
@@ -107,23 +107,15 @@ def killed_and_rerun(tmp_path_factory) -> dict:
     0-2 have finished and trial 3 is training; then the same command to its end."""
     root = tmp_path_factory.mktemp("optuna_resume")
     sweep = root / "sweep"
-    args = [sys.executable, str(REPO / "train.py"), *command(sweep, 6)]
-    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    with open(root / "first.log", "w") as out:
-        proc = subprocess.Popen(
-            args, cwd=root, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
-        )
+    with Children() as children:  # the sweep's group (its jobs too) killed however this ends
+        proc = children.train(command(sweep, 6), root, root / "first.log")
         deadline = time.monotonic() + 240
-        try:
-            while status(sweep / "3").get("state") != "running":
-                assert proc.poll() is None, (root / "first.log").read_text()[-3000:]
-                assert time.monotonic() < deadline, "trial 3 never started"
-                time.sleep(0.01)
-            os.killpg(proc.pid, signal.SIGKILL)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        while status(sweep / "3").get("state") != "running":
+            assert proc.poll() is None, (root / "first.log").read_text()[-3000:]
+            assert time.monotonic() < deadline, "trial 3 never started"
+            time.sleep(0.01)
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
     before = {
         "trials": study_trials(sweep),
         "dirs": {n: tree(sweep / n) for n in ("0", "1", "2")},

@@ -3,10 +3,7 @@ bit-identical parameters to an uninterrupted run; corrupt checkpoints are skippe
 
 from __future__ import annotations
 
-import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -14,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO, needs_compiler, run_train
+from conftest import Children, needs_compiler, run_train
 from rlexp.checkpoint import (
     latest_checkpoint,
     latest_good_checkpoint,
@@ -40,15 +37,10 @@ def _cmd(
 
 
 def _kill_after_checkpoint(args: list[str], cwd: Path, ckpt_dir: Path, step: int) -> None:
-    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    with open(cwd / "killed-run.txt", "w") as out:
-        proc = subprocess.Popen(
-            [sys.executable, str(REPO / "train.py"), *args],
-            cwd=cwd,
-            env=env,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-        )
+    """``train.py args``, SIGKILLed once the checkpoint of ``step`` exists; its process group is
+    killed when this returns or fails (``Children``)."""
+    with Children() as children:
+        proc = children.train(args, cwd, cwd / "killed-run.txt")
         deadline = time.time() + 300
         while time.time() < deadline and proc.poll() is None:
             if any(p.name.endswith(f"_step_{step:09d}.pt") for p in ckpt_dir.glob("*.pt")):

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import REPO, run_train
+from conftest import REPO, Children, run_train
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint, step_checkpoints
 
 TESTS = Path(__file__).resolve().parent
@@ -106,28 +106,16 @@ def _kill_after(
     args: list[str], cwd: Path, ckpt_dir: Path, step: int, pypath: dict[str, str] = PYPATH
 ) -> None:
     """Start ``train.py args`` and SIGKILL it once the checkpoint of ``step`` exists (the process
-    group is killed on the way out, pass or fail)."""
-    with open(cwd / "killed.txt", "w") as out:
-        proc = subprocess.Popen(
-            [sys.executable, str(REPO / "train.py"), *args],
-            cwd=cwd,
-            env={**os.environ, **pypath},
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-        try:
-            deadline = time.time() + 300
-            while time.time() < deadline and proc.poll() is None:
-                if any(p.name.endswith(f"_step_{step:09d}.pt") for p in ckpt_dir.glob("*.pt")):
-                    proc.send_signal(signal.SIGKILL)
-                    break
-                time.sleep(0.02)
-            proc.wait(timeout=60)
-        finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+    group is killed on the way out, pass or fail: ``Children``)."""
+    with Children() as children:
+        proc = children.train(args, cwd, cwd / "killed.txt", env_extra=pypath)
+        deadline = time.time() + 300
+        while time.time() < deadline and proc.poll() is None:
+            if any(p.name.endswith(f"_step_{step:09d}.pt") for p in ckpt_dir.glob("*.pt")):
+                proc.send_signal(signal.SIGKILL)
+                break
+            time.sleep(0.02)
+        proc.wait(timeout=60)
     assert proc.returncode == -signal.SIGKILL, (cwd / "killed.txt").read_text()
     assert max(int(p.stem.rsplit("_", 1)[1]) for p in step_checkpoints(ckpt_dir)) < 2 * step
 
