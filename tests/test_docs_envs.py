@@ -10,7 +10,8 @@ import re
 from pathlib import Path
 
 import torch
-from test_user_envs import SMALL, _kill_after
+from test_resume import _kill_after_checkpoint
+from test_user_envs import SMALL
 
 from conftest import REPO, run_train
 from rlexp.checkpoint import latest_checkpoint, load_checkpoint
@@ -39,7 +40,7 @@ def test_the_docs_example_env_trains_and_resumes_exactly(tmp_path):
     run_train([*args, f"hydra.run.dir={tmp_path / 'whole'}"], cwd=tmp_path, env_extra=pypath)
     broken = tmp_path / "broken"
     cmd = [*args, f"hydra.run.dir={broken}"]
-    _kill_after(cmd, tmp_path, broken / "checkpoints", 512, pypath)
+    _kill_after_checkpoint(cmd, tmp_path, broken / "checkpoints", 512, pypath)
     run_train(cmd, cwd=tmp_path, env_extra=pypath)
     status = json.loads((broken / "status.json").read_text())
     assert status["env_resume"] == "restored (the env's get_state)"

@@ -36,11 +36,17 @@ def _cmd(
     ]
 
 
-def _kill_after_checkpoint(args: list[str], cwd: Path, ckpt_dir: Path, step: int) -> None:
+def _kill_after_checkpoint(
+    args: list[str],
+    cwd: Path,
+    ckpt_dir: Path,
+    step: int,
+    env_extra: dict[str, str] | None = None,
+) -> None:
     """``train.py args``, SIGKILLed once the checkpoint of ``step`` exists; its process group is
-    killed when this returns or fails (``Children``)."""
+    killed when this returns or fails (``Children``); ``env_extra``: more environment variables."""
     with Children() as children:
-        proc = children.train(args, cwd, cwd / "killed-run.txt")
+        proc = children.train(args, cwd, cwd / "killed-run.txt", env_extra=env_extra)
         deadline = time.time() + 300
         while time.time() < deadline and proc.poll() is None:
             if any(p.name.endswith(f"_step_{step:09d}.pt") for p in ckpt_dir.glob("*.pt")):

@@ -9,17 +9,16 @@ from __future__ import annotations
 import json
 import os
 import re
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
+from test_resume import _kill_after_checkpoint
 
-from conftest import REPO, Children, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint, step_checkpoints
+from conftest import REPO, run_train
+from rlexp.checkpoint import latest_checkpoint, load_checkpoint
 
 TESTS = Path(__file__).resolve().parent
 #: toy_envs.py importable in the training process (``env.name=toy_envs:<Id>``)
@@ -51,17 +50,18 @@ def _metrics(run_dir: Path) -> list[dict]:
 
 def test_pendulum_checkpoints_and_resumes_with_new_episodes(tmp_path):
     """The run that lost everything at its first checkpoint (a non-MuJoCo env has no MuJoCo state)."""
-    args = ["env=hopper", "env.name=Pendulum-v1", "trainer.total_frames=512"]
+    args = ["env=hopper", "env.name=Pendulum-v1", "seed=7", "trainer.total_frames=512"]
     run_dir, _ = _train(tmp_path, "pend", args)
     status = json.loads((run_dir / "status.json").read_text())
     assert status["state"] == "finished" and status["global_step"] == 512
     ckpt = load_checkpoint(latest_checkpoint(run_dir / "checkpoints"))
     assert ckpt["envs"]["train"]["kind"] == "restart"
     assert ckpt["observation_layout"]["dim"] == 3
-    _, proc = _train(tmp_path, "pend", [*args[:2], "trainer.total_frames=1024"])
+    _, proc = _train(tmp_path, "pend", [*args[:3], "trainer.total_frames=1024"])
     status = json.loads((run_dir / "status.json").read_text())
     assert status["state"] == "finished" and status["global_step"] == 1024
-    assert status["env_resume"].startswith("restarted (new episodes seeded")
+    # new episodes seeded (seed + 1,000,003 x env steps taken) mod 2**31: 7 + 1000003 * 512
+    assert status["env_resume"].startswith("restarted (new episodes seeded 512001543:")
     assert "[resume] training envs: restarted" in proc.stdout + proc.stderr
 
 
@@ -102,24 +102,6 @@ def test_cartpole_trains_and_evaluates_with_a_categorical_policy(tmp_path, algor
     assert "mean return" in out.stdout
 
 
-def _kill_after(
-    args: list[str], cwd: Path, ckpt_dir: Path, step: int, pypath: dict[str, str] = PYPATH
-) -> None:
-    """Start ``train.py args`` and SIGKILL it once the checkpoint of ``step`` exists (the process
-    group is killed on the way out, pass or fail: ``Children``)."""
-    with Children() as children:
-        proc = children.train(args, cwd, cwd / "killed.txt", env_extra=pypath)
-        deadline = time.time() + 300
-        while time.time() < deadline and proc.poll() is None:
-            if any(p.name.endswith(f"_step_{step:09d}.pt") for p in ckpt_dir.glob("*.pt")):
-                proc.send_signal(signal.SIGKILL)
-                break
-            time.sleep(0.02)
-        proc.wait(timeout=60)
-    assert proc.returncode == -signal.SIGKILL, (cwd / "killed.txt").read_text()
-    assert max(int(p.stem.rsplit("_", 1)[1]) for p in step_checkpoints(ckpt_dir)) < 2 * step
-
-
 def test_dict_observation_env_by_module_syntax_resumes_exactly_through_get_state(tmp_path):
     """toy_envs:DictGoal-v0: Dict observations (nested, a Discrete part), MultiDiscrete actions, an
     RNG drawn every step, 30-step episodes that straddle the checkpoints; killed after its first
@@ -136,7 +118,7 @@ def test_dict_observation_env_by_module_syntax_resumes_exactly_through_get_state
     whole, _ = _train(tmp_path, "whole", args)
     broken = tmp_path / "broken"
     cmd = [*SMALL, f"hydra.run.dir={broken}", *args]
-    _kill_after(cmd, tmp_path, broken / "checkpoints", 512)
+    _kill_after_checkpoint(cmd, tmp_path, broken / "checkpoints", 512, PYPATH)
     _, proc = _train(tmp_path, "broken", args)
     assert "[resume] training envs: restored (the env's get_state)" in proc.stdout + proc.stderr
     status = json.loads((broken / "status.json").read_text())

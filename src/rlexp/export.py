@@ -80,8 +80,8 @@ class DeterministicActor(nn.Module):
         self.mlp = copy.deepcopy(policy.actor_net.mlp).float().requires_grad_(False)
         self.register_buffer("action_low", low.detach().clone().float())
         self.register_buffer("action_high", high.detach().clone().float())
-        nvec = list(getattr(policy, "nvec", None) or [1])
-        self.categorical = getattr(policy, "nvec", None) is not None
+        self.categorical = policy.categorical
+        nvec = list(policy.nvec) if policy.categorical else [1]
         self.nvec = nvec  # TorchScript infers List[int] from the value (no annotation: no warning)
         self.uniform = len(set(nvec)) == 1
         self.k, self.n = len(nvec), nvec[0]

@@ -80,7 +80,6 @@ ADAPTIVE_LR_MAX = 1e-2
 #: Where the behaviour policy's distribution rides in the flattened rollout (renamed from ``loc`` /
 #: ``scale`` or ``logits``, so that the loss's actor, which writes those keys, never meets them).
 BEHAVIOUR_PREFIX = "behaviour_"
-BEHAVIOUR_LOC, BEHAVIOUR_SCALE = "behaviour_loc", "behaviour_scale"
 
 
 def make_gae(cfg: AlgorithmConfig, value_network=None) -> GAE:
