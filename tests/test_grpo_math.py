@@ -187,7 +187,7 @@ def _reference_grpo_update(pol, initial, batch, cfg, seed):
     v = [torch.zeros_like(p) for p in params]
     step = 0
     total, mb = n * steps, cfg.mini_batch_size
-    sums = {"policy": 0.0, "entropy": 0.0, "kl_ref": 0.0}
+    sums = {"policy": 0.0, "entropy": 0.0, "entropy_term": 0.0, "kl_ref": 0.0}
     count = 0
     torch.manual_seed(seed)
     shuffle = torch.Generator()
@@ -208,14 +208,16 @@ def _reference_grpo_update(pol, initial, batch, cfg, seed):
             a, eps = flat_adv[idx], cfg.clip_epsilon
             surrogate = torch.min(ratio * a, ratio.clamp(1 - eps, 1 + eps) * a)
             policy_loss = -(w * surrogate).sum() / denom
-            entropy_loss = -cfg.entropy_coeff * (w * dist.entropy().sum(-1)).sum() / denom
+            entropy = (w * dist.entropy().sum(-1)).sum() / denom
+            entropy_loss = -cfg.entropy_coeff * entropy
             d = ref - log_prob
             kl = (w * (torch.exp(d) - d - 1)).sum() / denom
             grads = torch.autograd.grad(policy_loss + entropy_loss + cfg.kl_coeff * kl, params)
             step += 1
             clipped_adam_step(params, grads, m, v, step, cfg)
             sums["policy"] += policy_loss.item()
-            sums["entropy"] += entropy_loss.item()
+            sums["entropy_term"] += entropy_loss.item()
+            sums["entropy"] += entropy.item()
             sums["kl_ref"] += kl.item()
             count += 1
     return {k: s / count for k, s in sums.items()}, float(mask.mean())
@@ -260,6 +262,7 @@ def test_grpo_update_matches_a_plain_torch_grpo():
     assert metrics["grpo/mask_fraction"] == pytest.approx(mask_fraction)
     assert metrics["loss/policy"] == pytest.approx(expected["policy"], rel=1e-4, abs=1e-6)
     assert metrics["loss/entropy"] == pytest.approx(expected["entropy"], rel=1e-4, abs=1e-6)
+    assert metrics["loss/entropy_term"] == pytest.approx(expected["entropy_term"], rel=1e-4)
     assert metrics["loss/kl_ref"] == pytest.approx(expected["kl_ref"], rel=1e-4, abs=1e-7)
     assert metrics["loss/kl_ref"] > 0 and metrics["loss/clip_fraction"] > 0
     assert metrics["loss/learning_rate"] == cfg.lr and algo.iteration == 1

@@ -547,3 +547,45 @@ def test_adaptive_lr_compares_the_kl_with_the_configured_target(shift, rate):
     algo = make_algorithm(cfg, pol, total_iterations=10)
     algo.update(batch)
     assert algo.cfg.lr == pytest.approx(rate, rel=1e-12)
+
+
+def _gaussian_entropy(log_std: float, dims: int) -> float:
+    """The entropy of a diagonal Gaussian with every log-std ``log_std``, by hand."""
+    return dims * (0.5 + 0.5 * np.log(2 * np.pi) + log_std)
+
+
+@pytest.mark.parametrize("coeff", [0.0, 0.02])
+def test_ppo_logs_the_policys_real_entropy_whatever_the_coefficient(coeff):
+    """With ``entropy_coeff=0`` (the default) the entropy is still the policy's, not a 0 filled
+    in; the loss term is logged only where the loss has it. lr=0: the policy stays as built, so
+    every minibatch sees the hand-computed entropy of log-std -0.7."""
+    torch.manual_seed(0)
+    pol = make_policy(PolicyConfig(init_log_std=-0.7), OBS, ACT, Bounded(-1.0, 1.0, shape=(ACT,)))
+    cfg = AlgorithmConfig(
+        lr=0.0, entropy_coeff=coeff, num_epochs=2, mini_batch_size=16, compile="false", **PLAIN_PPO
+    )
+    algo = make_algorithm(cfg, pol, total_iterations=10)
+    metrics = algo.update(_rollout(pol, seed=3, envs=2, steps=24))
+    expected = _gaussian_entropy(-0.7, ACT)
+    assert metrics["loss/entropy"] == pytest.approx(expected, rel=1e-5)
+    if coeff == 0.0:
+        assert "loss/entropy_term" not in metrics
+    else:
+        assert metrics["loss/entropy_term"] == pytest.approx(-coeff * expected, rel=1e-5)
+    # a coefficient a hook sets later joins the loss (and the log) from the next update
+    algo.set_hyperparameter("entropy_coeff", 0.05)
+    metrics = algo.update(_rollout(pol, seed=4, envs=2, steps=24))
+    assert metrics["loss/entropy_term"] == pytest.approx(-0.05 * expected, rel=1e-5)
+
+
+def test_grpo_logs_the_policys_real_entropy_with_entropy_coeff_zero():
+    torch.manual_seed(0)
+    pol = make_policy(ActorOnlyConfig(init_log_std=0.4), 3, 2, Bounded(-1.0, 1.0, shape=(2,)))
+    cfg = GRPOConfig(
+        gamma=0.9, group_size=2, kl_coeff=0.0, entropy_coeff=0.0, lr=0.0, num_epochs=1,
+        mini_batch_size=12, compile="false",
+    )  # fmt: skip
+    algo = make_algorithm(cfg, pol, total_iterations=10)
+    metrics = algo.update(_grpo_rollout(pol, envs=4, steps=6, log_prob_noise=0.3))
+    assert metrics["loss/entropy"] == pytest.approx(_gaussian_entropy(0.4, 2), rel=1e-5)
+    assert "loss/entropy_term" not in metrics and "loss/kl_ref" not in metrics

@@ -240,7 +240,7 @@ def _reference_ppo_update(pol, batch, cfg, seed):
     v = [torch.zeros_like(p) for p in params]
     step = 0
     n, mb = flat_obs.shape[0], cfg.mini_batch_size
-    sums = {"policy": 0.0, "value": 0.0, "entropy": 0.0}
+    sums = {"policy": 0.0, "value": 0.0, "entropy_term": 0.0, "entropy": 0.0}
     count = 0
     torch.manual_seed(seed)
     shuffle = torch.Generator()  # rlexp's minibatch order: its own generator, seeded per update
@@ -261,13 +261,15 @@ def _reference_ppo_update(pol, batch, cfg, seed):
                 cfg.critic_coeff
                 * (pol.critic_net(flat_obs[idx]).squeeze(-1) - flat_target[idx]).pow(2).mean()
             )
-            entropy_loss = -cfg.entropy_coeff * dist.entropy().sum(-1).mean()
+            entropy = dist.entropy().sum(-1).mean()
+            entropy_loss = -cfg.entropy_coeff * entropy
             grads = torch.autograd.grad(policy_loss + value_loss + entropy_loss, params)
             step += 1
             conftest.clipped_adam_step(params, grads, m, v, step, cfg)
             sums["policy"] += policy_loss.item()
             sums["value"] += value_loss.item()
-            sums["entropy"] += entropy_loss.item()
+            sums["entropy_term"] += entropy_loss.item()
+            sums["entropy"] += entropy.item()
             count += 1
     return {k: s / count for k, s in sums.items()}
 
@@ -333,7 +335,9 @@ def test_ppo_update_matches_a_plain_torch_ppo(compile_loss):
     assert algo.compiled is (compile_loss == "true")
     assert metrics["loss/policy"] == pytest.approx(expected["policy"], rel=1e-4, abs=1e-6)
     assert metrics["loss/value"] == pytest.approx(expected["value"], rel=1e-4, abs=1e-6)
+    # loss/entropy is the policy's entropy; loss/entropy_term the loss term -entropy_coeff * it
     assert metrics["loss/entropy"] == pytest.approx(expected["entropy"], rel=1e-4, abs=1e-6)
+    assert metrics["loss/entropy_term"] == pytest.approx(expected["entropy_term"], rel=1e-4)
     for (name, p), r, p0 in zip(
         pol.named_parameters(), ref_pol.parameters(), initial.parameters(), strict=True
     ):

@@ -293,9 +293,10 @@ def test_categorical_update_with_adaptive_lr_moves_parameters_as_plain_torch(com
             conftest.clipped_adam_step(
                 params, grads, m, v, step, AlgorithmConfig(lr=lr, max_grad_norm=0.3)
             )
-            entropies.append(float(-0.03 * ent))
+            entropies.append(float(ent))
     assert algo.cfg.lr == pytest.approx(lr) and lr != 2e-2  # the KL moved the rate
     assert metrics["loss/entropy"] == pytest.approx(np.mean(entropies), rel=1e-4)
+    assert metrics["loss/entropy_term"] == pytest.approx(-0.03 * np.mean(entropies), rel=1e-4)
     assert "loss/log_std" not in metrics  # a categorical policy has none: not made up
     for (name, p), r in zip(pol.named_parameters(), ref.parameters(), strict=True):
         torch.testing.assert_close(p, r, rtol=1e-4, atol=1e-5, msg=f"{name} differs")

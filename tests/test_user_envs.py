@@ -87,8 +87,9 @@ def test_cartpole_trains_and_evaluates_with_a_categorical_policy(tmp_path, algor
     rows = _metrics(run_dir)
     train = [r for r in rows if "loss/policy" in r]
     assert len(train) == 4 and all("loss/log_std" not in r for r in train)
-    # the entropy term -0.01 H of a 2-way categorical: H in (0, log 2]
-    assert all(-0.01 * 0.69315 - 1e-6 <= r["loss/entropy"] < 0.0 for r in train)
+    # the entropy H of a 2-way categorical is in (0, log 2]; the loss term is -0.01 H
+    assert all(0.0 < r["loss/entropy"] <= 0.69315 + 1e-6 for r in train)
+    assert all(r["loss/entropy_term"] == pytest.approx(-0.01 * r["loss/entropy"]) for r in train)
     evals = [r for r in rows if "eval/episode_return" in r]
     assert evals and all(1.0 <= r["eval/episode_return"] <= 500.0 for r in evals)
     out = subprocess.run(

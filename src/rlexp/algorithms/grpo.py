@@ -52,7 +52,7 @@ log = logging.getLogger(__name__)
 #: the loss terms, as named in NaN-guard messages
 LOSS_KEYS = ("loss_objective", "loss_entropy", "loss_kl")
 #: per-minibatch statistics, averaged over the update
-STAT_KEYS = (*LOSS_KEYS, "kl_ref", "approx_kl", "clip_fraction", "grad_norm")
+STAT_KEYS = (*LOSS_KEYS, "entropy", "kl_ref", "approx_kl", "clip_fraction", "grad_norm")
 
 
 def group_advantages(
@@ -183,9 +183,10 @@ class GRPO(MutableHyperparameters):
         advantage = minibatch.get("advantage")
         low, high = 1.0 - cfg.clip_epsilon, 1.0 + cfg.clip_epsilon
         surrogate = torch.min(ratio * advantage, ratio.clamp(low, high) * advantage)
-        out = {"loss_objective": -mean(surrogate)}
+        entropy = mean(dist.entropy())  # logged always (the policy's real entropy)
+        out = {"loss_objective": -mean(surrogate), "entropy": entropy.detach()}
         if cfg.entropy_coeff != 0.0:
-            out["loss_entropy"] = -cfg.entropy_coeff * mean(dist.entropy())
+            out["loss_entropy"] = -cfg.entropy_coeff * entropy
         if self.reference is not None:
             kl_ref = mean(k3_kl_token_estimate(minibatch.get("ref_log_prob"), log_prob))
             out["loss_kl"] = cfg.kl_coeff * kl_ref
@@ -206,8 +207,8 @@ class GRPO(MutableHyperparameters):
         # Minibatch order from a generator of its own, seeded from the global RNG once per update
         # (as PPO): nothing the loss draws can change it.
         self._shuffle.manual_seed(int(torch.randint(2**62, (1,)).item()))
-        zero = mask.new_zeros(())
-        rows: list[torch.Tensor] = []  # per minibatch: STAT_KEYS, one tensor
+        rows: list[torch.Tensor] = []  # per minibatch: the STAT_KEYS present, one tensor
+        keys: list[str] = []
         for epoch in range(self.cfg.num_epochs):
             shuffled = flat[torch.randperm(n, generator=self._shuffle)]
             for start in range(0, n - mb + 1, mb):
@@ -230,12 +231,14 @@ class GRPO(MutableHyperparameters):
                     nan_guard=self.nan_guard,
                     where=f"GRPO update (epoch {epoch}, minibatch {start // mb})",
                 )
-                rows.append(torch.stack([out.get(k, zero).detach() for k in STAT_KEYS]))
+                keys = keys or [k for k in STAT_KEYS if k in out]
+                rows.append(torch.stack([out[k].detach() for k in keys]))
         self.iteration += 1
-        means = dict(zip(STAT_KEYS, torch.stack(rows).mean(0).tolist(), strict=True))
+        # Only what was computed is logged: a term the loss does not have is absent, never 0.
+        means = dict(zip(keys, torch.stack(rows).mean(0).tolist(), strict=True))
         metrics = {
             "loss/policy": means["loss_objective"],
-            "loss/entropy": means["loss_entropy"],
+            "loss/entropy": means["entropy"],  # the policy's mean entropy
             "loss/grad_norm": means["grad_norm"],
             "loss/clip_fraction": means["clip_fraction"],
             "loss/approx_kl": means["approx_kl"],
@@ -243,6 +246,8 @@ class GRPO(MutableHyperparameters):
             **self.policy.metrics(),  # loss/log_std for a Gaussian policy
             "grpo/mask_fraction": float(mask.mean()),
         }
+        if "loss_entropy" in means:  # the entropy term of the loss: -entropy_coeff * entropy
+            metrics["loss/entropy_term"] = means["loss_entropy"]
         if self.reference is not None:
             metrics["loss/kl_ref"] = means["kl_ref"]
         return metrics

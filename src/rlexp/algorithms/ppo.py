@@ -65,7 +65,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy")
-STAT_KEYS = (*LOSS_KEYS, "grad_norm", "clip_fraction", "kl_approx")
+STAT_KEYS = (*LOSS_KEYS, "entropy", "grad_norm", "clip_fraction", "kl_approx")
 #: ``algorithm.compile=auto`` compiles when the run's estimated saving is at least this many seconds.
 AUTO_COMPILE_MIN_SAVING_S = 60.0
 #: Estimated saving of a compiled over an eager minibatch update (loss forward + backward), measured
@@ -153,7 +153,9 @@ class PPO(MutableHyperparameters):
             actor_network=policy.actor,
             critic_network=policy.critic,
             clip_epsilon=cfg.clip_epsilon,
-            entropy_bonus=cfg.entropy_coeff != 0.0,
+            # Always: TorchRL then reports the policy's entropy, logged whatever the coefficient;
+            # the term joins the total loss only while entropy_coeff != 0 (``_total``).
+            entropy_bonus=True,
             entropy_coeff=cfg.entropy_coeff,
             critic_coeff=cfg.critic_coeff,
             loss_critic_type=cfg.loss_critic_type,
@@ -280,8 +282,10 @@ class PPO(MutableHyperparameters):
                     loss_keys = [k for k in LOSS_KEYS if k in keys]
                 terms = {k: out[k] for k in loss_keys}
                 total = terms["loss_objective"] + terms["loss_critic"]
-                if "loss_entropy" in terms:
+                if self.cfg.entropy_coeff != 0.0:  # a hook may turn the term on or off
                     total = total + terms["loss_entropy"]
+                else:
+                    del terms["loss_entropy"]
                 self.optimizer.zero_grad(set_to_none=True)
                 total.backward()
                 grad_norm = guarded_step(
@@ -299,20 +303,29 @@ class PPO(MutableHyperparameters):
                     torch.stack([grad_norm if k == "grad_norm" else out[k] for k in keys]).detach()
                 )
         self.iteration += 1
-        means = torch.stack(rows).mean(0).tolist() if rows else [0.0] * len(keys)
-        metrics = {k.replace("loss_", ""): 0.0 for k in STAT_KEYS}
-        metrics.update({k.replace("loss_", ""): v for k, v in zip(keys, means, strict=True)})
+        if not rows:  # fewer samples than one minibatch: nothing was computed, nothing to log
+            return {"loss/learning_rate": lr}
+        # Only what the loss computed is logged: a missing statistic is absent, never 0.
+        metrics = dict(zip(keys, torch.stack(rows).mean(0).tolist(), strict=True))
         out = {
-            "loss/policy": metrics["objective"],
-            "loss/value": metrics["critic"],
-            "loss/entropy": metrics["entropy"],
+            "loss/policy": metrics["loss_objective"],
+            "loss/value": metrics["loss_critic"],
+            "loss/entropy": metrics["entropy"],  # the policy's mean entropy (TorchRL's "entropy")
             "loss/grad_norm": metrics["grad_norm"],
-            "loss/clip_fraction": metrics["clip_fraction"],
-            "loss/approx_kl": metrics["kl_approx"],
+            **{
+                name: metrics[key]
+                for name, key in (
+                    ("loss/clip_fraction", "clip_fraction"),
+                    ("loss/approx_kl", "kl_approx"),
+                )
+                if key in metrics
+            },
             # adaptive: the rate the last step took and the next update starts from (as rsl_rl logs)
             "loss/learning_rate": self.cfg.lr if adaptive else lr,
             **self.policy.metrics(),  # loss/log_std for a Gaussian policy
         }
+        if self.cfg.entropy_coeff != 0.0:  # the entropy term of the loss: -entropy_coeff * entropy
+            out["loss/entropy_term"] = metrics["loss_entropy"]
         if self.reward_normalizer is not None:
             out["loss/reward_std"] = self.reward_normalizer.std()
         return out
@@ -397,8 +410,6 @@ class PPO(MutableHyperparameters):
         value = float(getattr(self.cfg, name))
         if name in ("clip_epsilon", "entropy_coeff", "critic_coeff"):
             getattr(self.loss, name).fill_(value)
-        if name == "entropy_coeff" and value != 0.0:
-            self.loss.entropy_bonus = True  # built without the entropy term when it started at 0
 
     def state_dict(self) -> dict:
         sd = {
