@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from rlexp.config.aliases import alias_hint
 from rlexp.config.schema import RootConfig
 from rlexp.config.validate import ConfigError
 
@@ -51,6 +52,8 @@ def check_key(key: str, add: bool = False) -> None:
                 section = ".".join(parts[:i]) or "the root"
                 close = difflib.get_close_matches(part, list(hints), n=1)
                 hint = f"; did you mean {'.'.join([*parts[:i], close[0]])}?" if close else ""
+                known = alias_hint(where)  # another library's name: its key here, not a guess
+                hint = f"; {known}" if known else hint
                 extra = " ('+' adds keys only below free dicts such as env.kwargs)" if add else ""
                 raise ConfigError(
                     f"{where} is not a config key ({section} has {sorted(hints)}){hint}{extra}"

@@ -14,6 +14,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from rlexp.config.aliases import alias_hint
 from rlexp.config.rules import (
     ACTIVATIONS,
     FIELD_RULES,
@@ -127,6 +128,8 @@ def check_known_keys(cfg: DictConfig, prefix: str = "") -> None:
                 where = f"{prefix}{key}"
                 close = difflib.get_close_matches(str(key), fields, n=1)
                 hint = f"; did you mean {prefix}{close[0]}?" if close else ""
+                known = alias_hint(where)  # another library's name: its key here, not a guess
+                hint = f"; {known}" if known else hint
                 raise ConfigError(
                     f"{where} is not a config key (the {prefix.rstrip('.') or 'root'} section has "
                     f"{sorted(fields)}){hint}"
