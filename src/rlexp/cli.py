@@ -22,8 +22,31 @@ from rlexp.policy_eval import evaluate
 log = logging.getLogger("rlexp")
 
 
+class _DefaultsHelp(argparse.HelpFormatter):
+    """Every option's help ends with its default, unless the help already says it or there is
+    none to say (``None``, a switch that is off)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (
+            not action.option_strings
+            or "default" in text
+            or default in (None, False, argparse.SUPPRESS)
+            or default == []
+            or isinstance(action, argparse._VersionAction)
+        ):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line (what is wrong, where the help is), exit 2."""
+    """argparse, but a usage error is one line (what is wrong, where the help is), exit 2; option
+    help shows the defaults (subcommands' parsers are built by this class too)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", _DefaultsHelp)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         print(f"{self.prog}: {message} (see {self.prog} --help)", file=sys.stderr)
@@ -114,7 +137,13 @@ def _add_runs_parsers(sub: Any) -> None:
         help="compare runs or sweeps: config differences, git, final/best eval, IQM difference "
         "and probability of improvement between configurations, curves",
     )
-    cmp.add_argument("dirs", nargs="+", metavar="RUN_OR_SWEEP_DIR")
+    cmp.add_argument(
+        "dirs",
+        nargs="+",
+        metavar="RUN_OR_SWEEP_DIR",
+        help="run dirs and sweep dirs (multirun/<date>/<time>: each job is a run), two or more "
+        "runs in all; a glob your shell expands works, e.g. outputs/2026-11-2*/*",
+    )
     cmp.add_argument("--metric", default="eval/episode_return", help="score and curve metric")
     cmp.add_argument(
         "--threshold",

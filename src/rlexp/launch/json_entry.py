@@ -190,6 +190,33 @@ def prepare(path: str | Path, cwd: str | Path | None = None) -> JsonExperiment:
     return exp
 
 
+def hide_schemas_in_help() -> None:
+    """``--help`` lists each group's options; the typed schemas (``trainer_schema``...) sit in the
+    same groups for the YAML files' defaults lists, but are no options a user can choose: drop them
+    from the listing (Hydra has no hidden flag for a stored config)."""
+    from hydra._internal.hydra import Hydra
+
+    original = Hydra.format_config_groups
+    if getattr(original, "hides_schemas", False):
+        return
+
+    def format_config_groups(self: Any, predicate: Any, compact: bool = True) -> str:
+        text = original(self, predicate, compact)
+        lines = []
+        for line in text.splitlines():
+            group, sep, options = line.partition(": ")
+            if sep and compact:
+                kept = [o for o in options.split(", ") if not o.endswith("_schema")]
+                line = f"{group}: {', '.join(kept)}"
+            elif line.strip().endswith("_schema"):
+                continue
+            lines.append(line)
+        return "\n".join(lines) + ("\n" if text.endswith("\n") else "")
+
+    format_config_groups.hides_schemas = True  # type: ignore[attr-defined]
+    Hydra.format_config_groups = format_config_groups  # type: ignore[method-assign]
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """``train.py`` entry: strip ``--config-json F``, load F, then hand over to Hydra (rlexp.app.main)."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -203,5 +230,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         sys.exit(2)
     from rlexp.app import main as app_main
 
+    if "--help" in rest or "-h" in rest:
+        hide_schemas_in_help()
     sys.argv = [sys.argv[0], *rest]
     app_main()
