@@ -12,14 +12,23 @@ $(VENV)/.created:
 	$(PYTHON) -m venv $(VENV)
 	touch $@
 
-# torch first, as the local CPU wheel: anything that depends on torch must find it installed.
+# torch first: anything that depends on torch must find it installed. Which build is yours to choose:
+#   TORCH_INDEX unset (default): pip's own index. On PyPI, torch 2.13.0 for Linux x86_64 is the CUDA
+#     build (~2.5 GB with its nvidia-* wheels); a pip configured with a local CPU wheel (as the
+#     machine rlexp is developed on) gets that.
+#   make install TORCH_INDEX=https://download.pytorch.org/whl/cpu     CPU only (~200 MB): laptops, CI
+#   make install TORCH_INDEX=https://download.pytorch.org/whl/cu128   CUDA 12.8 build, for GPU nodes
+TORCH_VERSION ?= 2.13.0
+TORCH_INDEX ?=
 $(VENV)/.torch: $(VENV)/.created
-	$(PY) -m pip install --disable-pip-version-check torch==2.13.0
+	$(PY) -m pip install --disable-pip-version-check torch==$(TORCH_VERSION) \
+		$(if $(TORCH_INDEX),--index-url $(TORCH_INDEX) --extra-index-url https://pypi.org/simple)
 	touch $@
 
-# Every extra (W&B, SLURM, Optuna, video, report) and the dev tools: the tests use them all.
-$(VENV)/.installed: $(VENV)/.torch pyproject.toml setup.py
-	$(PY) -m pip install --disable-pip-version-check -e ".[all,dev]"
+# Every extra (W&B, SLURM, Optuna, video, report) and the dev tools: the tests use them all, with
+# the versions CI tests (constraints.txt; pyproject.toml has the ranges rlexp accepts).
+$(VENV)/.installed: $(VENV)/.torch pyproject.toml setup.py constraints.txt
+	$(PY) -m pip install --disable-pip-version-check -c constraints.txt -e ".[all,dev]"
 	touch $@
 
 install: $(VENV)/.installed

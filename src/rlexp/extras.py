@@ -1,4 +1,5 @@
-"""Optional parts of rlexp and the pip extra that installs each (``pip install 'rlexp[wandb]'``).
+"""Optional parts of rlexp and the pip extra that installs each (``pip install -e '.[wandb]'`` in a
+checkout; the messages name the extra's packages, ``pip install 'wandb>=0.17,<0.32'``).
 
 The core install runs ``rlexp train`` on one machine (TensorBoard and JSONL logs, local sweeps).
 A missing extra is one line naming it, before a run writes anything: ``check_config`` for what a
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import importlib.util
 import re
+import shlex
 from typing import TYPE_CHECKING
 
 from rlexp.config.validate import ConfigError
@@ -52,8 +54,31 @@ def missing(extra: str, modules: tuple[str, ...] | None = None) -> str | None:
     return None
 
 
+def extra_requirements(extra: str) -> list[str]:
+    """The requirements ``extra`` adds, as rlexp's installed metadata lists them (pyproject.toml's
+    ranges); [] when rlexp's metadata is not there (run from a source tree without an install)."""
+    from importlib import metadata
+
+    try:
+        requires = metadata.requires("rlexp") or []
+    except metadata.PackageNotFoundError:
+        return []
+    found = []
+    for line in requires:
+        spec, _, marker = line.partition(";")
+        if re.search(rf"""extra\s*==\s*["']{re.escape(extra)}["']""", marker):
+            found.append(spec.strip())
+    return found
+
+
 def install_hint(extra: str) -> str:
-    return f"pip install 'rlexp[{extra}]'"
+    """The command that installs ``extra``'s packages. rlexp is not on a package index, so not
+    ``pip install 'rlexp[wandb]'`` (it fails for everyone): the extra's own requirements, which
+    install wherever rlexp came from (a clone, a wheel, a git URL)."""
+    requirements = extra_requirements(extra)
+    if requirements and not any(r.startswith("rlexp") for r in requirements):
+        return "pip install " + " ".join(shlex.quote(r) for r in requirements)
+    return f"pip install -e '.[{extra}]' in rlexp's checkout"
 
 
 def require(extra: str, what: str, modules: tuple[str, ...] | None = None) -> None:
