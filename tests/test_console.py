@@ -183,5 +183,5 @@ def test_train_on_a_terminal_keeps_log_lines_out_of_the_bar(tmp_path):
     if not bars:
         pytest.fail(f"no progress bar on the terminal:\n{raw[-2000:]!r}")
     assert "1536/1300 steps" in bars[-1], bars
-    done = next(i for i, x in enumerate(lines) if "done: 1536 env steps" in x)
+    done = next(i for i, x in enumerate(lines) if "done: 1,536 env steps" in x)
     assert lines.index(bars[-1]) < done  # the bar's last state stays above the lines after it

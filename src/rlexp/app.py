@@ -22,6 +22,7 @@ from omegaconf import DictConfig
 
 from rlexp import _speedups
 from rlexp.config.rules import first_line
+from rlexp.next_steps import done_message
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
 from rlexp.paths import CONF_DIR, with_user_config_dir  # CONF_DIR: the package's or the checkout's
@@ -281,7 +282,8 @@ def _run(
         if beat is not None:
             beat.stop()  # status.json already says how it ended
         trainer.close()
-    log.info("done: %d env steps; checkpoint %s", trainer.global_step, trainer.last_checkpoint)
+    if trainer.dist.is_main:
+        log.info("%s", done_message(trainer, run_dir))
     return trainer.last_eval
 
 
