@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Protocol
 
+from rlexp.config.rules import first_line
 from rlexp.config.schema import LoggerConfig
 
 log = logging.getLogger(__name__)
@@ -314,20 +315,43 @@ class JsonlBackend:
         os.close(self.fd)
 
 
+def wandb_credentials() -> str:
+    """Where W&B would find credentials for the server it talks to ("" when nowhere), asked of
+    wandb itself: its base URL (``WANDB_BASE_URL``, its settings files; a self-hosted server too),
+    ``WANDB_API_KEY`` / ``WANDB_IDENTITY_TOKEN_FILE``, the ``.netrc`` entry for that host
+    (``NETRC`` too), and the key in its settings."""
+    for var in ("WANDB_API_KEY", "WANDB_IDENTITY_TOKEN_FILE"):
+        if os.environ.get(var):
+            return var
+    from wandb.sdk import wandb_setup
+    from wandb.sdk.lib import wbauth
+
+    settings = wandb_setup.singleton().settings
+    try:
+        if wbauth.read_netrc_auth(host=settings.base_url):
+            return f".netrc ({settings.base_url})"
+    except Exception as exc:  # a malformed key: wandb.init would refuse it too; say so, go online
+        return f".netrc ({settings.base_url}; wandb says: {first_line(exc)})"
+    if settings.api_key:
+        return "wandb settings"
+    return ""
+
+
 def _wandb_mode(requested: str) -> str:
-    """``auto`` runs online only when an API key is configured; otherwise offline, with a warning."""
+    """``auto`` runs online only when wandb finds credentials for its server; otherwise offline,
+    with a warning naming the server."""
     if requested != "auto":
         return requested
     if os.environ.get("WANDB_MODE"):
         return os.environ["WANDB_MODE"]
-    has_key = (
-        bool(os.environ.get("WANDB_API_KEY"))
-        or (Path.home() / ".netrc").exists()
-        and "api.wandb.ai" in (Path.home() / ".netrc").read_text(errors="ignore")
-    )
-    if not has_key:
+    if not wandb_credentials():
+        from wandb.sdk import wandb_setup
+
+        host = wandb_setup.singleton().settings.base_url
         log.warning(
-            "W&B: no API key found; logging offline under the run dir (sync later with `wandb sync`)"
+            "W&B: no API key for %s (WANDB_API_KEY, .netrc, wandb login); logging offline under "
+            "the run dir (sync later with `wandb sync`)",
+            host,
         )
         return "offline"
     return "online"
