@@ -171,3 +171,17 @@ def test_a_resumed_run_keeps_its_best_and_an_unfinished_one_has_no_end_status(tm
     newest.Reload()  # the best goes on in the resumed run's own file: a continuous curve
     best = newest.Scalars("best/eval_episode_return")
     assert [(e.step, e.value) for e in best] == [(300, 5.0)]
+
+
+def test_the_carried_best_is_read_with_tensorboards_loader_up_to_a_torn_record(tmp_path):
+    """A crash mid-write leaves a torn last record: the best before it is the one carried over."""
+    from rlexp.logging import BEST_EVAL_RETURN, TensorBoardBackend, _last_logged
+
+    first = TensorBoardBackend(tmp_path, {"seed": 1})
+    first.log({"eval/episode_return": 5.0}, 100)
+    first.log({"eval/episode_return": 7.5}, 200)
+    first.close()
+    (path,) = sorted((tmp_path / "tensorboard").glob("events.*"))
+    assert _last_logged([path], BEST_EVAL_RETURN) == 7.5
+    path.write_bytes(path.read_bytes()[:-5])  # the 7.5 record, torn
+    assert _last_logged([path], BEST_EVAL_RETURN) == 5.0

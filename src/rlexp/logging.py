@@ -12,7 +12,6 @@ import json
 import logging
 import math
 import os
-import struct
 import time
 from pathlib import Path
 from typing import Protocol
@@ -124,7 +123,9 @@ def _job_overrides(run_dir: Path) -> list[str]:
 
 
 def _hparams_summary(tag: str, data: object):
-    """One summary of the HParams plugin, as TensorBoard's own (TensorFlow) writer makes it."""
+    """One summary of the HParams plugin, made as TensorBoard's ``hparams.summary.session_end_pb``
+    makes it: that module imports TensorFlow at the top (``summary_v2``, used for the rest, has no
+    session end), so only the session end is built here, from the plugin's own metadata helper."""
     from tensorboard.compat.proto.summary_pb2 import Summary
     from tensorboard.plugins.hparams import metadata
 
@@ -141,29 +142,23 @@ def _hparams_summary(tag: str, data: object):
 
 def _last_logged(files: list[Path], tag: str) -> float | None:
     """The last value of scalar ``tag`` in the newest of ``files`` that has it (each process
-    carries the best over into its own file, so the newest one holding the tag knows it)."""
-    from tensorboard.compat.proto.event_pb2 import Event
+    carries the best over into its own file, so the newest one holding the tag knows it). Read
+    with TensorBoard's own loader, which stops at a record torn by a crash."""
+    from tensorboard.backend.event_processing.event_file_loader import LegacyEventFileLoader
 
     needle = tag.encode()
     for path in reversed(files):
         try:
-            data = path.read_bytes()
-        except OSError:
-            continue
-        if needle not in data:
-            continue
-        last = None
-        pos = 0
-        while pos + 12 <= len(data):  # TFRecord framing: length, its CRC, the event, its CRC
-            (size,) = struct.unpack_from("<Q", data, pos)
-            record = data[pos + 12 : pos + 12 + size]
-            pos += 16 + size
-            if pos > len(data):
-                break  # a record torn by a crash
-            if needle in record:
-                for value in Event.FromString(record).summary.value:
+            with open(path, "rb") as f:
+                if needle not in f.read():  # most files never logged it: skip the parse
+                    continue
+            last = None
+            for event in LegacyEventFileLoader(str(path)).Load():  # as written: simple_value
+                for value in event.summary.value:
                     if value.tag == tag:
                         last = value.simple_value
+        except OSError:
+            continue
         if last is not None:
             return last
     return None
@@ -193,39 +188,20 @@ class TensorBoardBackend:
 
     def _write_session_start(self, hparams: dict[str, float | bool | str]) -> None:
         """The experiment (columns: hyperparameters and metrics) and this job's values, at the start,
-        so a running job is in the dashboard and a killed one stays there."""
-        from tensorboard.plugins.hparams import api_pb2, metadata, plugin_data_pb2
+        so a running job is in the dashboard and a killed one stays there (TensorBoard's own
+        ``hparams.summary_v2`` protos)."""
+        from tensorboard.plugins.hparams import summary_v2 as hp
 
-        start = plugin_data_pb2.SessionStartInfo(start_time_secs=time.time())
-        infos = []
-        for key, value in hparams.items():
-            if isinstance(value, bool):
-                start.hparams[key].bool_value = value
-                kind = api_pb2.DATA_TYPE_BOOL
-            elif isinstance(value, (int, float)):
-                start.hparams[key].number_value = value
-                kind = api_pb2.DATA_TYPE_FLOAT64
-            else:
-                start.hparams[key].string_value = value
-                kind = api_pb2.DATA_TYPE_STRING
-            # No domain: the dashboard takes one job's experiment for the whole sweep, and a
-            # discrete domain of this job's value alone would filter the other jobs out.
-            infos.append(api_pb2.HParamInfo(name=key, type=kind))
-        experiment = api_pb2.Experiment(
-            hparam_infos=infos,
-            metric_infos=[
-                api_pb2.MetricInfo(name=api_pb2.MetricName(tag=tag)) for tag in HPARAMS_METRICS
-            ],
+        # No domain: the dashboard takes one job's experiment for the whole sweep, and a discrete
+        # domain of this job's value alone would filter the other jobs out.
+        experiment = hp.hparams_config_pb(
+            hparams=[hp.HParam(key) for key in hparams],
+            metrics=[hp.Metric(tag) for tag in HPARAMS_METRICS],
         )
-        file_writer = self.writer.file_writer
-        for tag, data in (
-            (metadata.EXPERIMENT_TAG, plugin_data_pb2.HParamsPluginData(experiment=experiment)),
-            (
-                metadata.SESSION_START_INFO_TAG,
-                plugin_data_pb2.HParamsPluginData(session_start_info=start),
-            ),
-        ):
-            file_writer.add_summary(_hparams_summary(tag, data))
+        # trial_id "": each job is a session of its own (not grouped by a hash of its values)
+        start = hp.hparams_pb(hparams, trial_id="", start_time_secs=time.time())
+        for summary in (experiment, start):
+            self.writer.file_writer.add_summary(summary)
 
     def log(self, metrics: dict[str, float], step: int) -> None:
         for key, value in metrics.items():
