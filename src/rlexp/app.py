@@ -21,10 +21,11 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from rlexp import _speedups
+from rlexp.build import seed_everything
 from rlexp.config.rules import first_line
-from rlexp.next_steps import done_message
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
+from rlexp.next_steps import done_message
 from rlexp.paths import CONF_DIR, with_user_config_dir  # CONF_DIR: the package's or the checkout's
 from rlexp.plugins import load_plugins
 from rlexp.rundir import (
@@ -46,18 +47,6 @@ from rlexp.rundir import (
 )
 
 log = logging.getLogger(__name__)
-
-
-def seed_everything(seed: int) -> None:
-    """Seed python, numpy and torch (the envs are seeded where they are built)."""
-    import random
-
-    import numpy as np
-    import torch
-
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
 
 
 class RunEnded(Exception):

@@ -14,6 +14,18 @@ from rlexp.config.validate import ConfigError
 log = logging.getLogger(__name__)
 
 
+def seed_everything(seed: int) -> None:
+    """Seed python, numpy and torch (the envs are seeded where they are built)."""
+    import random
+
+    import numpy as np
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
 def resolve_device(device: str, strict: bool = False) -> str:
     """``auto`` -> ``cuda`` when a GPU is visible, else ``cpu``; CUDA asked on a CPU-only machine
     falls back to CPU with one warning unless ``strict``."""
@@ -66,7 +78,7 @@ class Built:
             setup = EvalSetup(
                 c.env, c.policy, c.seed + EVAL_SEED_OFFSET, c.trainer.eval_episodes, device
             )
-            worker = EvalWorker(setup)
+            worker = EvalWorker(setup, timeout_s=c.trainer.stall_timeout_s)  # a stuck one fails
         return Trainer(
             cfg=self.config.trainer,
             policy=self.policy,

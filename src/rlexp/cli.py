@@ -322,15 +322,26 @@ def main(argv: list[str] | None = None) -> None:
             sys.exit(2)
         return
     if args.command in ("eval", "export"):
-        _load_plugins_or_exit(f"rlexp {args.command}")  # the checkpoint's task may be a plugin's
-        try:
-            print(_eval(args) if args.command == "eval" else _export(args))
-        except (FileNotFoundError, ValueError) as exc:
-            print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
-            sys.exit(2)
-        except FloatingPointError as exc:  # NonFiniteError: NaN/Inf weights (not imported: slow)
-            print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
-            sys.exit(3)
+        from rlexp import _speedups
+
+        # The cyclic GC off, as train's start-up has it: the imports alone (torch, tensordict,
+        # TorchRL, through the plugins too) trigger dozens of full collections; a short command
+        # never needs one.
+        with _speedups.startup_gc():
+            _eval_or_export(args)
+
+
+def _eval_or_export(args: argparse.Namespace) -> None:
+    """``rlexp eval`` / ``rlexp export``: the result printed, or one line and exit 2 (3: NaN)."""
+    _load_plugins_or_exit(f"rlexp {args.command}")  # the checkpoint's task may be a plugin's
+    try:
+        print(_eval(args) if args.command == "eval" else _export(args))
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
+        sys.exit(2)
+    except FloatingPointError as exc:  # NonFiniteError: NaN/Inf weights (not imported: slow)
+        print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
+        sys.exit(3)
 
 
 def _add_export_parser(sub: Any) -> None:

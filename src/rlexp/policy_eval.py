@@ -260,7 +260,7 @@ def evaluate(
         raise ValueError(f"num_envs={num_envs}; use at least 1 env (None: the run's num_eval_envs)")
     source = open_source(checkpoint)
 
-    from rlexp.app import seed_everything
+    from rlexp.build import seed_everything  # not rlexp.app: that imports Hydra (~0.2 s)
     from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
     from rlexp.evaluation import run_episodes
