@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import dataclasses
 import re
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 
 from conftest import REPO
 from rlexp.config import schema
