@@ -328,9 +328,12 @@ def test_a_sigkilled_run_shows_died_and_its_resume_command_finishes_it(tmp_path,
     table = rlexp("runs", cwd=tmp_path).stdout
     assert f"resume: {row['resume']}" in table
 
-    cmd = shlex.split(row["resume"])
-    assert cmd[:2] == ["python", "train.py"]
-    proc = run_train(cmd[2:], cwd=tmp_path)
+    cmd = shlex.split(row["resume"])  # from the run's dir, with its interpreter and entry
+    assert cmd[:5] == ["cd", str(tmp_path), "&&", sys.executable, str(REPO / "train.py")]
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
+    proc = subprocess.run(["bash", "-c", row["resume"]], cwd=tmp_path / "outputs", env=env,
+                          capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "[resume] continuing from" in proc.stdout + proc.stderr
     (row,) = json.loads(rlexp("runs", "--json", cwd=tmp_path).stdout)
     assert (row["status"], row["step"], row["resume"]) == ("finished", 4096, None)

@@ -25,6 +25,7 @@ from rlexp.build import seed_everything
 from rlexp.config.rules import first_line
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
+from rlexp.launch.job_dir import job_dir
 from rlexp.next_steps import done_message
 from rlexp.paths import CONF_DIR, with_user_config_dir  # CONF_DIR: the package's or the checkout's
 from rlexp.plugins import load_plugins
@@ -70,6 +71,7 @@ def train(
     from rlexp.launch.signals import stop_on_signals
 
     dist = distributed.info()
+    distributed.set_timeout(config.trainer.stall_timeout_s)  # the longest wait for another rank
     _speedups.apply()
     _speedups.release_frozen()  # an earlier run in this process (a sweep's jobs, tests)
     torch.set_num_threads(config.trainer.torch_threads)
@@ -200,6 +202,7 @@ def _run(
     trainer: Any, run_dir: Path, total: int, stops: Any, ckpt: dict | None
 ) -> dict[str, float]:
     """Train; every way out leaves ``status.json`` saying how the run ended and why."""
+    from rlexp import stalls
     from rlexp.algorithms.ppo import NonFiniteError
     from rlexp.launch.slurm import stop_requested_by_signal
     from rlexp.trainer import StopRequested
@@ -211,7 +214,12 @@ def _run(
     status = partial(write_status, run_dir, env_resume=trainer.env_resume)  # docs/envs.md
     status("running", trainer.global_step)
     # heartbeat.json while it trains: how `rlexp runs` tells a killed run from a live one
-    beat = Heartbeat(run_dir, lambda: _progress(trainer, total)) if trainer.dist.is_main else None
+    t = trainer.cfg
+    beat = (Heartbeat(run_dir, partial(stalls.progress, trainer, total),
+                      stall_timeout_s=t.stall_timeout_s) if trainer.dist.is_main else None)  # fmt: skip
+    # A loop stuck in user code never reaches its safe point: a signal still ends the process.
+    watchdog = stalls.StopWatchdog(trainer, run_dir, ckpt and ckpt["path"], t.stop_grace_s)
+    stops.watchers.append(watchdog.arm)
     try:
         if beat is not None:
             beat.start()
@@ -268,9 +276,11 @@ def _run(
         _try_write_status(run_dir, trainer, reason)
         raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
     finally:
+        watchdog.ended = True  # status.json says how it ended: past the grace, only exit
         if beat is not None:
-            beat.stop()  # status.json already says how it ended
+            beat.stop()
         trainer.close()
+        watchdog.disarm()
     if trainer.dist.is_main:
         log.info("%s", done_message(trainer, run_dir))
     return trainer.last_eval
@@ -289,20 +299,6 @@ def _eval_async(config: RootConfig, total: int, jobs: int) -> bool:
     choice = str(config.trainer.eval_async).lower()
     log.info("[eval] trainer.eval_async=%s -> %s: %s", choice, "on" if on else "off", why)
     return on
-
-
-def _progress(trainer: Any, total: int) -> dict[str, Any]:
-    """What the heartbeat records besides who and when (read from the heartbeat's thread)."""
-    cfg = trainer.config_dict
-    return {
-        "task": cfg["env"]["name"],  # with total: what `rlexp runs` shows without the config.yaml
-        "algorithm": cfg["algorithm"]["name"],
-        "global_step": trainer.global_step,
-        "total": total,
-        "best_metric": trainer.cfg.best_metric,
-        "best": trainer.best_metric,  # -inf until the first eval: written as null
-        "last_eval": dict(trainer.last_eval),
-    }
 
 
 def _save_at_safe_point(trainer: Any) -> bool:
@@ -362,7 +358,7 @@ def _task(cfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
     HYDRA_JOB.update(cfg=cfg, hydra=hc)
     multirun = hc.mode is not None and hc.mode.name == "MULTIRUN"
-    run_dir = Path(hc.runtime.output_dir)
+    run_dir = Path(job_dir())  # not hc.runtime.output_dir: a dir named "${...}" breaks it
     sweep_group = Path(hc.sweep.dir).name if multirun else None
     try:
         load_plugins()  # a sweep worker or a SLURM job is a fresh process

@@ -94,7 +94,9 @@ def train(argv: list[str], prog: str = "rlexp train") -> None:
     """``rlexp train`` / ``python train.py``: plugins first (a JSON file may name a plugin's task),
     then ``--config-json`` / ``--distributed`` and Hydra (``rlexp.launch.json_entry``)."""
     from rlexp import _speedups
+    from rlexp.launch.relaunch import record_launch
 
+    record_launch(argv)  # as typed, for the resume command of `rlexp runs`
     with _speedups.startup_gc():  # the GC is back on once the run is built (app._run)
         _load_plugins_or_exit(prog)
         from rlexp.launch.json_entry import main as train_main

@@ -22,6 +22,7 @@ import io
 import logging
 import os
 import signal
+import time
 import traceback
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -37,6 +38,9 @@ log = logging.getLogger(__name__)
 #: ``auto`` turns the worker on for runs with at least this many eval rounds: its start (~2-4 s of
 #: the spare core; the first round waits for it if it comes sooner) is then paid back.
 AUTO_MIN_ROUNDS = 10
+#: The worker's start-up (spawn, imports, building its env) waits at least this long, whatever
+#: ``trainer.stall_timeout_s``: tens of seconds on a machine busy with other runs.
+STARTUP_TIMEOUT_MIN_S = 120.0
 #: Group-wide terminal signals the worker must not act on (the training process stops it).
 _TERMINAL_SIGNALS = {signal.SIGINT, signal.SIGHUP}
 
@@ -84,11 +88,16 @@ def record(round_: EvalRound | None) -> dict[str, Any] | None:
     )
 
 
+class EvalWorkerTimeout(RuntimeError):
+    """The eval worker did not answer within ``trainer.stall_timeout_s``."""
+
+
 @dataclass
 class EvalWorker:
     """The training process's handle on the worker: ``start``, ``submit`` a round, ``result``."""
 
     setup: EvalSetup
+    timeout_s: float | None = None  # trainer.stall_timeout_s: the longest wait for an answer
     in_flight: EvalRound | None = None
     _proc: Any = field(default=None, repr=False)
     _conn: Any = field(default=None, repr=False)
@@ -122,7 +131,7 @@ class EvalWorker:
         buffer = io.BytesIO()
         torch.save(round_.state["policy"], buffer)
         if not self._ready:  # the first round may come before the worker has built its env
-            self._receive("ready")
+            self._receive("ready", "start-up")
             self._ready = True
         self._conn.send((round_.step, buffer.getvalue()))
         self.in_flight = round_
@@ -132,7 +141,7 @@ class EvalWorker:
         round_ = self.in_flight
         if round_ is None:
             raise RuntimeError("no eval round in flight")
-        step, metrics = self._receive("result")
+        step, metrics = self._receive("result", f"eval round of step {round_.step}")
         if step != round_.step:
             raise RuntimeError(f"the eval worker answered for step {step}, not {round_.step}")
         self.in_flight = None
@@ -155,13 +164,28 @@ class EvalWorker:
             proc.join(1.0)
         self._conn.close()
 
-    def _receive(self, kind: str) -> Any:
-        """The worker's next message of ``kind``; its error or its death as a RuntimeError."""
+    def _receive(self, kind: str, what: str) -> Any:
+        """The worker's next message of ``kind`` (for ``what``: its start-up, a round); its error,
+        its death or its silence past ``timeout_s`` (stopped, or stuck in the env) as a
+        RuntimeError."""
+        start = time.monotonic()
+        limit = self.timeout_s
+        if limit is not None and kind == "ready":  # spawn + imports + env: slow on a busy machine
+            limit = max(limit, STARTUP_TIMEOUT_MIN_S)
         while not self._conn.poll(0.1):
             if not self._proc.is_alive():
                 raise RuntimeError(
                     f"the eval worker (pid {self._proc.pid}) died with exit code "
                     f"{self._proc.exitcode} (trainer.eval_async=false evaluates in this process)"
+                )
+            if limit is not None and time.monotonic() - start > limit:
+                bound = f"trainer.stall_timeout_s={self.timeout_s:g} s"
+                if limit != self.timeout_s:
+                    bound = f"{limit:g} s ({bound}, at least {STARTUP_TIMEOUT_MIN_S:g} s to start)"
+                raise EvalWorkerTimeout(
+                    f"the eval worker (pid {self._proc.pid}) did not answer for its {what} within "
+                    f"{bound} (stopped, or stuck in the eval env); trainer.eval_async=false "
+                    "evaluates in this process"
                 )
         try:
             got, payload = self._conn.recv()

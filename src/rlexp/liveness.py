@@ -74,6 +74,22 @@ def _age(seconds: float) -> str:
     return format_duration(max(0.0, seconds))
 
 
+def _num(value: Any) -> float | None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    return float(value) if ok else None
+
+
+def _no_progress(beat: dict[str, Any], now: float) -> str:
+    """Why a run whose heartbeat is fresh is stalled: its step has not moved for longer than the
+    run's own ``stall_timeout_s`` as its last beat saw it ("" when it moves, or the beat is from
+    before ``step_time`` was recorded)."""
+    limit, moved, beat_time = (_num(beat.get(k)) for k in ("stall_timeout_s", "step_time", "time"))
+    if limit is None or moved is None or beat_time is None or beat_time - moved <= limit:
+        return ""
+    step = beat.get("global_step")
+    return f"step {step} has not moved for {_age(now - moved)} (stalled after {_age(limit)})"
+
+
 def _by_heartbeat(beat: dict[str, Any], now: float, here: Here) -> tuple[str, str]:
     host, pid = beat.get("host"), beat.get("pid")
     interval = beat.get("interval_s")
@@ -89,10 +105,12 @@ def _by_heartbeat(beat: dict[str, Any], now: float, here: Here) -> tuple[str, st
             return "died", gone
         if age > limit:  # the process lives but does not beat: hung or stopped (SIGSTOP)
             return "stalled", f"PID {pid} is alive but {stale}"
-        return "running", ""
+        stuck = _no_progress(beat, now)  # it beats, but its loop does not move
+        return ("stalled", f"PID {pid} is alive but {stuck}") if stuck else ("running", "")
     if age > limit:
         return "died", f"{stale}, on host {host}"
-    return "running", ""
+    stuck = _no_progress(beat, now)
+    return ("stalled", f"{stuck}, on host {host}") if stuck else ("running", "")
 
 
 def _by_pid(status: dict[str, Any], here: Here) -> tuple[str, str]:

@@ -69,6 +69,7 @@ def write_provenance(run_dir: Path, device: str) -> dict:
     ``git_commit`` / ``git.diff``: rlexp's checkout when rlexp runs from one; ``project``: the git
     repository of the working directory when it is another (a user's project); ``plugins``: the
     ``rlexp.plugins`` loaded, with their package versions."""
+    from rlexp.launch.relaunch import launch_info
     from rlexp.paths import CONF_DIR
     from rlexp.plugins import LOADED
 
@@ -86,6 +87,7 @@ def write_provenance(run_dir: Path, device: str) -> dict:
         "platform": platform.platform(),
         "device": device,
         "argv": sys.argv,
+        "launch": launch_info(),  # cwd, entry, arguments as typed, ranks: rlexp runs' resume command
         "start_time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     if diff:

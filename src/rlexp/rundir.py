@@ -173,6 +173,8 @@ RESUME_MAY_CHANGE = (
     "logger.console",  # the summary lines on the console
     "env.num_eval_envs",  # evaluation copies (the Gymnasium default went from 1 to 10)
     "trainer.eval_async",  # where eval rounds run, not what they compute (and older dirs lack it)
+    "trainer.stall_timeout_s",  # how a stuck run is told and ended, not what it trains
+    "trainer.stop_grace_s",
     "env.vectorization",  # removed (it never did anything); older run dirs still hold it
 )
 
@@ -291,6 +293,8 @@ HEARTBEAT_INTERVAL_S = 10.0
 #: a few missed beats, plus room for a loaded machine and a slow shared filesystem.
 STALE_INTERVALS = 3
 STALE_MARGIN_S = 30.0
+#: Seconds between two looks of the heartbeat's thread at the step (a stall is seen this soon).
+STEP_POLL_S = 1.0
 
 
 def stale_after(interval_s: float) -> float:
@@ -346,22 +350,30 @@ class Heartbeat:
     """Writes ``heartbeat.json`` now and every ``interval_s`` from a daemon thread until ``stop``.
 
     ``progress()`` gives what else the beat records (``global_step``, ``total``, ``best_metric``,
-    ``best``, ``last_eval``); it is called from the thread, so it must only read. The file stays
-    when the run ends (``status.json`` says how it ended); a write that fails is logged once and
-    retried at the next beat."""
+    ``best``, ``last_eval``); it is called from the thread, so it must only read. The thread proves
+    the process lives, not that it trains: it also samples ``global_step`` every STEP_POLL_S and
+    records when it last moved (``step_time``) and the run's ``stall_timeout_s``, so that readers
+    tell a loop stuck in an env step or a wait from a working one (``rlexp.liveness``); the bound
+    crossed is logged and beaten at once. The file stays when the run ends (``status.json`` says how
+    it ended); a write that fails is logged once and retried at the next beat."""
 
     def __init__(
         self,
         run_dir: Path,
         progress: Callable[[], dict[str, Any]],
         interval_s: float = HEARTBEAT_INTERVAL_S,
+        stall_timeout_s: float | None = None,
     ) -> None:
         self.path = Path(run_dir) / HEARTBEAT_NAME
         self.progress = progress
         self.interval_s = interval_s
+        self.stall_timeout_s = stall_timeout_s
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._warned = False
+        self._step: Any = None
+        self._step_time: float | None = None
+        self._stalled = False
         pid = os.getpid()
         self._who = {
             "host": socket.gethostname(),
@@ -369,15 +381,40 @@ class Heartbeat:
             "pid_start_ticks": process_start_ticks(pid),
             "boot_id": boot_id(),
             "interval_s": interval_s,
+            "stall_timeout_s": stall_timeout_s,
         }
 
-    def beat(self) -> None:
-        """Write the heartbeat once, atomically."""
+    def _sample(self) -> tuple[dict[str, Any], bool]:
+        """(the progress now, whether the step just crossed the stall bound)."""
         try:
             extra = dict(self.progress())
         except Exception as exc:  # never let the progress read break the beat itself
             extra = {"progress_error": f"{type(exc).__name__}: {exc}"}
-        data = _json_safe({**self._who, "time": round(time.time(), 3), **extra})
+        return extra, self._watch(extra.get("global_step"), time.time())
+
+    def _watch(self, step: Any, now: float) -> bool:
+        if step != self._step or self._step_time is None:
+            if self._stalled:
+                log.info("[stall] step %s: training moves again", step)
+            self._step, self._step_time, self._stalled = step, now, False
+            return False
+        limit = self.stall_timeout_s
+        if limit is None or self._stalled or now - self._step_time <= limit:
+            return False
+        self._stalled = True
+        log.warning(
+            "[stall] step %s has not moved for %.0f s (trainer.stall_timeout_s=%g): the loop waits "
+            "on something (an env step, an eval round, another rank); SIGTERM stops it",
+            step, now - self._step_time, limit,
+        )  # fmt: skip
+        return True
+
+    def beat(self, extra: dict[str, Any] | None = None) -> None:
+        """Write the heartbeat once, atomically (``extra``: progress just sampled)."""
+        if extra is None:
+            extra, _ = self._sample()
+        data = _json_safe({**self._who, "time": round(time.time(), 3),
+                           "step_time": round(self._step_time or time.time(), 3), **extra})  # fmt: skip
         tmp = self.path.with_name(f".{HEARTBEAT_NAME}.tmp-{os.getpid()}")
         try:
             tmp.write_text(json.dumps(data, allow_nan=False, default=str) + "\n")
@@ -388,8 +425,12 @@ class Heartbeat:
                 self._warned = True
 
     def _loop(self) -> None:
-        while not self._stop.wait(self.interval_s):
-            self.beat()
+        due = time.monotonic() + self.interval_s
+        while not self._stop.wait(min(self.interval_s, STEP_POLL_S)):
+            extra, crossed = self._sample()
+            if crossed or time.monotonic() >= due:
+                self.beat(extra)
+                due = time.monotonic() + self.interval_s
 
     def start(self) -> Heartbeat:
         """First beat now, then one every ``interval_s``."""

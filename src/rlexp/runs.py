@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shlex
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -206,26 +205,11 @@ def newest_checkpoint_step(run_dir: Path) -> int | None:
 
 # -- one run ---------------------------------------------------------------------------------------
 def resume_command(run_dir: Path, overrides: list[str], argv: Any) -> str:
-    """``python train.py [--config-json F] OVERRIDES hydra.run.dir=DIR``: continues a run from its
-    newest good checkpoint (``trainer.resume=auto``, the default)."""
-    args = [str(a) for a in argv[1:]] if isinstance(argv, list) else []
-    flags: list[str] = []
-    for i, arg in enumerate(args):  # the JSON file and --distributed are not Hydra overrides
-        if arg in ("--config-json", "--config") and i + 1 < len(args):
-            flags += [arg, args[i + 1]]
-        elif arg.startswith(("--config-json=", "--config=")) or arg == "--distributed":
-            flags.append(arg)
-    keep = []
-    for o in overrides:
-        key = o.partition("=")[0].lstrip("+~")
-        if key in ("trainer.resume", "hydra.run.dir") or (
-            flags and o == "+experiment=json_experiment"
-        ):
-            continue  # json_entry adds +experiment itself
-        keep.append(o)
-    changed = any(o.partition("=")[0].lstrip("+~") == "trainer.resume" for o in overrides)
-    tail = ["trainer.resume=auto"] if changed else []
-    return shlex.join(["python", "train.py", *flags, *keep, *tail, f"hydra.run.dir={run_dir}"])
+    """The command that resumes a run from before ``provenance.json`` recorded ``launch``
+    (``rlexp.launch.relaunch.legacy_resume_command``)."""
+    from rlexp.launch.relaunch import legacy_resume_command
+
+    return legacy_resume_command(run_dir, overrides, argv)
 
 
 def _budget(config: dict[str, Any]) -> int | None:
@@ -303,7 +287,9 @@ def read_run(
     _evals(run, status, beat, metric)
     _wall(run, status, beat, parse_time(run.start), now)
     if shown == "died":
-        run.resume = resume_command(run_dir.resolve(), run.overrides, prov.get("argv"))
+        from rlexp.launch.relaunch import resume_command as command  # cwd, entry, ranks, quoting
+
+        run.resume = command(run_dir.resolve(), run.overrides, prov)
         ckpt = newest_checkpoint_step(run_dir)
         run.note += f"; resumes from step {ckpt}" if ckpt is not None else "; no checkpoint yet"
     return run

@@ -147,6 +147,10 @@ FIELD_RULES: dict[str, Rule] = {
         lambda v: isinstance(v, int) and 1 <= v <= available_cpus(),
         "in [1, the CPUs this process may use] (more threads than CPUs only slow it down)",
     ),
+    "trainer.stall_timeout_s": above(
+        0, " seconds (longer than an eval round and the first iteration)"
+    ),
+    "trainer.stop_grace_s": above(0, " seconds"),
     # policy
     "policy.name": one_of("actor_critic", "actor_only"),
     "policy.actor.hidden_sizes": Rule(_widths, "a list of widths in [1, 65536] ([]: linear)"),

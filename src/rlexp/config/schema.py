@@ -64,6 +64,15 @@ class TrainerConfig:
     # torch intra-op threads for the PPO update (collection and evaluation run with one): 1 is
     # fastest for small networks; large minibatches on a machine of your own: the cores you have
     torch_threads: int = 1
+    # a run whose global_step has not moved for this long is `stalled` in `rlexp runs`, and the
+    # longest wait for the eval worker's round or for another rank in a collective (then the run
+    # fails, saving a checkpoint where one is consistent). Above the longest eval round and the
+    # first iteration (start-up, torch.compile): docs/runs.md
+    stall_timeout_s: float = 900.0
+    # after SIGINT / SIGTERM / SIGHUP the run stops at the end of its iteration with a checkpoint;
+    # one that has not reached that point this long after the signal (stuck in an env step) exits
+    # anyway: 128 + N, interrupted, the last good checkpoint is the resume point
+    stop_grace_s: float = 60.0
 
 
 @dataclass
@@ -291,6 +300,9 @@ def register_configs() -> None:
     """Register the root and group schemas in Hydra's ConfigStore (idempotent)."""
     from hydra.core.config_store import ConfigStore
 
+    from rlexp.launch.job_dir import register_resolver
+
+    register_resolver()  # ${rlexp_job_dir:}: conf/config.yaml's log file
     cs = ConfigStore.instance()
     cs.store(name="rlexp_schema", node=RootConfig)
     for group, (name, node) in GROUP_SCHEMAS.items():

@@ -17,13 +17,20 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import timedelta
 from typing import Any
 
 log = logging.getLogger(__name__)
 
 FLAG = "--distributed"
+TIMEOUT_KEY = "trainer.stall_timeout_s"
+
+
+class CollectiveTimeout(RuntimeError):
+    """Another rank did not join a collective within ``trainer.stall_timeout_s``."""
 
 
 @dataclass
@@ -45,6 +52,8 @@ class DistInfo:
 
 
 _INFO = DistInfo()
+#: How long a collective waits for the other ranks (gloo's own default is 30 minutes).
+_TIMEOUT_S: float | None = None
 
 
 def info() -> DistInfo:
@@ -72,12 +81,60 @@ def _env_from_submitit() -> None:
         ) from exc
 
 
-def _join(how_to_launch: str) -> None:
-    """Join the process group from the launcher's environment (gloo on CPU, nccl on CUDA)."""
+def command_line_timeout(argv: Sequence[str]) -> float:
+    """``trainer.stall_timeout_s`` as the command line sets it, else its default: the bound of the
+    collectives until the config is composed (``set_timeout`` then applies the config's value)."""
+    from rlexp.config.schema import TrainerConfig
+
+    value: float = TrainerConfig.stall_timeout_s
+    for arg in argv:
+        key, _, text = arg.partition("=")
+        if key.lstrip("+") == TIMEOUT_KEY:
+            try:
+                value = float(text)
+            except ValueError:
+                pass  # the config check names the bad value
+    return value if value > 0 else TrainerConfig.stall_timeout_s
+
+
+def set_timeout(seconds: float) -> None:
+    """Bound every later collective of this process group by ``seconds`` (the config's
+    ``trainer.stall_timeout_s``): a rank that stops makes the others fail within it."""
+    import torch.distributed as dist
+
+    global _TIMEOUT_S
+    if not (_INFO.enabled and dist.is_initialized()) or seconds == _TIMEOUT_S:
+        return
+    set_pg_timeout = getattr(dist.distributed_c10d, "_set_pg_timeout", None)
+    if set_pg_timeout is None:  # an older torch: the bound given at init stays
+        log.warning("this torch cannot change the collective timeout; it stays %s s", _TIMEOUT_S)
+        return
+    set_pg_timeout(timedelta(seconds=seconds))
+    _TIMEOUT_S = seconds
+
+
+@contextmanager
+def _bounded(op: str) -> Iterator[None]:
+    """A collective that timed out waiting for another rank, as one line naming the bound."""
+    try:
+        yield
+    except RuntimeError as exc:
+        text = str(exc).lower()
+        if "timed out" not in text and "timeout" not in text:
+            raise
+        raise CollectiveTimeout(
+            f"rank {_INFO.rank}: {op} waited more than {TIMEOUT_KEY}={_TIMEOUT_S:g} s for the "
+            "other ranks (one of them stopped, or is stuck in its env or an eval round)"
+        ) from None
+
+
+def _join(how_to_launch: str, timeout_s: float) -> None:
+    """Join the process group from the launcher's environment (gloo on CPU, nccl on CUDA);
+    collectives wait at most ``timeout_s`` for the other ranks."""
     import torch
     import torch.distributed as dist
 
-    global _INFO
+    global _INFO, _TIMEOUT_S
     _env_from_submitit()
     missing = [
         k for k in ("RANK", "WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT") if k not in os.environ
@@ -85,7 +142,8 @@ def _join(how_to_launch: str) -> None:
     if missing:
         raise RuntimeError(f"{how_to_launch}; {missing} are not set")
     backend = "nccl" if torch.cuda.is_available() else "gloo"
-    dist.init_process_group(backend=backend)
+    dist.init_process_group(backend=backend, timeout=timedelta(seconds=timeout_s))
+    _TIMEOUT_S = timeout_s
     _INFO = DistInfo(
         dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0)), backend
     )
@@ -99,10 +157,12 @@ def init(argv: Sequence[str]) -> list[str]:
 
     _join(
         "--distributed needs a launcher that sets the ranks: run it with "
-        "`torchrun --nproc_per_node=N train.py --distributed ...` (or under SLURM, docs/distributed.md)"
+        "`torchrun --nproc_per_node=N train.py --distributed ...` (or under SLURM, docs/distributed.md)",
+        command_line_timeout(argv),
     )
     stamp = [time.strftime("%Y-%m-%d/%H-%M-%S")] if _INFO.is_main else [None]
-    dist.broadcast_object_list(stamp, src=0)
+    with _bounded("the start (agreeing on the run dir)"):
+        dist.broadcast_object_list(stamp, src=0)
     args = list(argv)
     if not any(a.startswith("hydra.run.dir=") for a in args):
         args.append(f"hydra.run.dir=outputs/{stamp[0]}")
@@ -119,7 +179,8 @@ def init_in_job() -> None:
     The Hydra job dir is already shared by the job's tasks; rank 0 alone writes into it."""
     _join(
         "--distributed with -m needs a launcher that starts several tasks per job "
-        "(hydra/launcher=slurm hydra.launcher.tasks_per_node=N)"
+        "(hydra/launcher=slurm hydra.launcher.tasks_per_node=N)",
+        command_line_timeout([]),  # the job's config sets its own bound (set_timeout)
     )
 
 
@@ -137,7 +198,8 @@ def all_reduce_mean_(tensors: list[Any]) -> None:
     from torch._utils import _flatten_dense_tensors, _unflatten_dense_tensors
 
     flat = _flatten_dense_tensors(tensors)
-    dist.all_reduce(flat)
+    with _bounded("the gradient all-reduce"):
+        dist.all_reduce(flat)
     flat /= _INFO.world_size
     for t, synced in zip(tensors, _unflatten_dense_tensors(flat, tensors), strict=True):
         t.copy_(synced)
@@ -148,7 +210,8 @@ def all_reduce_sum(tensor: Any) -> Any:
     import torch.distributed as dist
 
     out = tensor.clone()
-    dist.all_reduce(out)
+    with _bounded("an all-reduce"):
+        dist.all_reduce(out)
     return out
 
 
@@ -156,13 +219,15 @@ def broadcast_(tensors: list[Any]) -> None:
     """Overwrite ``tensors`` with rank 0's values."""
     import torch.distributed as dist
 
-    for t in tensors:
-        dist.broadcast(t, src=0)
+    with _bounded("a broadcast from rank 0"):
+        for t in tensors:
+            dist.broadcast(t, src=0)
 
 
 def all_gather_object(obj: Any) -> list[Any]:
     import torch.distributed as dist
 
     out: list[Any] = [None] * _INFO.world_size
-    dist.all_gather_object(out, obj)
+    with _bounded("an all-gather"):
+        dist.all_gather_object(out, obj)
     return out

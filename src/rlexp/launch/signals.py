@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, Protocol
 
@@ -32,6 +32,8 @@ class StopSignals:
     def __init__(self) -> None:
         self.signum: int | None = None
         self.target: Stoppable | None = None
+        #: called with the signal at the first request (rlexp.stalls.StopWatchdog.arm)
+        self.watchers: list[Callable[[int], None]] = []
 
     @property
     def requested(self) -> bool:
@@ -56,6 +58,8 @@ class StopSignals:
         if self.signum is not None:
             return
         self.signum = signum
+        for watch in self.watchers:
+            watch(signum)
         log.warning(
             "%s: stopping after the current iteration with a checkpoint%s",
             self.name,
