@@ -12,11 +12,15 @@ import logging
 import os
 import random
 import re
+import stat
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+
+from rlexp.checkpoint_fields import FieldError, Use, check_fields, check_tensors_fit
+from rlexp.checkpoint_scan import ScanError, scan
 
 log = logging.getLogger(__name__)
 
@@ -126,40 +130,91 @@ def _write_failure(path: Path, exc: BaseException) -> str:
     return f"{str(exc).splitlines()[0]} ({free // (1 << 20)} MB free)"
 
 
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Load a checkpoint file (``weights_only=True``), or the newest one in a run/checkpoint dir."""
+def load_checkpoint(path: str | Path, use: Use = "read") -> dict[str, Any]:
+    """Load a checkpoint file (``weights_only=True``), or the newest one in a run/checkpoint dir.
+
+    What the file declares is checked before torch materialises any of it
+    (``rlexp.checkpoint_scan``), and every field rlexp uses after (``rlexp.checkpoint_fields``):
+    ``use="rebuild"`` (eval, export) also needs the stored config's sections, ``"resume"`` the
+    sections only a resume reads too. ``ValueError``: the file is unusable (a resume skips it like
+    a corrupt one); ``FileNotFoundError``: there is none."""
     p = Path(path)
     try:
         if p.is_dir():
             p = latest_checkpoint(p)
-        if not p.is_file():
-            raise FileNotFoundError(f"checkpoint {str(p)!r} does not exist")
     except OSError as exc:  # a symlink loop, a path too long, no permission
         if isinstance(exc, FileNotFoundError) and exc.args and "does not exist" in str(exc):
             raise
         raise FileNotFoundError(
             f"checkpoint {str(p)!r} cannot be read: {exc.strerror or exc}"
         ) from None
-    try:
-        import warnings
+    return load_checkpoint_file(p, use)
 
-        with warnings.catch_warnings():  # "Detected pickle protocol N": not for users
-            warnings.simplefilter("ignore", UserWarning)
-            ckpt = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise ValueError(f"checkpoint {str(p)!r} is unreadable ({_load_failure(p, exc)})") from None
+
+def load_checkpoint_file(p: Path, use: Use = "read") -> dict[str, Any]:
+    """``load_checkpoint`` of one file: a directory, a dangling symlink or a FIFO with a
+    checkpoint's name is a ``ValueError`` (skipped like a corrupt file), never a hang or a
+    traceback."""
+    _check_regular(p)
+    try:
+        f = open(p, "rb")  # noqa: SIM115 (closed below; scanned and loaded through one handle)
+    except OSError as exc:
+        raise FileNotFoundError(
+            f"checkpoint {str(p)!r} cannot be read: {exc.strerror or exc}"
+        ) from None
+    with f:
+        try:
+            size = os.fstat(f.fileno()).st_size
+            scan(f, size)
+        except ScanError as exc:
+            raise ValueError(f"checkpoint {str(p)!r} is unreadable ({exc})") from None
+        try:
+            import warnings
+
+            f.seek(0)
+            with warnings.catch_warnings():  # "Detected pickle protocol N": not for users
+                warnings.simplefilter("ignore", UserWarning)
+                ckpt = torch.load(f, map_location="cpu", weights_only=True)
+        except Exception as exc:
+            raise ValueError(
+                f"checkpoint {str(p)!r} is unreadable ({_load_failure(p, exc)})"
+            ) from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ValueError(f"{str(p)!r} is not an rlexp checkpoint (format {FORMAT!r})")
-    step = ckpt.get("global_step")
-    if not isinstance(step, int) or isinstance(step, bool) or step < 0:
-        raise ValueError(f"checkpoint {str(p)!r} has global_step={step!r}; expected an int >= 0")
     for key in ("policy", "algorithm", "config"):
         if not isinstance(ckpt.get(key), dict):
             raise ValueError(
                 f"checkpoint {str(p)!r} has no {key!r} section: not a complete rlexp checkpoint"
             )
+    named = _STEP_RE.search(p.name)
+    try:
+        check_fields(ckpt, int(named.group(1)) if named else None, use)
+    except FieldError as exc:
+        raise ValueError(f"checkpoint {str(p)!r} is unusable: {exc}") from None
     ckpt["path"] = str(p)
     return ckpt
+
+
+def _check_regular(p: Path) -> None:
+    """FileNotFoundError when nothing is at ``p``; ValueError when what is there is not a regular
+    file (or a symlink to one): opening a FIFO would block for ever, a directory is no checkpoint."""
+    try:
+        mode = p.stat().st_mode
+    except FileNotFoundError:
+        if not os.path.lexists(p):
+            raise FileNotFoundError(f"checkpoint {str(p)!r} does not exist") from None
+        raise ValueError(
+            f"checkpoint {str(p)!r} is a dangling symlink (to {os.readlink(p)!r}), not a file"
+        ) from None
+    except OSError as exc:  # a symlink loop, a path too long, no permission
+        raise FileNotFoundError(
+            f"checkpoint {str(p)!r} cannot be read: {exc.strerror or exc}"
+        ) from None
+    if not stat.S_ISREG(mode):
+        kind = (
+            "a directory" if stat.S_ISDIR(mode) else "not a regular file (a FIFO, socket or device)"
+        )
+        raise ValueError(f"checkpoint {str(p)!r} is {kind}, not a checkpoint file")
 
 
 def check_checkpoint_fits(ckpt: dict[str, Any], config: Any, policy: torch.nn.Module) -> None:
@@ -184,6 +239,7 @@ def check_checkpoint_fits(ckpt: dict[str, Any], config: Any, policy: torch.nn.Mo
             f"the checkpoint holds the state of env.num_envs={saved_n} training envs, this run "
             f"has env.num_envs={env.num_envs}"
         )
+    check_tensors_fit(ckpt, policy)  # dtype and shape, before load_state_dict casts or copies
     try:
         policy.load_state_dict(ckpt["policy"])
     except (RuntimeError, KeyError, TypeError) as exc:
@@ -229,23 +285,28 @@ def latest_good_checkpoint(directory: Path, move_aside: bool = False) -> dict[st
     and no later resume trips over them again."""
     for path in reversed(step_checkpoints(directory)):
         try:
-            return load_checkpoint(path)
-        except ValueError as exc:
-            if move_aside:
-                dest = _move_aside(path)
+            return load_checkpoint_file(path, "resume")
+        except (ValueError, OSError) as exc:  # OSError: unreadable, or pruned meanwhile
+            dest = _move_aside(path) if move_aside and os.path.lexists(path) else None
+            if dest is not None:
                 log.warning("%s; moved to %s; falling back to the previous checkpoint", exc, dest)
             else:
                 log.warning("%s; falling back to the previous checkpoint", exc)
     return None
 
 
-def _move_aside(path: Path) -> Path:
+def _move_aside(path: Path) -> Path | None:
+    """``path`` (a file, a directory or a symlink) into ``corrupt/``; None if it cannot be moved."""
     dest_dir = path.parent / CORRUPT_DIR
-    dest_dir.mkdir(exist_ok=True)
     dest, n = dest_dir / path.name, 1
-    while dest.exists():
+    while os.path.lexists(dest):
         dest, n = dest_dir / f"{path.name}.{n}", n + 1
-    os.replace(path, dest)
+    try:
+        dest_dir.mkdir(exist_ok=True)
+        os.replace(path, dest)
+    except OSError as exc:
+        log.warning("cannot move %s aside (%s)", path, exc.strerror or exc)
+        return None
     return dest
 
 
@@ -258,7 +319,8 @@ def prune_checkpoints(directory: Path, keep_last: int, newest: Path | None = Non
             tmp.unlink(missing_ok=True)
     if keep_last <= 0:
         return []
-    others = [p for p in reversed(step_checkpoints(directory)) if p != newest]
+    # only files count: a directory or dangling symlink with a checkpoint's name is no checkpoint
+    others = [p for p in reversed(step_checkpoints(directory)) if p != newest and p.is_file()]
     ranked = ([newest] if newest is not None else []) + others
     doomed = ranked[keep_last:]
     for path in doomed:
@@ -287,8 +349,15 @@ def _check_optimizer_state(algorithm: dict[str, Any], policy: torch.nn.Module) -
     state = opt.get("state") or {}
     for i, (name, param) in zip(ids, named, strict=True):
         for key, value in (state.get(i) or {}).items():
-            if key != "step" and isinstance(value, torch.Tensor) and value.shape != param.shape:
+            if key == "step" or not isinstance(value, torch.Tensor):
+                continue
+            if value.shape != param.shape:
                 raise ValueError(
                     f"the checkpoint's optimiser state {key} of {name} has shape "
                     f"{tuple(value.shape)}, the parameter has {tuple(param.shape)}"
+                )
+            if value.dtype != param.dtype:  # torch's load_state_dict would cast it silently
+                raise ValueError(
+                    f"the checkpoint's optimiser state {key} of {name} is {value.dtype}, the "
+                    f"parameter is {param.dtype}"
                 )

@@ -131,7 +131,7 @@ def choose_checkpoint(path: str | Path, which: str | None = None) -> tuple[dict[
                 f"--checkpoint {which} picks a checkpoint of a run dir; {str(p)!r} is a file: "
                 "leave --checkpoint out"
             )
-        return load_checkpoint(p), "as given"
+        return load_checkpoint(p, "rebuild"), "as given"
     best = next((b for b in (p / "checkpoints" / "best.pt", p / "best.pt") if b.is_file()), None)
     if which == "best" and best is None:
         raise FileNotFoundError(
@@ -139,7 +139,7 @@ def choose_checkpoint(path: str | Path, which: str | None = None) -> tuple[dict[
             "use --checkpoint last"
         )
     if best is not None and which != "last":
-        return load_checkpoint(best), "best.pt: the best evaluation"
+        return load_checkpoint(best, "rebuild"), "best.pt: the best evaluation"
     ckpt = load_for_eval(p)  # the newest step checkpoint that loads, as rlexp eval takes it
     return ckpt, "the last checkpoint" + (
         ": --checkpoint last" if which == "last" else ": no best.pt"

@@ -41,22 +41,22 @@ def metadata_path(path: str | Path) -> Path:
 def load_for_eval(path: str | Path) -> dict[str, Any]:
     """The checkpoint file at ``path``, or a run dir's newest step checkpoint that loads: corrupt
     newer ones are reported and skipped, as ``trainer.resume=auto`` does."""
-    from rlexp.checkpoint import load_checkpoint, step_checkpoints
+    from rlexp.checkpoint import load_checkpoint, load_checkpoint_file, step_checkpoints
 
     # torch warns about the pickle protocol of a file it is about to refuse: noise next to the error
     warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
     p = Path(path)
     if not p.is_dir():
-        return load_checkpoint(p)
+        return load_checkpoint(p, "rebuild")
     candidates = step_checkpoints(p)
     if not candidates:
         raise FileNotFoundError(
             f"no rlexp checkpoint (*_step_N.pt) in {str(p)!r} or its checkpoints/"
         )
     for candidate in reversed(candidates):
-        try:
-            return load_checkpoint(candidate)
-        except ValueError as exc:
+        try:  # (a dir with a checkpoint's name is no run dir: load_checkpoint_file refuses it)
+            return load_checkpoint_file(candidate, "rebuild")
+        except (ValueError, OSError) as exc:  # OSError: unreadable, or pruned meanwhile
             log.warning("rlexp eval: skipped %s", str(exc).splitlines()[0])
     raise ValueError(
         f"none of the {len(candidates)} checkpoints in {str(p)!r} can be read (each skipped above)"

@@ -144,6 +144,7 @@ class RewardNormalizer:
 
     def load_state_dict(self, sd: dict[str, Any], keep_returns: bool = True) -> None:
         """Restore ``state_dict``; ``keep_returns=False``: the envs start new episodes (returns 0)."""
+        check_state(sd)
         self.mean = sd["mean"].to(torch.float64).clone()
         self.var = sd["var"].to(torch.float64).clone()
         self.count = sd["count"].to(torch.float64).clone()
@@ -154,3 +155,29 @@ class RewardNormalizer:
             self.returns = returns.to(torch.float64).clone()
         else:
             self.returns = torch.zeros_like(returns, dtype=torch.float64)
+
+
+def check_state(sd: dict[str, Any]) -> None:
+    """``ValueError`` naming the field when ``sd`` is not what ``state_dict`` writes: float64 scalar
+    mean, var >= 0 and count > 0 (all finite), and running returns of one dimension or None. A
+    checkpoint's count of -1 or a var of the wrong shape would otherwise scale every later reward
+    by garbage, or fail only mid-run."""
+    for key in ("mean", "var", "count"):
+        value = sd.get(key)
+        if not isinstance(value, torch.Tensor) or value.dtype != torch.float64 or value.dim():
+            shown = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise ValueError(f"{key} is {shown}; expected a float64 scalar tensor")
+        if not bool(torch.isfinite(value)):
+            raise ValueError(f"{key}={float(value)}; expected a finite number")
+    if float(sd["var"]) < 0 or float(sd["count"]) <= 0:
+        raise ValueError(
+            f"var={float(sd['var'])}, count={float(sd['count'])}; expected var >= 0 and count > 0"
+        )
+    returns = sd.get("returns")
+    if returns is not None and (
+        not isinstance(returns, torch.Tensor)
+        or returns.dtype != torch.float64
+        or returns.dim() != 1
+        or not bool(torch.isfinite(returns).all())
+    ):
+        raise ValueError("returns is not a finite float64 tensor of one dimension (one per env)")

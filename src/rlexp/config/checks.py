@@ -86,7 +86,7 @@ def check_resume_checkpoint(config: RootConfig, policy: Any) -> dict[str, Any]:
 
     where = f"trainer.resume={config.trainer.resume!r}"
     try:
-        ckpt = load_checkpoint(config.trainer.resume)
+        ckpt = load_checkpoint(config.trainer.resume, "resume")
     except (OSError, ValueError) as exc:
         raise ConfigError(f"{where}: {first_line(exc)}") from None
     try:
