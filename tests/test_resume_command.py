@@ -19,7 +19,7 @@ import pytest
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
-from conftest import REPO
+from conftest import REPO, _live_descendants
 from rlexp import runs
 from rlexp.launch import relaunch
 from rlexp.launch.relaunch import hydra_quote, resume_command
@@ -209,3 +209,52 @@ def test_a_died_run_in_a_dir_with_special_characters_resumes_there_with_the_prin
         json.loads(line)["step"] for line in (run_dir / "metrics.jsonl").read_text().splitlines()
     ]
     assert steps[-1] == 16384 and newest + 256 in steps
+
+
+def test_a_died_two_rank_run_resumes_as_two_ranks_with_the_printed_command(tmp_path, children):
+    """torchrun, 2 ranks (gloo on CPU), SIGKILLed with its ranks after a checkpoint: the printed
+    command is torchrun's own command line again, and both ranks continue from that checkpoint."""
+    run_dir = tmp_path / "outputs" / "two ranks"
+    args = ["env=inverted_pendulum", "trainer.frames_per_batch=256", "algorithm.num_epochs=1",
+            "trainer.eval_every=0", "trainer.save_every=512", "trainer.total_frames=8192",
+            "trainer.progress=false", "seed=11", f"hydra.run.dir='{run_dir}'"]  # fmt: skip
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone",
+                "--nproc_per_node=2", str(REPO / "train.py")]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(REPO / "src"), "OMP_NUM_THREADS": "1"}
+    with open(tmp_path / "first.txt", "w") as out:
+        proc = children.popen([*torchrun, "--distributed", *args], cwd=tmp_path, env=env,
+                              stdout=out, stderr=subprocess.STDOUT)  # fmt: skip
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if list((run_dir / "checkpoints").glob("*_step_000001024.pt")):
+            ranks = _live_descendants(proc.pid)  # torchrun starts each in a session of its own
+            for pid in ranks:
+                os.kill(pid, signal.SIGKILL)  # both ranks and torchrun, as a lost node
+            os.killpg(proc.pid, signal.SIGKILL)
+            break
+        time.sleep(0.02)
+    proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL, (tmp_path / "first.txt").read_text()[-3000:]
+    assert len(ranks) >= 2 and not set(ranks) & set(_live_descendants(os.getpid()))
+    newest = max(int(p.stem.rsplit("_", 1)[1]) for p in run_dir.glob("checkpoints/*_step_*.pt"))
+
+    deadline = time.time() + 60  # a killed process of ~1 GB takes a moment to be gone
+    while time.time() < deadline and runs.read_run(run_dir).status != "died":
+        time.sleep(0.1)
+    (row,) = [r.to_json() for r in runs.read_runs([tmp_path / "outputs"])]
+    assert row["status"] == "died", row
+    overrides = " ".join(shlex.quote(a) for a in args[:-1])
+    assert row["resume"] == (
+        f"cd {shlex.quote(str(tmp_path))} && {shlex.join(torchrun)} --distributed {overrides} "
+        f"{shlex.quote(f'hydra.run.dir={hydra_quote(str(run_dir))}')}"
+    )
+    with open(tmp_path / "resume.txt", "w") as out:
+        again = children.popen(["bash", "-c", row["resume"]], cwd=REPO, env=env, stdout=out,
+                               stderr=subprocess.STDOUT)  # fmt: skip
+    again.wait(timeout=600)
+    assert again.returncode == 0, (tmp_path / "resume.txt").read_text()[-3000:]
+    for log in ("train.log", "train_rank1.log"):  # rank 0's and rank 1's own logs
+        assert f"at step {newest}" in (run_dir / log).read_text().split("[resume]")[-1], log
+    status = json.loads((run_dir / "status.json").read_text())
+    assert (status["state"], status["global_step"]) == ("finished", 8192)
+    assert [p.name for p in (tmp_path / "outputs").iterdir()] == [run_dir.name]

@@ -5,6 +5,7 @@ signal ends a run stuck in user code within ``trainer.stop_grace_s`` (128 + N, `
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing
 import os
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO
+from conftest import REPO, _live_descendants
 from rlexp import runs
 from rlexp.eval_worker import EvalRound, EvalSetup, EvalWorker
 from rlexp.liveness import Here, liveness
@@ -256,3 +257,50 @@ def test_a_rank_that_stops_makes_the_other_fail_with_one_line_within_the_configs
         "rank 0: an all-reduce waited more than trainer.stall_timeout_s=2 s for the other ranks "
         "(one of them stopped, or is stuck in its env or an eval round)"
     )
+
+
+def test_a_stopped_rank_ends_a_two_rank_run_with_one_line_within_the_bound(tmp_path, children):
+    """torchrun, 2 ranks: SIGSTOP rank 1 after a checkpoint; rank 0 fails in its next collective
+    after trainer.stall_timeout_s (not gloo's 30 minutes): status failed, one line naming the
+    bound, the last good checkpoint kept; torchrun ends the job."""
+    run_dir = tmp_path / "run"
+    args = ["env=inverted_pendulum", "trainer.frames_per_batch=256", "algorithm.num_epochs=1",
+            "trainer.eval_every=0", "trainer.save_every=512", "trainer.total_frames=10000000",
+            "trainer.progress=false", "trainer.stall_timeout_s=10", f"hydra.run.dir={run_dir}"]  # fmt: skip
+    env = {**os.environ, **ENV, "OMP_NUM_THREADS": "1"}
+    with open(tmp_path / "console.txt", "w") as out:
+        proc = children.popen(
+            [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+             str(REPO / "train.py"), "--distributed", *args],
+            cwd=tmp_path, env=env, stdout=out, stderr=subprocess.STDOUT,
+        )  # fmt: skip
+    rank1, ranks, deadline = None, [], time.time() + 300
+    try:
+        while time.time() < deadline and proc.poll() is None and rank1 is None:
+            if list(run_dir.glob("checkpoints/*_step_*.pt")):
+                rank0 = read_heartbeat(run_dir)["pid"]
+                ranks = [p for p, argv in _live_descendants(proc.pid).items() if "-u" in argv[1:2]]
+                (rank1,) = set(ranks) - {rank0}
+                os.kill(rank1, signal.SIGSTOP)
+            time.sleep(0.02)
+        assert rank1 is not None, (tmp_path / "console.txt").read_text()[-3000:]
+        stopped = time.monotonic()
+        while time.monotonic() - stopped < 120:
+            if json.loads((run_dir / "status.json").read_text())["state"] != "running":
+                break
+            time.sleep(0.1)
+        took = time.monotonic() - stopped
+        os.kill(rank1, signal.SIGKILL)  # torchrun would wait 30 s for a stopped rank to end
+        proc.wait(timeout=120)
+    finally:  # torchrun starts each rank in a session of its own: the fixture would miss them
+        for pid in ranks:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    status = json.loads((run_dir / "status.json").read_text())
+    assert status["state"] == "failed", status
+    assert 10 <= took < 60, took
+    assert "waited more than trainer.stall_timeout_s=10 s for the other ranks" in status["reason"]
+    saved = sorted(run_dir.glob("checkpoints/*_step_*.pt"))
+    assert f"the last good checkpoint is {saved[-1]}" in status["reason"]
+    errors = [ln for ln in (run_dir / "train.log").read_text().splitlines() if "ERROR" in ln]
+    assert len(errors) == 1 and "waited more than" in errors[0], errors

@@ -47,6 +47,8 @@ NOT_CONFIGURATION = (
     "trainer.resume",
     "trainer.strict_device",
     "trainer.torch_threads",
+    "trainer.stall_timeout_s",  # how a stuck run is told and ended
+    "trainer.stop_grace_s",
     "algorithm.compile",
     "logger.",
 )
