@@ -25,7 +25,7 @@ import numpy as np
 
 from rlexp.liveness import Here
 from rlexp.reporting.jobs import read_histories
-from rlexp.runs import Run, RunsError, check_key, find_run_dirs, read_run
+from rlexp.runs import Run, RunsError, check_key, find_run_dirs, read_run, warn_problems
 from rlexp.stats import (
     IN_A_ROW,
     _poi_rows,
@@ -138,7 +138,7 @@ def collect(
             )
         for rd in run_dirs:
             m = Member(read_run(rd, metric, here), source)
-            histories, _ = read_histories(rd / "metrics.jsonl", wanted)
+            histories, _ = read_histories(rd / "metrics.jsonl", wanted, m.run.problems)
             m.curve = histories[metric]
             m.final = m.curve[-1][1] if m.curve else m.run.last
             m.best = max(v for _, v in m.curve) if m.curve else m.run.best
@@ -147,10 +147,13 @@ def collect(
                 m.reached = steps_to_threshold(points, threshold)
                 m.reached_row = steps_to_threshold(points, threshold, IN_A_ROW)
             members.append(m)
-    common = os.path.commonpath([str(m.run.path.resolve()) for m in members])
+    # Paths as found, not resolved: a symlinked run dir is labelled by its link.
+    common = os.path.commonpath([os.path.abspath(m.run.path) for m in members])
     for m in members:
         m.label = (
-            os.path.relpath(m.run.path.resolve(), common) if len(members) > 1 else m.run.path.name
+            os.path.relpath(os.path.abspath(m.run.path), common)
+            if len(members) > 1
+            else m.run.path.name
         )
         if m.label == ".":
             m.label = m.run.path.name
@@ -399,6 +402,7 @@ def main(
     members = collect(dirs, metric, threshold, threshold_metric)
     groups = make_groups(members, dirs, list(group_by))
     diffs = differences(members)
+    warn_problems([m.run for m in members], "compare")  # after the configs were read
     usable = [g for g in groups if len(g.finals) >= 2]
     pairs = [compare_pair(a, b) for a, b in combinations(usable, 2)]
     if plot:

@@ -184,6 +184,9 @@ def report(
         raise FileNotFoundError(f"no sweep dir {sweep_dir}")
     target = Threshold(threshold_metric or metric, threshold) if threshold is not None else None
     sweep = read_sweep(sweep_dir, metric, other_metrics=(target.metric,) if target else ())
+    for job in sweep.jobs:  # one line per damaged job dir (report.md lists each file too)
+        if job.problems:
+            log.warning("rlexp report: %s: %s", job.path, "; ".join(job.problems))
     if not sweep.jobs and sweep.plan.jobs is None:
         raise FileNotFoundError(
             f"no jobs under {sweep_dir} (no */.hydra/overrides.yaml) and no multirun.yaml: "

@@ -113,9 +113,12 @@ def _read_holder(fd: int) -> str:
 
 
 def read_status(run_dir: Path) -> dict[str, Any]:
-    """``status.json`` of a run dir ({} when there is none or it is not a JSON object)."""
+    """``status.json`` of a run dir ({} when there is none or it is not a JSON object); read
+    bounded (``rlexp.safe_read``: a FIFO or a huge file never blocks or fills memory)."""
+    from rlexp.safe_read import load_json
+
     try:
-        status = json.loads((Path(run_dir) / "status.json").read_text())
+        status = load_json(Path(run_dir) / "status.json")
     except (OSError, ValueError):
         return {}
     return status if isinstance(status, dict) else {}
@@ -329,9 +332,12 @@ def boot_id() -> str | None:
 
 
 def read_heartbeat(run_dir: Path) -> dict[str, Any]:
-    """``heartbeat.json`` of a run dir ({} when there is none or it is not a JSON object)."""
+    """``heartbeat.json`` of a run dir ({} when there is none or it is not a JSON object); read
+    bounded (``rlexp.safe_read``)."""
+    from rlexp.safe_read import load_json
+
     try:
-        beat = json.loads((Path(run_dir) / HEARTBEAT_NAME).read_text())
+        beat = load_json(Path(run_dir) / HEARTBEAT_NAME)
     except (OSError, ValueError):
         return {}
     return beat if isinstance(beat, dict) else {}

@@ -5,12 +5,16 @@ read (``status.json``, ``heartbeat.json``, ``provenance.json``, ``config.yaml``,
 ``.hydra/overrides.yaml``; for a best eval the heartbeat has no answer to, at most the last
 TAIL_BYTES of ``metrics.jsonl``), so thousands of runs list in about a second. A run whose
 ``status.json`` says ``running`` is checked against its heartbeat and its PID (``rlexp.liveness``);
-the rules are in docs/runs.md.
+the rules are in docs/runs.md. Every file is read through ``rlexp.safe_read`` (bounded, checked):
+what a damaged run dir holds is left out, and said in one warning line naming the dir (a bad
+``status.json``: the run shows ``unknown``). Symlinked run dirs and date dirs are followed, each
+run listed once (``rlexp.dirwalk``).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import time
@@ -21,9 +25,11 @@ from typing import Any, NamedTuple
 
 import yaml
 
+from rlexp import safe_read
+from rlexp.dirwalk import find_dirs
 from rlexp.liveness import Here, liveness, parse_time
 from rlexp.reporting.jobs import DEFAULT_METRIC, json_number
-from rlexp.rundir import read_heartbeat, read_status
+from rlexp.run_files import flatten, read_checked, read_config, read_overrides  # noqa: F401
 from rlexp.table import format_count, format_duration, format_number, print_table
 
 #: Searched when no dir is given, under the working dir.
@@ -40,6 +46,7 @@ STATES = tuple(
     "running finished stopped_early interrupted stopped failed died stalled running? unknown".split()
 )
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+log = logging.getLogger(__name__)
 
 
 class RunsError(ValueError):
@@ -66,11 +73,12 @@ class Run:
     git: str | None = None
     overrides: list[str] = field(default_factory=list)
     resume: str | None = None  # the command that continues a died run
+    problems: list[str] = field(default_factory=list)  # files left out: "name: why" (warn_problems)
 
     @cached_property
     def config(self) -> dict[str, Any]:
         """The flattened ``config.yaml``, read on first use (YAML costs ~0.5 ms a run)."""
-        return read_config(self.path)
+        return read_config(self.path, self.problems)
 
     def to_json(self) -> dict[str, Any]:
         """The run as a JSON object for ``--json`` (the config is left out)."""
@@ -82,84 +90,20 @@ class Run:
 # -- finding and reading run dirs ------------------------------------------------------------------
 def find_run_dirs(roots: list[Path]) -> list[Path]:
     """Every run dir at or under ``roots`` (a run dir's own subdirs are not searched)."""
-    found: list[Path] = []
     for root in roots:
         if not root.is_dir():
             raise RunsError(f"{root}: no such dir")
-        stack = [root]
-        while stack:
-            here = stack.pop()
-            try:
-                entries = list(os.scandir(here))
-            except OSError:
-                continue  # unreadable: nothing to list there
-            if any(e.name in MARKERS for e in entries):
-                found.append(here)
-                continue
-            stack += [
-                Path(e.path)
-                for e in entries
-                if e.is_dir(follow_symlinks=False)
-                and not e.name.startswith(".")
-                and e.name not in SKIP_DIRS
-            ]
-    return sorted(set(found))
-
-
-def _json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_bytes())
-    except (OSError, ValueError):
-        return {}
-    return data if isinstance(data, dict) else {}
-
-
-def _yaml(path: Path) -> Any:
-    try:
-        return yaml.load(path.read_bytes(), Loader=_LOADER)
-    except (OSError, yaml.YAMLError):
-        return None
-
-
-def flatten(tree: Any, prefix: str = "") -> dict[str, Any]:
-    """A nested config mapping as ``{dotted.key: leaf}`` (lists are leaves)."""
-    if not isinstance(tree, dict):
-        return {prefix[:-1]: tree} if prefix else {}
-    out: dict[str, Any] = {}
-    for key, value in tree.items():
-        out.update(
-            flatten(value, f"{prefix}{key}.")
-            if isinstance(value, dict)
-            else {f"{prefix}{key}": value}
-        )
-    return out
-
-
-def read_config(run_dir: Path) -> dict[str, Any]:
-    """The run's resolved ``config.yaml`` (else Hydra's ``.hydra/config.yaml``), flattened."""
-    for name in ("config.yaml", ".hydra/config.yaml"):
-        cfg = _yaml(run_dir / name)
-        if isinstance(cfg, dict):
-            return flatten(cfg)
-    return {}
-
-
-def read_overrides(run_dir: Path) -> list[str]:
-    """``.hydra/overrides.yaml`` ([] when missing or not a list); plain ``- item`` lines are read
-    without the YAML parser."""
-    try:
-        text = (run_dir / ".hydra" / "overrides.yaml").read_text()
-    except (OSError, UnicodeDecodeError):
-        return []
-    lines = text.splitlines()
-    if all(ln.startswith("- ") and ln[2:3] not in "'\"&*!|>{[#" for ln in lines):
-        return [ln[2:].strip() for ln in lines]
-    data = _yaml(run_dir / ".hydra" / "overrides.yaml")
-    return [str(o) for o in data] if isinstance(data, list) else []
+    found = find_dirs(
+        roots,
+        wanted=lambda _, names: not names.isdisjoint(MARKERS),
+        skip=lambda name: name.startswith(".") or name in SKIP_DIRS,
+    )
+    return sorted(found)
 
 
 _NUMBER = rb"(-?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)"
 _STEP = re.compile(rb'"step": (\d+)')
+_MAX_DIGITS = len(str(safe_read.MAX_INT))
 _CKPT_STEP = re.compile(r"_step_(\d+)\.pt$")  # rlexp.checkpoint's names (not imported: torch)
 
 
@@ -173,20 +117,25 @@ class Tail(NamedTuple):
     step: int | None
 
 
-def tail_metric(path: Path, metric: str) -> Tail:
+def tail_metric(path: Path, metric: str, problems: list[str] | None = None) -> Tail:
     """``Tail`` of ``metric`` over at most the last TAIL_BYTES of ``metrics.jsonl``, without
-    parsing its JSON."""
+    parsing its JSON; non-finite values and steps out of range are left out (and named)."""
     try:
-        with open(path, "rb") as f:
-            size = f.seek(0, os.SEEK_END)
-            f.seek(max(0, size - TAIL_BYTES))
-            data = f.read()
-    except OSError:
+        data, size = safe_read.read_tail(path, TAIL_BYTES) or (b"", 0)
+    except safe_read.Unreadable as exc:
+        if problems is not None:
+            problems.append(f"{path.name}: {exc}")
         return Tail(None, None, True, None)
     pattern = re.compile(b'"' + re.escape(metric.encode()) + b'": ' + _NUMBER)
-    values = [float(m) for m in pattern.findall(data)]
+    values = [v for v in map(float, pattern.findall(data)) if abs(v) < float("inf")]
     steps = _STEP.findall(data)
-    step = int(steps[-1]) if steps else None
+    step = int(steps[-1]) if steps and len(steps[-1]) <= _MAX_DIGITS else None
+    if step is None or step > safe_read.MAX_INT:
+        if steps and problems is not None:
+            problems.append(
+                f"{path.name}: step {safe_read.shown(steps[-1].decode())} is out of range"
+            )
+        step = None
     if not values:
         return Tail(None, None, size <= TAIL_BYTES, step)
     return Tail(values[-1], max(values), size <= TAIL_BYTES, step)
@@ -213,16 +162,22 @@ def resume_command(run_dir: Path, overrides: list[str], argv: Any) -> str:
 
 
 def _budget(config: dict[str, Any]) -> int | None:
+    """The env steps a run was to train, from its config; None when it does not say in range."""
     iterations, batch = config.get("trainer.iterations"), config.get("trainer.frames_per_batch")
-    if isinstance(iterations, int) and isinstance(batch, int):
-        return iterations * batch
-    total = config.get("trainer.total_frames")
-    return total if isinstance(total, int) else None
+    if _int(iterations) is not None and _int(batch) is not None:
+        return _int(iterations * batch)
+    return _int(config.get("trainer.total_frames"))
 
 
 def _int(*values: Any) -> int | None:
-    ints = [v for v in values if isinstance(v, int) and not isinstance(v, bool)]
+    """The largest of ``values`` that is a step (a whole number in [0, MAX_INT])."""
+    ints = [v for v in values if not safe_read.whole()(v)]
     return max(ints) if ints else None
+
+
+def _name(value: Any) -> str | None:
+    """A config's name (``env.name``): a string, else None."""
+    return value if isinstance(value, str) else None
 
 
 def _evals(run: Run, status: dict, beat: dict, metric: str) -> None:
@@ -233,7 +188,7 @@ def _evals(run: Run, status: dict, beat: dict, metric: str) -> None:
         last = json_number(beat["last_eval"].get(metric))
     best = json_number(beat.get("best")) if beat.get("best_metric") == metric else None
     if best is None or last is None or status.get("state") == "running":
-        tail = tail_metric(run.path / "metrics.jsonl", metric)
+        tail = tail_metric(run.path / "metrics.jsonl", metric, run.problems)
         last = last if last is not None else tail.last
         if best is None:
             best, run.best_exact = tail.best, tail.exact
@@ -264,9 +219,13 @@ def read_run(
 ) -> Run:
     """One run dir's row (``here``/``now``: this host and time, for the liveness rules)."""
     here, now = here or Here.now(), time.time() if now is None else now
-    status, beat = read_status(run_dir), read_heartbeat(run_dir)
-    prov = _json(run_dir / "provenance.json")
+    problems: list[str] = []
+    status = read_checked(run_dir, "status.json", problems, safe_read.STATUS_FIELDS)
+    beat = read_checked(run_dir, "heartbeat.json", problems, safe_read.HEARTBEAT_FIELDS)
+    prov = read_checked(run_dir, "provenance.json", problems, safe_read.PROVENANCE_FIELDS)
     shown, note = liveness(status, beat, now, here)
+    if problems and problems[0].startswith("status.json"):
+        note = problems[0]
     project = prov.get("project") if isinstance(prov.get("project"), dict) else {}
     commit = project.get("git_commit") or prov.get("git_commit")
     dirty = project.get("git_dirty") if project.get("git_commit") else prov.get("git_dirty")
@@ -278,11 +237,12 @@ def read_run(
         start=prov.get("start_time"),
         host=prov.get("host") or status.get("host") or beat.get("host"),
         git=(str(commit)[:8] + ("+dirty" if dirty else "")) if commit else None,
-        overrides=read_overrides(run_dir),
+        overrides=read_overrides(run_dir, problems),
+        problems=problems,
     )
     # The heartbeat names task, algorithm and budget; older runs: their config.yaml.
-    run.task = beat.get("task") or run.config.get("env.name")
-    run.algorithm = beat.get("algorithm") or run.config.get("algorithm.name")
+    run.task = beat.get("task") or _name(run.config.get("env.name"))
+    run.algorithm = beat.get("algorithm") or _name(run.config.get("algorithm.name"))
     run.total = _int(beat.get("total")) or _budget(run.config)
     _evals(run, status, beat, metric)
     _wall(run, status, beat, parse_time(run.start), now)
@@ -301,12 +261,25 @@ def read_runs(roots: list[Path], metric: str = DEFAULT_METRIC) -> list[Run]:
     return [read_run(d, metric, here, now) for d in find_run_dirs(roots)]
 
 
+def warn_problems(runs: list[Run], command: str) -> None:
+    """One warning line per run that had files left out: its dir and why."""
+    for r in runs:
+        if r.problems:
+            log.warning("rlexp %s: %s: %s", command, r.path, "; ".join(dict.fromkeys(r.problems)))
+
+
 # -- the table: columns, filters, sorting ----------------------------------------------------------
 def _rel(path: Path) -> str:
-    try:
-        return str(path.resolve().relative_to(Path.cwd().resolve()))
-    except ValueError:
-        return str(path)
+    """The path as found (a symlinked run dir under its link's name), relative to the cwd."""
+    for here, cwd in (
+        (Path(os.path.abspath(path)), Path.cwd()),
+        (path.resolve(), Path.cwd().resolve()),
+    ):
+        try:
+            return str(here.relative_to(cwd))
+        except ValueError:
+            continue
+    return str(path)
 
 
 #: The table's columns (``--sort`` takes these, ``total``, ``progress``, or any config key).
@@ -413,7 +386,10 @@ def select(runs: list[Run], where: list[str] = (), statuses: list[str] = ()) -> 
 def _orderable(value: Any) -> tuple:
     """Numbers before text, so that a config key holding both still sorts."""
     if isinstance(value, (int, float)):
-        return (0, float(value), "")
+        try:
+            return (0, float(value), "")
+        except OverflowError:  # an int beyond float's range (a hostile config value)
+            return (0, float("inf") if value > 0 else float("-inf"), "")
     return (1, 0.0, str(value))
 
 
@@ -466,7 +442,9 @@ def main(
         if s and s not in STATES:
             raise RunsError(f"--status {s!r}: choose from {', '.join(STATES)}" + _close(s, STATES))
     roots = [Path(d) for d in dirs] or [Path(d) for d in DEFAULT_DIRS if Path(d).is_dir()]
-    runs = sort_runs(select(read_runs(roots, metric), list(where), list(statuses)), sort)
+    found = read_runs(roots, metric)
+    runs = sort_runs(select(found, list(where), list(statuses)), sort)
+    warn_problems(found, "runs")  # after --where/--sort: they may read configs
     if as_json:
         print(json.dumps([r.to_json() for r in runs], indent=2))
     elif not runs:

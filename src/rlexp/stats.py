@@ -1,7 +1,12 @@
 """Statistics over seeds that ``rlexp report`` and ``rlexp compare`` share, one implementation each:
 the interquartile mean and its 95% percentile-bootstrap interval (rliable's recommendation for few
 seeds), the IQM band of learning curves, the probability of improvement and the stratified
-bootstrap of two samples, and the steps a run took to reach a threshold."""
+bootstrap of two samples, and the steps a run took to reach a threshold.
+
+Memory stays bounded as runs grow: every bootstrap works in chunks of at most BOOT_ELEMENTS
+resampled values (over steps, over resamples: a 500-job sweep once took 6 GB holding steps x
+resamples x seeds at once). The chunks draw the same resamples from the same seeded stream in the
+same order, so the results are those of one call over everything, bit for bit."""
 
 from __future__ import annotations
 
@@ -13,8 +18,10 @@ import numpy as np
 
 #: Bootstrap resamples of every interval here (percentile intervals, seeded: reproducible output).
 N_BOOT = 5000
-#: Steps bootstrapped in one call in ``curve_band`` (memory: rows x N_BOOT resamples x seeds).
+#: Steps bootstrapped in one call in ``curve_band`` at most (fewer when seeds are many).
 BAND_ROWS = 200
+#: Resampled values (float64) one bootstrap call holds at most (8 MB an array; a call has a few).
+BOOT_ELEMENTS = 1 << 20
 #: Consecutive logged values at or above a threshold that count as holding it, not a lucky eval.
 IN_A_ROW = 3
 
@@ -24,6 +31,12 @@ def iqm(x: np.ndarray, axis: int = -1) -> np.ndarray:
     from scipy.stats import trim_mean
 
     return trim_mean(x, 0.25, axis=axis)
+
+
+def _batch(n: int, rows: int = 1) -> int:
+    """Resamples per vectorised call so that ``rows`` x resamples x ``n`` values fit BOOT_ELEMENTS
+    (scipy draws batches in sequence from one stream: the same resamples as one call)."""
+    return max(1, min(N_BOOT, BOOT_ELEMENTS // max(1, n * rows)))
 
 
 def bootstrap_ci(x: np.ndarray, statistic, seed: int = 0) -> tuple[float, float]:
@@ -39,6 +52,7 @@ def bootstrap_ci(x: np.ndarray, statistic, seed: int = 0) -> tuple[float, float]
         statistic,
         confidence_level=0.95,
         n_resamples=N_BOOT,
+        batch=_batch(len(x)),
         method="percentile",
         vectorized=True,
         random_state=np.random.default_rng(seed),
@@ -51,7 +65,9 @@ def curve_band(ys: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray, n
     over the seeds that have a value and its 95% percentile-bootstrap interval, computed as the
     table's (``iqm``, ``bootstrap_ci``: same resamples, same seed), so the band at a step is the
     interval the table gives for those values. A percentile interval of the IQM never leaves the
-    values' range; with one seed, or all seeds equal, the band is that value."""
+    values' range; with one seed, or all seeds equal, the band is that value. Steps are
+    bootstrapped a few at a time (each call draws the same resamples from a fresh stream, so a
+    step's interval does not depend on which others share its call)."""
     from scipy.stats import bootstrap
 
     n_steps = ys.shape[1]
@@ -66,14 +82,16 @@ def curve_band(ys: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray, n
             continue
         center[cols] = iqm(x, axis=-1)
         low[cols] = high[cols] = x[:, 0]
-        spread = (x.shape[1] > 1) & ~np.all(x == x[:, :1], axis=1)
-        for start in range(0, int(spread.sum()), BAND_ROWS):
-            rows = np.flatnonzero(spread)[start : start + BAND_ROWS]
+        spread = np.flatnonzero((x.shape[1] > 1) & ~np.all(x == x[:, :1], axis=1))
+        per_call = max(1, min(BAND_ROWS, BOOT_ELEMENTS // (N_BOOT * x.shape[1])))
+        for start in range(0, len(spread), per_call):
+            rows = spread[start : start + per_call]
             res = bootstrap(
                 (x[rows],),
                 iqm,
                 confidence_level=0.95,
                 n_resamples=N_BOOT,
+                batch=_batch(x.shape[1], len(rows)),
                 method="percentile",
                 vectorized=True,
                 axis=-1,
@@ -89,21 +107,33 @@ def on_common_steps(curves: Sequence[Sequence[tuple[int, float]]]) -> tuple[np.n
     steps (runs evaluate at the same steps unless configs differ), each only inside its own range;
     values is runs x steps, NaN outside a run's range."""
     steps = np.array(sorted({step for c in curves for step, _ in c}), dtype=float)
+    return steps, _interpolated([np.array(c, dtype=float).T for c in curves], steps)
+
+
+def _interpolated(curves: Sequence[np.ndarray], steps: np.ndarray) -> np.ndarray:
+    """Runs x ``steps``: each (steps, values) curve interpolated inside its own range, else NaN."""
     ys = np.full((len(curves), len(steps)), np.nan)
-    for i, c in enumerate(curves):
-        cs, cv = np.array(c, dtype=float).T
+    for i, (cs, cv) in enumerate(curves):
         inside = (steps >= cs[0]) & (steps <= cs[-1])
         ys[i, inside] = np.interp(steps[inside], cs, cv)
-    return steps, ys
+    return ys
 
 
 def iqm_band(
     curves: Sequence[Sequence[tuple[int, float]]], seed: int = 0
 ) -> tuple[np.ndarray, ...]:
     """(steps, IQM, CI low, CI high) of learning curves: ``curve_band`` over the runs that cover
-    each step of ``on_common_steps``."""
-    steps, ys = on_common_steps(curves)
-    return (steps, *curve_band(ys, seed))
+    each step of ``on_common_steps``, a slice of steps at a time (runs logged at other steps make
+    runs x steps large)."""
+    steps = np.array(sorted({step for c in curves for step, _ in c}), dtype=float)
+    arrays = [np.array(c, dtype=float).T for c in curves]
+    band = [np.full(len(steps), np.nan) for _ in range(3)]
+    width = max(1, BOOT_ELEMENTS // max(1, len(curves)))
+    for start in range(0, len(steps), width):
+        part = curve_band(_interpolated(arrays, steps[start : start + width]), seed)
+        for out, values in zip(band, part, strict=True):
+            out[start : start + len(values)] = values
+    return (steps, *band)
 
 
 def probability_of_improvement(x: np.ndarray, y: np.ndarray) -> float:
@@ -130,11 +160,20 @@ def stratified_bootstrap(
 ) -> tuple[float, float]:
     """95% percentile interval of ``statistic(xs, ys)`` (row-wise over resamples) when the runs of
     each sample are resampled with replacement, each sample on its own (rliable's stratified
-    bootstrap for one task)."""
-    rng = np.random.default_rng(seed)
-    xs = x[rng.integers(0, len(x), (N_BOOT, len(x)))]
-    ys = y[rng.integers(0, len(y), (N_BOOT, len(y)))]
-    low, high = np.percentile(statistic(xs, ys), [2.5, 97.5])
+    bootstrap for one task). In chunks of resamples: x's indices come first in the seeded stream,
+    then y's (as one draw of each), so a second stream from the seed, moved past x's draws, gives
+    y's chunk by chunk."""
+    chunk = max(1, BOOT_ELEMENTS // max(1, len(x) + len(y)))
+    sizes = [min(chunk, N_BOOT - start) for start in range(0, N_BOOT, chunk)]
+    rng_x, rng_y = np.random.default_rng(seed), np.random.default_rng(seed)
+    for k in sizes:
+        rng_y.integers(0, len(x), (k, len(x)))
+    values = []
+    for k in sizes:
+        xs = x[rng_x.integers(0, len(x), (k, len(x)))]
+        ys = y[rng_y.integers(0, len(y), (k, len(y)))]
+        values.append(np.asarray(statistic(xs, ys)))
+    low, high = np.percentile(np.concatenate(values), [2.5, 97.5])
     return float(low), float(high)
 
 

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from rlexp import safe_read
 
 #: The metric whose last value is a job's final score, and whose history is its learning curve.
 DEFAULT_METRIC = "eval/episode_return"
@@ -22,6 +25,10 @@ SEED_KEYS = ("seed",)
 TIME_KEYS = ("perf/collect_time", "perf/update_time", "perf/eval_time")
 #: The state of a job a hook ended before its budget (``rlexp.hooks``): a result, not a failure.
 STOPPED_EARLY = "stopped_early"
+#: Distinct steps read at most from one ``metrics.jsonl`` (memory: ~100 bytes a step and metric).
+MAX_STEPS = 2_000_000
+#: Dirs inside a sweep that hold no job (their files are many: not walked).
+NOT_JOBS = frozenset({".hydra", ".submitit", "tensorboard", "checkpoints", "wandb", "__pycache__"})
 
 
 @dataclass
@@ -102,7 +109,10 @@ def json_number(value: Any) -> float | None:
     """A JSON number as float; None for anything else (a string, a list, true/false, null)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return None
-    return float(value)
+    try:
+        return float(value)
+    except OverflowError:  # an integer beyond float's range (10**400): not a usable number
+        return None
 
 
 def _json_type(value: Any) -> str:
@@ -117,9 +127,17 @@ def _step(value: Any) -> int | None:
     return int(x) if x is not None and math.isfinite(x) and x >= 0 and x == int(x) else None
 
 
-def _read_text(path: Path) -> str:
-    """A file's text; bytes that are not UTF-8 (a torn write) become U+FFFD, not an error."""
-    return path.read_bytes().decode("utf-8", errors="replace")
+def _load_json(path: Path, problems: list[str]) -> Any:
+    """A run-dir JSON file through ``rlexp.safe_read`` (a regular file, bounded in size and depth;
+    bytes that are not UTF-8 become U+FFFD): {} when there is none, None (and a problem) when it
+    cannot be read or is not JSON."""
+    try:
+        data = safe_read.read_bytes(path)
+        return {} if data is None else safe_read.parse_json(data)
+    except safe_read.Unreadable as exc:
+        why = "not JSON" if str(exc).startswith("not JSON") else str(exc)
+        problems.append(f"{path.name}: {why}")
+        return None
 
 
 def read_metrics(
@@ -145,20 +163,45 @@ def read_histories(
     values: dict[str, dict[int, float]] = {m: {} for m in metrics}
     at: dict[str, dict[int, float]] = {m: {} for m in metrics}
     times: dict[int, float] = {}
-    try:
-        lines = _read_text(path).splitlines()
-    except FileNotFoundError:
-        return {m: [] for m in metrics}, 0.0
-    except OSError as exc:
-        if problems is not None:
-            problems.append(f"{path.name}: not readable ({exc.strerror or exc})")
-        return {m: [] for m in metrics}, 0.0
     bad: list[tuple[int, str]] = []
-    for num, line in enumerate(lines, 1):
-        if not line.strip():
+    try:  # a regular file only, line by line, each line bounded (rlexp.safe_read)
+        with safe_read.open_regular(path) as opened:
+            stop = _read_rows(opened, metrics, (values, at, times), bad) if opened else ""
+    except safe_read.Unreadable as exc:  # a FIFO, a device, a dir: nothing read
+        stop = str(exc)
+    except OSError as exc:  # an I/O error part way: what was read counts
+        stop = f"not readable ({exc.strerror or exc})"
+    if stop and problems is not None:
+        problems.append(f"{path.name}: {stop}")
+    if bad and problems is not None:
+        num, why = bad[0]
+        problems.append(f"{path.name}: {len(bad)} line(s) skipped (first: line {num}, {why})")
+    if logged_at is not None:
+        logged_at.update(at)
+    return {m: sorted(v.items()) for m, v in values.items()}, float(sum(times.values()))
+
+
+def _read_rows(
+    opened: tuple[Any, int],
+    metrics: Sequence[str],
+    into: tuple[dict[str, dict[int, float]], dict[str, dict[int, float]], dict[int, float]],
+    bad: list[tuple[int, str]],
+) -> str:
+    """The rows of an open ``metrics.jsonl`` into (values, logged_at, loop times) per step; lines
+    of the wrong shape into ``bad``. Returns why it stopped early ("" at the end of the file)."""
+    values, at, times = into
+    for num, line in enumerate(safe_read.iter_lines(*opened), 1):
+        if line is None:
+            bad.append((num, f"longer than {safe_read.MAX_LINE >> 20} MiB"))
+            continue
+        text = line.decode("utf-8", errors="replace")  # a torn write: U+FFFD, not an error
+        if not text.strip():
             continue
         try:
-            row = json.loads(line)
+            row = json.loads(text)
+        except RecursionError:
+            bad.append((num, "nested too deep"))
+            continue
         except ValueError:
             bad.append((num, "not JSON (a line cut short by a kill?)"))
             continue
@@ -167,7 +210,7 @@ def read_histories(
             continue
         step = _step(row.get("step"))
         if step is None:
-            bad.append((num, f"step {row.get('step')!r} is not a whole number"))
+            bad.append((num, f"step {safe_read.shown(row.get('step'))} is not a whole number"))
             continue
         wrong = [
             k
@@ -175,7 +218,7 @@ def read_histories(
             if row.get(k) is not None and json_number(row[k]) is None
         ]
         if wrong:
-            bad.append((num, f"{wrong[0]} {row[wrong[0]]!r} is not a number"))
+            bad.append((num, f"{wrong[0]} {safe_read.shown(row[wrong[0]])} is not a number"))
         when = json_number(row.get("time"))
         for metric in metrics:
             value = json_number(row.get(metric))
@@ -188,12 +231,9 @@ def read_histories(
         if any(k in row for k in TIME_KEYS):
             parts = [json_number(row.get(k)) for k in TIME_KEYS]
             times[step] = sum(p for p in parts if p is not None and math.isfinite(p))
-    if bad and problems is not None:
-        num, why = bad[0]
-        problems.append(f"{path.name}: {len(bad)} line(s) skipped (first: line {num}, {why})")
-    if logged_at is not None:
-        logged_at.update(at)
-    return {m: sorted(v.items()) for m, v in values.items()}, float(sum(times.values()))
+        if len(times) > MAX_STEPS or any(len(v) > MAX_STEPS for v in values.values()):
+            return f"more than {MAX_STEPS} logged steps: read up to line {num}"
+    return ""
 
 
 def add_histories(jobs: Sequence[Job], metrics: Sequence[str]) -> None:
@@ -209,15 +249,8 @@ def add_histories(jobs: Sequence[Job], metrics: Sequence[str]) -> None:
 def read_status(path: Path, problems: list[str]) -> dict[str, Any] | None:
     """A job's ``status.json``: {} when there is none, None (and a problem) when it is not a JSON
     object."""
-    try:
-        status = json.loads(_read_text(path))
-    except FileNotFoundError:
-        return {}
-    except OSError as exc:
-        problems.append(f"status.json: not readable ({exc.strerror or exc})")
-        return None
-    except ValueError:
-        problems.append("status.json: not JSON")
+    status = _load_json(path, problems)
+    if status is None:
         return None
     if not isinstance(status, dict):
         problems.append(f"status.json: a JSON {_json_type(status)}, not an object")
@@ -226,33 +259,34 @@ def read_status(path: Path, problems: list[str]) -> dict[str, Any] | None:
 
 
 def read_overrides(path: Path, problems: list[str]) -> list[str]:
-    """A job's ``.hydra/overrides.yaml`` (a list of ``key=value``); [] and a problem otherwise."""
-    from omegaconf import OmegaConf
-
+    """A job's ``.hydra/overrides.yaml`` (a list of ``key=value``); [] and a problem otherwise
+    (also for a FIFO, a huge file, YAML aliases: ``rlexp.safe_read``)."""
     try:
-        data = OmegaConf.to_container(OmegaConf.load(path))
-    except (
-        Exception
-    ) as exc:  # a YAML or OmegaConf error, a torn file: the report goes on without it
-        problems.append(f".hydra/overrides.yaml: not readable ({first_line(exc)})")
+        return safe_read.read_overrides(path)
+    except safe_read.Unreadable as exc:
+        why = str(exc) if str(exc).startswith("a ") else f"not readable ({exc})"
+        problems.append(f".hydra/overrides.yaml: {why}")
         return []
-    if data is None:
-        return []
-    if not isinstance(data, list):
-        problems.append(f".hydra/overrides.yaml: a {type(data).__name__}, not a list")
-        return []
-    return [str(o) for o in data]
 
 
-def _running_reason(job_dir: Path, status: dict[str, Any]) -> str:
+def _running_reason(job_dir: Path, status: dict[str, Any], problems: list[str]) -> str:
     """A ``running`` status.json checked against the job's heartbeat and PID, as ``rlexp runs``
-    does: a job still training (the sweep goes on) is not called dead."""
+    does: a job still training (the sweep goes on) is not called dead. Both files' fields are
+    checked first (``rlexp.safe_read``): a bad heartbeat is left out, a bad status cannot tell."""
     import time
 
     from rlexp.liveness import Here, liveness
-    from rlexp.rundir import read_heartbeat
 
-    shown, why = liveness(status, read_heartbeat(job_dir), time.time(), Here.now())
+    try:
+        safe_read.check_fields(status, safe_read.STATUS_FIELDS)
+    except safe_read.Unreadable as exc:
+        return f"status.json says running, but {exc}"
+    try:
+        beat = safe_read.read_checked(job_dir / "heartbeat.json", safe_read.HEARTBEAT_FIELDS)
+    except safe_read.Unreadable as exc:
+        problems.append(f"heartbeat.json: {exc}")
+        beat = {}
+    shown, why = liveness(status, beat, time.time(), Here.now())
     if shown == "running":
         return "still running (its heartbeat is fresh): the sweep is not done"
     return f"{shown}: {why}" if why else shown
@@ -282,13 +316,14 @@ def read_job(job_dir: Path, metric: str | None, other_metrics: Sequence[str] = (
     step = _step(status.get("global_step"))
     if step is None:
         if "global_step" in status:
-            problems.append(f"status.json: global_step {status['global_step']!r} is not a number")
+            shown = safe_read.shown(status["global_step"])
+            problems.append(f"status.json: global_step {shown} is not a number")
         step = curve[-1][0] if curve else 0
     reason = status.get("reason") or ""
     if state == "running" and not reason:
-        reason = _running_reason(job_dir, status)
+        reason = _running_reason(job_dir, status, problems)
     budget, env, backend = _budget_and_env(job_dir, problems)
-    start = read_start(job_dir)
+    start = read_start(job_dir, problems)
     return Job(
         budget=budget,
         env=env,
@@ -324,16 +359,11 @@ def _budget_of(cfg: Any) -> int | None:
 def _configs(job_dir: Path, problems: list[str]) -> Iterator[dict]:
     """The job's configs as plain mappings, read one by one as asked for: its ``config.yaml`` (the
     resolved config rlexp writes once training starts), then Hydra's ``.hydra/config.yaml``."""
-    import yaml
-
     for name in ("config.yaml", ".hydra/config.yaml"):
-        path = job_dir / name
-        try:
-            cfg = yaml.load(_read_text(path), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
-        except FileNotFoundError:
-            continue
-        except (OSError, yaml.YAMLError) as exc:
-            problems.append(f"{name}: not readable ({first_line(exc)})")
+        try:  # bounded, no aliases, safe tags only (rlexp.safe_read)
+            cfg = safe_read.load_yaml(job_dir / name)
+        except safe_read.Unreadable as exc:
+            problems.append(f"{name}: not readable ({exc})")
             continue
         if isinstance(cfg, dict):
             yield cfg
@@ -370,15 +400,13 @@ def _budget_and_env(
     return budget, env, backend
 
 
-def read_start(job_dir: Path) -> float | None:
+def read_start(job_dir: Path, problems: list[str] | None = None) -> float | None:
     """The run's start (``provenance.json`` ``start_time``, whole seconds, rewritten by each
-    attempt of a resumed run) as epoch seconds; None when it is missing or unreadable."""
+    attempt of a resumed run) as epoch seconds; None when it is missing or unreadable (and then a
+    problem)."""
     from rlexp.liveness import parse_time
 
-    try:
-        prov = json.loads(_read_text(job_dir / "provenance.json"))
-    except (OSError, ValueError):
-        return None
+    prov = _load_json(job_dir / "provenance.json", problems if problems is not None else [])
     return parse_time(prov.get("start_time")) if isinstance(prov, dict) else None
 
 
@@ -395,13 +423,15 @@ def wall_of(start: float | None, status: dict[str, Any]) -> float | None:
 def find_jobs(
     sweep_dir: Path, metric: str | None = DEFAULT_METRIC, other_metrics: Sequence[str] = ()
 ) -> list[Job]:
-    """Every job dir under ``sweep_dir`` (one with ``.hydra/overrides.yaml``), in job-number order."""
-    jobs = []
-    for ov_file in sweep_dir.rglob(".hydra/overrides.yaml"):
-        job_dir = ov_file.parent.parent
-        if ".submitit" in job_dir.relative_to(sweep_dir).parts:
-            continue
-        jobs.append(read_job(job_dir, metric, other_metrics))
+    """Every job dir under ``sweep_dir`` (one with ``.hydra/overrides.yaml``), in job-number order;
+    symlinked job dirs are followed, each job read once (``rlexp.dirwalk``)."""
+    from rlexp.dirwalk import find_dirs
+
+    def is_job(here: Path, names: set[str]) -> bool:
+        return ".hydra" in names and os.path.lexists(here / ".hydra" / "overrides.yaml")
+
+    job_dirs = find_dirs([sweep_dir], is_job, lambda name: name in NOT_JOBS, inside_wanted=True)
+    jobs = [read_job(job_dir, metric, other_metrics) for job_dir in job_dirs]
 
     def order(job: Job) -> tuple:
         rel = job.path.relative_to(sweep_dir).parts

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -102,11 +103,16 @@ def plan_from_config(cfg: DictConfig, config_loader: Any = None) -> Plan:
 
 def read_plan(sweep_dir: Path) -> Plan:
     """The plan of the sweep in ``sweep_dir``, from its ``multirun.yaml``."""
+    from omegaconf._utils import get_yaml_loader
+
+    from rlexp import safe_read
+
     path = sweep_dir / "multirun.yaml"
-    try:
-        cfg = OmegaConf.load(path)
-    except FileNotFoundError:
-        return Plan(None, "no multirun.yaml in the sweep dir")
+    try:  # as OmegaConf.load, but bounded and without YAML aliases (rlexp.safe_read)
+        data = safe_read.load_yaml(path, loader=get_yaml_loader())
+        if data is None and not os.path.lexists(path):
+            return Plan(None, "no multirun.yaml in the sweep dir")
+        cfg = OmegaConf.create(data if data is not None else {})
     except Exception as exc:  # a YAML error, a torn file: the report goes on without a plan
         return Plan(None, f"multirun.yaml is not readable ({first_line(exc)})")
     if not isinstance(cfg, DictConfig):
