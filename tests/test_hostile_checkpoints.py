@@ -120,7 +120,16 @@ def _state(run_dir: Path, which: int = -1) -> dict:
 
 
 def _lying(run_dir: Path, path: Path, kind: str) -> Path:
-    """A copy of the newest checkpoint in which one tensor declares far more than it holds."""
+    """A copy of the newest checkpoint in which one tensor declares far more than it holds (made
+    once per module: deflating 1.2 GB of zeros takes seconds)."""
+    made = run_dir.parent / f"{kind}.pt"
+    if not made.exists():
+        _make_lying(run_dir, made, kind)
+    shutil.copyfile(made, path)
+    return path
+
+
+def _make_lying(run_dir: Path, path: Path, kind: str) -> Path:
     state = _state(run_dir)
     if kind == "returns broadcast":  # the reward normaliser's running returns: a resume uses them
         t = state["algorithm"]["reward_normalizer"]["returns"]
@@ -378,7 +387,7 @@ FIELDS = [  # (id, change, value, what the message names)
     ("step not the name's", _set("global_step"), 256, "global_step=256, but the file's name says step 512"),
     ("iteration 2**70", _set("algorithm", "iteration"), 2**70, "algorithm.iteration=1180591620717411303424; expected an int in [0, 512]"),
     ("iteration str", _set("algorithm", "iteration"), "2", "algorithm.iteration='2'; expected an int >= 0"),
-    ("returns window", _set("windows", "returns"), "abc", "windows.returns is not a list of numbers"),
+    ("returns window", _set("windows", "returns"), "abc", "windows.returns is not a list of finite numbers"),
     ("lengths window", _set("windows", "lengths"), [3, -1], "windows.lengths is not a list of ints >= 0"),
     ("running length", _set("windows", "running_length"), torch.zeros(3, dtype=torch.int64), "windows.running_length does not match"),
     ("torch rng dtype", _set("rng", "torch"), torch.zeros(5056), "rng.torch is torch.float32, expected torch.uint8"),
@@ -441,3 +450,18 @@ def test_the_real_checkpoints_pass_every_check_and_the_files_torch_writes_too(ru
     assert json.dumps(again["config"], sort_keys=True) == json.dumps(
         state["config"], sort_keys=True
     )
+
+
+def test_pruning_counts_and_deletes_only_files(tmp_path):
+    """Not in the issue's text: a directory with the newest checkpoint's name neither crashes the
+    pruning after a save (``unlink`` of a directory) nor takes the place of a kept checkpoint."""
+    from rlexp.checkpoint import prune_checkpoints
+
+    files = [tmp_path / f"run_step_{s:09d}.pt" for s in (256, 512, 768)]
+    for f in files:
+        f.write_bytes(b"x")
+    (tmp_path / "run_step_000001024.pt").mkdir()
+    assert prune_checkpoints(tmp_path, keep_last=2, newest=files[-1]) == [files[0]]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "run_step_000000512.pt", "run_step_000000768.pt", "run_step_000001024.pt"
+    ]  # fmt: skip

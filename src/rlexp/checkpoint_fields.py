@@ -143,8 +143,10 @@ def check_state(sd: Mapping[str, Any], step: int, resume: bool) -> None:
     if not _is_number(best) or math.isnan(best):
         raise FieldError(f"best_metric={_shown(best)}; expected a number (-inf: none yet)")
     pending = sd.get("pending_observation")
-    if pending is not None:
-        _tensor(pending, "pending_observation", (torch.float32, torch.float64), None)
+    if pending is not None and (
+        not isinstance(pending, torch.Tensor) or not pending.is_floating_point()
+    ):
+        raise FieldError(f"pending_observation is {_shown(pending)[:40]}, not a float tensor")
 
 
 def _check_policy(policy: Mapping[str, Any]) -> None:
@@ -211,8 +213,10 @@ def _check_optimizer(opt: Mapping[str, Any]) -> None:
 
 def _check_windows(windows: Mapping[str, Any]) -> None:
     returns, lengths = windows.get("returns", []), windows.get("lengths", [])
-    if not isinstance(returns, list) or not all(_is_number(r) for r in returns):
-        raise FieldError("windows.returns is not a list of numbers")
+    if not isinstance(returns, list) or not all(
+        _is_number(r) and math.isfinite(r) for r in returns
+    ):
+        raise FieldError("windows.returns is not a list of finite numbers")
     if not isinstance(lengths, list) or not all(_is_int(n) and n >= 0 for n in lengths):
         raise FieldError("windows.lengths is not a list of ints >= 0")
     if "running_return" in windows or "running_length" in windows:
