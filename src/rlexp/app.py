@@ -26,6 +26,7 @@ from rlexp.config.rules import first_line
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
 from rlexp.launch.job_dir import job_dir
+from rlexp.launch.signals import sweep_worker
 from rlexp.next_steps import done_message
 from rlexp.paths import CONF_DIR, with_user_config_dir  # CONF_DIR: the package's or the checkout's
 from rlexp.plugins import load_plugins
@@ -123,6 +124,7 @@ def _train_locked(
     from rlexp.launch.slurm import install_preemption_handler
     from rlexp.logging import MetricLogger, make_logger
     from rlexp.provenance import versions
+    from rlexp.run_proof import check_continuation, finished_result
 
     t = config.trainer
     dist = distributed.info()
@@ -135,21 +137,10 @@ def _train_locked(
     total = total_frames(config, dist.world_size)
 
     # -- the run dir: what it holds decides what this run does (nothing is written here yet) -------
-    status = read_status(run_dir)
-    step_done = status.get("global_step")
-    if t.resume == "auto" and (
-        (status.get("state") == "finished" and isinstance(step_done, int) and step_done >= total)
-        or status.get("state") == "stopped_early"
-    ):
-        # A re-run of the same sweep: this job already finished its budget; report it, train nothing.
-        log.info(
-            "run dir %s already %s at step %s: skipping",
-            run_dir,
-            status.get("state", "finished").replace("_", " "),
-            step_done,
-        )
-        final = status.get("final_eval")
-        return dict(final) if isinstance(final, dict) else {}
+    if t.resume == "auto":  # a re-run of a job that finished this config: its result, no training
+        done = finished_result(run_dir, to_dict(config), total)  # rlexp.run_proof: proven or refused
+        if done is not None:
+            return done
     if dist.is_main:
         clean_temp_files(run_dir)
     t.device = device  # the saved config records the device actually used
@@ -158,6 +149,7 @@ def _train_locked(
     check_run_dir(run_dir, config_dict, t.resume)  # a continuation, or another run's dir?
     if t.resume == "auto":
         ckpt = latest_good_checkpoint(run_dir / "checkpoints", move_aside=dist.is_main)
+        check_continuation(run_dir, config_dict, ckpt)  # its own checkpoint, or nothing trained
 
     # -- build: a failure here is a config error (one line, exit 2, no config.yaml) ---------------
     from rlexp.build import build
@@ -360,6 +352,10 @@ def _task(cfg: DictConfig) -> float | None:
     multirun = hc.mode is not None and hc.mode.name == "MULTIRUN"
     run_dir = Path(job_dir())  # not hc.runtime.output_dir: a dir named "${...}" breaks it
     sweep_group = Path(hc.sweep.dir).name if multirun else None
+    worker = sweep_worker()  # a joblib worker of a local sweep (rlexp.launch.sweep_stop)
+    if worker is not None and worker.signum is not None:
+        log.warning("%s: the sweep is stopping; job %s not started", worker.name, run_dir)
+        return None
     try:
         load_plugins()  # a sweep worker or a SLURM job is a fresh process
         config = to_root_config(cfg)
@@ -381,10 +377,14 @@ def _task(cfg: DictConfig) -> float | None:
     except RunEnded as exc:
         if exc.exit_code >= EXIT_SIGNAL_BASE:  # a signal: stop the whole sweep too
             log.error("%s", exc)
+            if worker is not None:
+                return None  # the sweep's process exits 128+N once every job is back
             _exit(exc.exit_code)
         return _failed(run_dir, str(exc), exc.exit_code, multirun, exc)
     except KeyboardInterrupt:  # Ctrl-C twice while the run was being built: nothing to save
         log.error("interrupted before training started")
+        if worker is not None:
+            return None
         sys.exit(EXIT_SIGNAL_BASE + 2)
     except Exception as exc:
         from rlexp.trainer import StopRequested

@@ -193,6 +193,10 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
 
         RunDirLock(run_dir).check()
         check_run_dir(run_dir, to_dict(config), config.trainer.resume)
+        if config.trainer.resume == "auto":  # what the dir's files prove (rlexp.run_proof)
+            from rlexp.run_proof import precheck_run_dir
+
+            precheck_run_dir(run_dir, config)
     return config
 
 

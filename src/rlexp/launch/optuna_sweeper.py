@@ -176,20 +176,35 @@ def trial_value(ret: JobReturn, n_objectives: int) -> list[float] | None:
     return values
 
 
-def finished_value(job_dir: Path) -> float | None:
+def finished_value(job_dir: Path, overrides: Sequence[str] = ()) -> float | None:
     """The final :data:`OBJECTIVE` of a job dir whose ``status.json`` says it ran to its end
-    (finished, or stopped early by a hook); None otherwise."""
+    (finished, or stopped early by a hook) with ``overrides`` (its trial's parameters) among its
+    ``.hydra/overrides.yaml``; None otherwise: then the trial is run again in its dir, where the
+    job skips only if its ``config.yaml`` proves the same config (``rlexp.run_proof``)."""
     try:
         status = json.loads((job_dir / "status.json").read_text())
     except (OSError, ValueError):
         return None
     if not isinstance(status, dict) or status.get("state") not in ("finished", "stopped_early"):
         return None
+    missing = sorted(set(overrides) - set(_job_overrides(job_dir)))
+    if missing:
+        log.warning("job dir %s did not run with %s: its result is not taken", job_dir, missing)
+        return None
     final = status.get("final_eval")
     value = final.get(OBJECTIVE) if isinstance(final, dict) else None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         return None
     return float(value)
+
+
+def _job_overrides(job_dir: Path) -> list[str]:
+    """The job dir's ``.hydra/overrides.yaml`` ([] when missing or not a list of strings)."""
+    try:
+        listed = OmegaConf.to_container(OmegaConf.load(job_dir / ".hydra" / "overrides.yaml"))
+    except Exception:
+        return []
+    return [str(o) for o in listed] if isinstance(listed, list) else []
 
 
 class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
@@ -300,7 +315,7 @@ class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
             if t.state == TrialState.RUNNING and job_of(t) is None:
                 study.tell(t.number, state=TrialState.FAIL)
         if len(directions) == 1:
-            self._tell_finished_jobs(study)
+            self._tell_finished_jobs(study, fixed)
         self._reseed(study, len(trials))
         work, heads = plan_work(study.get_trials(deepcopy=False), self.n_trials)
         kept = sum(t.state in (TrialState.COMPLETE, TrialState.PRUNED) for t in heads.values())
@@ -351,7 +366,7 @@ class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
                 break
         self._save_results(study, directions)
 
-    def _tell_finished_jobs(self, study: Any) -> None:
+    def _tell_finished_jobs(self, study: Any, fixed: dict[str, Any]) -> None:
         """A trial left RUNNING whose job had finished (the sweep was killed while another job of
         its batch trained: a launcher returns a batch's results together) is told the result its
         job dir holds, the value rlexp's task function returns on a re-run, and is not launched
@@ -362,7 +377,8 @@ class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
         for job, t in sorted(heads.items()):
             if t.state != TrialState.RUNNING:
                 continue
-            value = finished_value(Path(str(self.sweep_dir)) / str(job))
+            ran_with = [f"{k}={v}" for k, v in {**t.params, **fixed}.items()]  # as launched
+            value = finished_value(Path(str(self.sweep_dir)) / str(job), ran_with)
             if value is not None:
                 study.tell(t.number, value)
                 log.info(

@@ -5,11 +5,16 @@ terminal or SSH session sends SIGHUP; Ctrl-C sends SIGINT. Each only records the
 Trainer finishes the current iteration (collect, update, log, eval, save), writes a checkpoint and
 stops, so a resume continues bit-exactly. A second Ctrl-C stops at once without a checkpoint (the
 last one on disk stays good). SLURM's preemption signal (USR2) goes through ``launch/slurm.py``.
+
+A local sweep's joblib workers (``hydra/launcher=local``) are :class:`SweepWorker` processes: a stop
+signal that reaches one between jobs is remembered, no later job starts there, and the sweep's
+process (``launch/sweep_stop.py``) collects every job before it exits 128 + N.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 from collections.abc import Callable, Iterator
@@ -53,6 +58,8 @@ class StopSignals:
         return f"{self.name} received"
 
     def _handle(self, signum: int, frame: Any) -> None:
+        if _WORKER is not None:
+            _WORKER.note(signum)  # no later job of the sweep starts in this process
         if self.signum is not None and signum == signal.SIGINT:
             raise KeyboardInterrupt  # a second Ctrl-C: stop now, no checkpoint
         if self.signum is not None:
@@ -73,6 +80,8 @@ class StopSignals:
 def stop_on_signals() -> Iterator[StopSignals]:
     """Install the stop handlers for the duration of a run (main thread only; restored after)."""
     stops = StopSignals()
+    if _WORKER is not None and _WORKER.signum is not None:
+        stops.signum = _WORKER.signum  # came while this sweep job was starting: stop at once
     if threading.current_thread() is not threading.main_thread():
         yield stops
         return
@@ -89,3 +98,60 @@ def stop_on_signals() -> Iterator[StopSignals]:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+#: Set by the sweep's process once it got a stop signal: a joblib worker started after that (it
+#: inherits the environment) starts no job.
+SWEEP_STOPPING_ENV = "RLEXP_SWEEP_STOPPING"
+
+
+class SweepWorker:
+    """This process runs jobs of a local sweep (a joblib worker). The first stop signal it gets,
+    in a job or between two, is kept: the job's run stops at its safe point, and the jobs that
+    joblib hands this process afterwards do not start (``rlexp.app._task``)."""
+
+    def __init__(self, signum: int | None = None) -> None:
+        self.signum = signum
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name if self.signum is not None else ""
+
+    def note(self, signum: int) -> None:
+        if self.signum is None:
+            self.signum = signum
+
+
+_WORKER: SweepWorker | None = None
+
+
+def sweep_worker() -> SweepWorker | None:
+    """This process's :class:`SweepWorker`, or None outside a local sweep's worker processes."""
+    return _WORKER
+
+
+def become_sweep_worker() -> None:
+    """The joblib workers' initializer (``launch/sweep_stop.py``): record stop signals while no
+    job runs here (a job's run installs its own handlers on top, ``stop_on_signals``), then take
+    the stop signals that the sweep's process kept blocked while it started this one: a Ctrl-C
+    during the worker's start-up is held until now, and then only recorded."""
+    global _WORKER
+    if _WORKER is None:
+        name = os.environ.get(SWEEP_STOPPING_ENV, "")
+        _WORKER = SweepWorker(getattr(signal, name) if name.startswith("SIG") else None)
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in STOP_SIGNALS:
+        if signal.getsignal(sig) is not signal.SIG_IGN:  # nohup's ignored SIGHUP stays ignored
+            signal.signal(sig, _worker_handle)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+
+
+def _worker_handle(signum: int, frame: Any) -> None:
+    """Between two jobs of a sweep worker: remember the stop; no job of this sweep starts here."""
+    if _WORKER is None:
+        return
+    if _WORKER.signum is None:
+        log.warning("%s: the sweep is stopping; no new job starts", signal.Signals(signum).name)
+    _WORKER.note(signum)

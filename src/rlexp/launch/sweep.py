@@ -14,14 +14,17 @@ In a single run (no ``-m``) Hydra instantiates it too; it does nothing there.
 
 from __future__ import annotations
 
+import fcntl
 import logging
+import os
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 log = logging.getLogger(__name__)
 
@@ -78,10 +81,18 @@ def summarize_sweep(sweep_dir: Path, config: DictConfig) -> tuple[str, bool]:
     return line, ok
 
 
+class SweepDirTaken(Exception):
+    """The sweep dir holds another sweep (``claim_sweep_dir``); the message says which overrides."""
+
+
+#: Held (flock) by a sweep while it checks the sweep dir and writes its ``multirun.yaml``.
+CLAIM_LOCK = ".multirun.lock"
+
+
 def check_same_sweep(sweep_dir: Path, config: DictConfig) -> None:
-    """A sweep dir that holds another sweep (other overrides) is refused before anything is written:
-    its ``multirun.yaml`` would be replaced and ``rlexp report`` would then expect jobs that never
-    ran. Re-running the same sweep (to finish or skip its jobs) is fine."""
+    """``SweepDirTaken`` when the sweep dir holds another sweep (other overrides): its
+    ``multirun.yaml`` would be replaced and ``rlexp report`` would then expect jobs that never ran.
+    Re-running the same sweep (to finish or skip its jobs) is fine."""
     path = sweep_dir / "multirun.yaml"
     if not path.is_file():
         return
@@ -89,18 +100,49 @@ def check_same_sweep(sweep_dir: Path, config: DictConfig) -> None:
         old = list(OmegaConf.load(path).hydra.overrides.task)
     except Exception:
         return  # unreadable: nothing to compare with (rlexp report names it)
-    new = list(config.hydra.overrides.task)
+    new = list(OmegaConf.select(config, "hydra.overrides.task", default=[]))
     if sorted(old) != sorted(new):
         gone = sorted(set(old) - set(new))
         added = sorted(set(new) - set(old))
-        log.error(
-            "sweep dir %s holds another sweep (its overrides differ: %s%s); use a new "
-            "hydra.sweep.dir, or re-run that sweep with its own overrides",
-            sweep_dir,
-            f"there {gone}" if gone else "",
-            f"{'; ' if gone else ''}here {added}" if added else "",
+        there = f"there {gone}" if gone else ""
+        here = f"{'; ' if gone else ''}here {added}" if added else ""
+        raise SweepDirTaken(
+            f"sweep dir {sweep_dir} holds another sweep (its overrides differ: {there}{here}); "
+            "use a new hydra.sweep.dir, or re-run that sweep with its own overrides"
         )
-        sys.exit(2)
+
+
+def claim_sweep_dir(sweep_dir: Path, config: DictConfig) -> None:
+    """Check that ``sweep_dir`` holds no other sweep and write this one's ``multirun.yaml``, as one
+    step: both under an exclusive ``flock`` on ``<sweep_dir>/.multirun.lock``. Two sweeps with
+    different overrides started together into one dir once both passed the check (each checked
+    before the other had written) and mixed their jobs; now the second one to take the lock sees
+    the first one's ``multirun.yaml`` and gets ``SweepDirTaken``. The lock is held for
+    milliseconds; the file stays (removing it would race with the next holder)."""
+    sweep_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(sweep_dir / CLAIM_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        check_same_sweep(sweep_dir, config)
+        tmp = sweep_dir / f".multirun.yaml.tmp-{os.getpid()}-{threading.get_ident()}"
+        OmegaConf.save(config, tmp)
+        os.replace(tmp, sweep_dir / "multirun.yaml")  # readers never see half a file
+    finally:
+        os.close(fd)  # and with it the lock
+
+
+def _joblib_with_stop_handling(config: DictConfig) -> None:
+    """The plugin's own ``hydra/launcher=joblib`` runs as rlexp's subclass, which lets the jobs
+    save at their safe point on Ctrl-C / SIGTERM / SIGHUP (``rlexp.launch.sweep_stop``); the
+    launcher is built from this config after this callback."""
+    target = OmegaConf.select(config, "hydra.launcher._target_", default=None)
+    if target == PLUGIN_JOBLIB:
+        with open_dict(config), read_write(config):
+            config.hydra.launcher._target_ = RLEXP_JOBLIB
+
+
+PLUGIN_JOBLIB = "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
+RLEXP_JOBLIB = "hydra_plugins.rlexp_launcher.joblib_launcher.RlexpJoblibLauncher"
 
 
 class SweepSummary(Callback):
@@ -110,10 +152,12 @@ class SweepSummary(Callback):
         """Save the sweep's config as ``multirun.yaml``, as Hydra's basic sweeper does (the Optuna
         sweeper does not): ``rlexp report`` reads from it how many jobs the sweep was to run."""
         sweep_dir = Path(str(config.hydra.sweep.dir))
-        check_same_sweep(sweep_dir, config)
+        _joblib_with_stop_handling(config)
         try:
-            sweep_dir.mkdir(parents=True, exist_ok=True)
-            OmegaConf.save(config, sweep_dir / "multirun.yaml")
+            claim_sweep_dir(sweep_dir, config)
+        except SweepDirTaken as exc:
+            log.error("%s", exc)
+            sys.exit(2)
         except OSError as exc:
             log.warning("could not write multirun.yaml: %s", exc)
 
