@@ -25,6 +25,7 @@ from rlexp.build import seed_everything
 from rlexp.config.rules import first_line
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
+from rlexp.launch import entry, job_log, outside_run
 from rlexp.launch.job_dir import job_dir
 from rlexp.launch.signals import sweep_worker
 from rlexp.next_steps import done_message
@@ -150,6 +151,7 @@ def _train_locked(
     if t.resume == "auto":
         ckpt = latest_good_checkpoint(run_dir / "checkpoints", move_aside=dist.is_main)
         check_continuation(run_dir, config_dict, ckpt)  # its own checkpoint, or nothing trained
+    job_log.release()  # the dir is this run's: its train.log is written from here (launch/job_log)
 
     # -- build: a failure here is a config error (one line, exit 2, no config.yaml) ---------------
     from rlexp.build import build
@@ -198,6 +200,7 @@ def _run(
     from rlexp.algorithms.ppo import NonFiniteError
     from rlexp.launch.slurm import stop_requested_by_signal
     from rlexp.trainer import StopRequested
+    from rlexp.writable import check_checkpoints_writable
 
     def last_good() -> str:
         path = trainer.last_checkpoint or (ckpt and ckpt["path"])
@@ -217,7 +220,7 @@ def _run(
             beat.start()
         if stops.requested and trainer.global_step == 0:
             raise StopRequested(stops.reason())  # a signal during the build: nothing to save yet
-        _check_writable(trainer.ckpt_dir)  # now, not after the first hour of training
+        check_checkpoints_writable(trainer.ckpt_dir, trainer.cfg.exp_name)  # not at the 1st save
         _speedups.training_gc()  # the GC walks only what training creates from here on
         trainer.train(total)
         if trainer.eval_env is not None and not trainer.last_eval:
@@ -269,6 +272,7 @@ def _run(
         raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
     finally:
         watchdog.ended = True  # status.json says how it ended: past the grace, only exit
+        outside_run.run_ended()  # a stop signal from here on changes neither exit nor status
         if beat is not None:
             beat.stop()
         trainer.close()
@@ -319,14 +323,6 @@ def _write_traceback(run_dir: Path) -> Path:
     return path
 
 
-def _check_writable(directory: Path) -> None:
-    """``OSError`` if checkpoints cannot be written in ``directory`` (created if missing)."""
-    directory.mkdir(parents=True, exist_ok=True)
-    probe = directory / f".write-test.tmp-{os.getpid()}"
-    probe.write_bytes(b"")
-    probe.unlink()
-
-
 def _try_write_status(run_dir: Path, trainer: Any, reason: str) -> None:
     try:
         write_status(run_dir, "failed", trainer.global_step, trainer.last_eval, reason=reason)
@@ -352,6 +348,7 @@ def _task(cfg: DictConfig) -> float | None:
     multirun = hc.mode is not None and hc.mode.name == "MULTIRUN"
     run_dir = Path(job_dir())  # not hc.runtime.output_dir: a dir named "${...}" breaks it
     sweep_group = Path(hc.sweep.dir).name if multirun else None
+    outside_run.job_started(f"job {run_dir}")  # a Ctrl-C after the previous job: the sweep stops
     worker = sweep_worker()  # a joblib worker of a local sweep (rlexp.launch.sweep_stop)
     if worker is not None and worker.signum is not None:
         log.warning("%s: the sweep is stopping; job %s not started", worker.name, run_dir)
@@ -386,6 +383,8 @@ def _task(cfg: DictConfig) -> float | None:
         if worker is not None:
             return None
         sys.exit(EXIT_SIGNAL_BASE + 2)
+    except OSError as exc:  # the run dir before training (training's own end: RunEnded, exit 1)
+        return _failed(run_dir, entry.run_dir_error(run_dir, exc), EXIT_CONFIG, multirun, exc)
     except Exception as exc:
         from rlexp.trainer import StopRequested
 
@@ -425,6 +424,7 @@ def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Excepti
     """One line; a single run exits with ``code``, a sweep job records it and returns None."""
     from rlexp.rundir import RunDirBusy
 
+    job_log.drop()  # stopped before the run owned the dir: its train.log stays as it was
     log.error("%s", message)
     if not multirun:
         _exit(code)
@@ -449,6 +449,7 @@ def main() -> None:
     os.environ.setdefault("MUJOCO_GL", "egl")
     wanted, rest = distributed.split_flag(sys.argv[1:])
     multirun = any(a in ("-m", "--multirun") for a in rest)
+    outside_run.install(multirun)  # Ctrl-C before the run trains: one line; after its end: no change
     if wanted and multirun:
         # A sweep: the launcher's jobs start the ranks (SLURM tasks_per_node); each job joins its group.
         os.environ["RLEXP_DISTRIBUTED"] = "1"

@@ -91,8 +91,17 @@ def _load_plugins_or_exit(prog: str) -> None:
 
 
 def train(argv: list[str], prog: str = "rlexp train") -> None:
-    """``rlexp train`` / ``python train.py``: plugins first (a JSON file may name a plugin's task),
-    then ``--config-json`` / ``--distributed`` and Hydra (``rlexp.launch.json_entry``)."""
+    """``rlexp train`` / ``python train.py``, under the entry guard: a deleted working directory,
+    Ctrl-C before a run trains, an unwritable path are one line, not a traceback (docs/faults.md)."""
+    from rlexp.launch.entry import entry_guard
+
+    with entry_guard(prog):
+        _train(argv, prog)
+
+
+def _train(argv: list[str], prog: str) -> None:
+    """Plugins first (a JSON file may name a plugin's task), then ``--config-json`` /
+    ``--distributed`` and Hydra (``rlexp.launch.json_entry``)."""
     from rlexp import _speedups
     from rlexp.launch.relaunch import record_launch
 
@@ -220,7 +229,16 @@ def _version() -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """``rlexp COMMAND ...`` under the entry guard (``rlexp.launch.entry``)."""
+    from rlexp.launch.entry import entry_guard
+
     argv = list(sys.argv[1:] if argv is None else argv)
+    command = argv[0] if argv and not argv[0].startswith("-") else ""
+    with entry_guard(f"rlexp {command}".strip()):
+        _main(argv)
+
+
+def _main(argv: list[str]) -> None:
     if argv and argv[0] == "train":  # exactly `python train.py ...` (--config-json, --distributed)
         train(argv[1:])
         return
@@ -335,6 +353,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def _eval_or_export(args: argparse.Namespace) -> None:
     """``rlexp eval`` / ``rlexp export``: the result printed, or one line and exit 2 (3: NaN)."""
+    _check_gl()
     _load_plugins_or_exit(f"rlexp {args.command}")  # the checkpoint's task may be a plugin's
     try:
         print(_eval(args) if args.command == "eval" else _export(args))
@@ -344,6 +363,17 @@ def _eval_or_export(args: argparse.Namespace) -> None:
     except FloatingPointError as exc:  # NonFiniteError: NaN/Inf weights (not imported: slow)
         print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
         sys.exit(3)
+
+
+def _check_gl() -> None:
+    """A ``MUJOCO_GL`` that makes ``import mujoco`` fail (an unknown value, egl or osmesa without
+    its library): one line naming it now, not PyOpenGL's traceback when the env is built."""
+    from rlexp.envs.native.render import GL_FIX, gl_problem
+    from rlexp.launch.entry import EntryError
+
+    problem = gl_problem(rendering=False)
+    if problem is not None:
+        raise EntryError(f"{problem}; {GL_FIX}")
 
 
 def _add_export_parser(sub: Any) -> None:

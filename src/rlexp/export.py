@@ -184,6 +184,7 @@ def export_policy(
             f"--out {str(target)!r} exists and is not an rlexp export (no "
             f"{metadata_path(target).name!r} beside it); rlexp export does not overwrite it"
         )
+    _check_writable(target)  # a read-only run dir fails now, naming the path
     actor, config, info = _actor_of(ckpt)
     if not target.parent.is_dir():
         target.parent.mkdir(parents=True)
@@ -331,6 +332,23 @@ def _source_fields(ckpt: dict[str, Any], chosen: str, config: Any) -> dict[str, 
         "torch_version": torch.__version__,
         "config": ckpt["config"],  # the run's config: `rlexp eval FILE` rebuilds its env from it
     }
+
+
+def _check_writable(target: Path) -> None:
+    """``ValueError`` (one line: the path, why, the fix) when the exported file's folder cannot be
+    created or written: before the policy is built, not halfway through the export."""
+    from rlexp.writable import probe_dir
+
+    longest = len(f".{target.stem}.tmp-{os.getpid()}{target.suffix}")
+    try:
+        probe_dir(target.parent, longest, keep=True)
+    except OSError as exc:
+        from rlexp.launch.entry import os_error_line
+
+        raise ValueError(
+            f"cannot write {str(target)!r}: {os_error_line(exc)}; give --out a path in a "
+            "writable folder"
+        ) from None
 
 
 def _atomic(path: Path, write: Any) -> None:

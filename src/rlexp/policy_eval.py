@@ -341,6 +341,8 @@ class _Video:
             params = {**self.params, "name": "eval", "save_path": str(tmp.resolve())}
             with quiet("rlexp.events"):  # its log line names the temporary file
                 self.recorder.finalize(self.ctx, **params, allow_outside_run_dir=True)
+            if self.recorder.failed is not None:  # e.g. a full disk: one line, exit 2
+                raise OSError(f"--video {str(self.out)!r} not written: {self.recorder.failed}")
             os.replace(self.recorder.written[-1], self.out)
         finally:
             for leftover in tmp.iterdir():

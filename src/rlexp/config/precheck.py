@@ -148,6 +148,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
     from rlexp.config.validate import to_root_config
     from rlexp.envs.native.render import GL_FIX, gl_problem
     from rlexp.paths import initialize_hydra
+    from rlexp.writable import check_planned_dir, planned_dir
 
     problem = gl_problem(rendering=False)  # before anything imports MuJoCo, which would abort
     if problem:
@@ -166,6 +167,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
             overrides = check_overrides(args.overrides, loader)
             cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)
         run_dir = _run_dir(cfg)
+        planned = planned_dir(cfg, args.multirun)  # where it will write (rlexp.writable)
         with open_dict(cfg):
             del cfg["hydra"]
         if args.multirun:
@@ -174,6 +176,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
             from rlexp.config.validate import check_known_keys
 
             check_known_keys(OmegaConf.merge(OmegaConf.structured(RootConfig), cfg))
+            check_planned_dir(planned)  # before Hydra creates the sweep dir
             return None
         config = to_root_config(cfg)
     except (HydraException, OmegaConfBaseException) as exc:
@@ -187,6 +190,8 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
 
     # Before Hydra writes .hydra/ and its log there; rank 0 alone (it takes the lock right after,
     # and another rank would find that lock).
+    if distributed.info().is_main:
+        check_planned_dir(planned)  # a traceback from Hydra, or a failed first save, otherwise
     if run_dir is not None and run_dir.is_dir() and distributed.info().is_main:
         from rlexp.config.validate import to_dict
         from rlexp.rundir import RunDirLock, check_run_dir

@@ -33,7 +33,7 @@ from rlexp.events.env_access import (
 )
 from rlexp.events.manager import EventContext, register_event
 from rlexp.events.output import check_save_path, output_dir, save_params, write_new_file
-from rlexp.events.video import VIDEO_DEFAULTS, check_video_env, check_video_params
+from rlexp.events.video import VIDEO_DEFAULTS, check_video_env, check_video_params, write_mp4
 
 log = logging.getLogger(__name__)
 
@@ -308,6 +308,7 @@ class RecordVideo:
     def __init__(self) -> None:
         self.frames: list[np.ndarray] = []
         self.written: list[Path] = []
+        self.failed: str | None = None  # why the last video could not be written
 
     def __call__(
         self,
@@ -350,18 +351,16 @@ class RecordVideo:
     ) -> None:
         if not self.frames:
             return
-        import imageio.v2 as imageio
-
         FileName().check(name, f"{ctx.event or 'record_video'}.params.name")
         out_dir = output_dir(ctx, save_path, "videos", allow_outside_run_dir)
         path = out_dir / f"{name}_step_{ctx.global_step:09d}.mp4"
         frames, self.frames = self.frames, []
-
-        def write(tmp: Path) -> None:
-            with imageio.get_writer(tmp, fps=fps, codec="libx264", macro_block_size=1) as writer:
-                for frame in frames:
-                    writer.append_data(frame)
-
-        write_new_file(path, write)
+        self.failed = None
+        try:
+            write_mp4(path, frames, fps)
+        except OSError as exc:  # a full disk: this video is lost, the run goes on
+            self.failed = f"{path}: {exc.strerror or exc}"
+            log.warning("[video] not written (%d frames): %s", len(frames), self.failed)
+            return
         log.info("[video] %s (%d frames)", path, len(frames))
         self.written.append(path)

@@ -1,15 +1,21 @@
 """record_video's checks before the run: its parameters taken together, then one frame rendered from
-a built env and the mp4 encoder found (what would otherwise fail at the end of the first round)."""
+a built env and the mp4 encoder found (what would otherwise fail at the end of the first round);
+and the writing of its mp4, checked to be whole (``write_mp4``)."""
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
+import shutil
+import struct
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rlexp.events.env_access import base_env
-from rlexp.events.output import check_save_path
+from rlexp.events.output import check_save_path, write_new_file
 
 log = logging.getLogger(__name__)
 
@@ -115,3 +121,60 @@ def check_video_env(env: Any, where: str, num_envs: int | None = None, **params:
         imageio_ffmpeg.get_ffmpeg_exe()
     except Exception as exc:  # ImportError, or RuntimeError when no ffmpeg binary is found
         raise ValueError(f"{where}: cannot write mp4 videos: {exc}") from None
+
+
+#: Free bytes below which an mp4 that came out incomplete is put down to a full disk.
+FULL_DISK_BYTES = 1 << 20
+
+
+def write_mp4(path: Path, frames: list[np.ndarray], fps: float) -> None:
+    """Encode ``frames`` into ``path`` (through a temporary file renamed over it); ``OSError``
+    naming the file and why when it cannot be written whole. The encoder is an ffmpeg process
+    whose failures (a full disk, a quota) imageio does not report: the file it leaves is checked to
+    be a complete mp4 before it takes the final name."""
+    import imageio.v2 as imageio
+
+    def write(tmp: Path) -> None:
+        with imageio.get_writer(
+            tmp, fps=fps, codec="libx264", macro_block_size=1, ffmpeg_log_level="quiet"
+        ) as writer:  # quiet: ffmpeg's own lines would go around the log; the check below speaks
+            for frame in frames:
+                writer.append_data(frame)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)  # a write the filesystem deferred fails here, not after the rename
+        finally:
+            os.close(fd)
+        problem = mp4_problem(tmp)
+        if problem is not None:
+            if shutil.disk_usage(tmp.parent).free < FULL_DISK_BYTES:
+                raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({problem})", str(path))
+            raise OSError(errno.EIO, f"the encoder left an incomplete file ({problem})", str(path))
+
+    write_new_file(path, write)
+
+
+def mp4_problem(path: Path) -> str | None:
+    """Why ``path`` is not a whole mp4 (its top-level boxes must cover the file exactly and hold
+    ``ftyp``, ``mdat`` and ``moov``, which ffmpeg writes last), or None."""
+    size = path.stat().st_size
+    seen: set[bytes] = set()
+    pos = 0
+    with open(path, "rb") as f:
+        while pos < size:
+            f.seek(pos)
+            head = f.read(8)
+            if len(head) < 8:
+                return f"{size} bytes end inside a box header"
+            length, kind = struct.unpack(">I4s", head)
+            if length == 1:  # a 64-bit size follows
+                big = f.read(8)
+                length = struct.unpack(">Q", big)[0] if len(big) == 8 else 0
+            elif length == 0:  # "to the end of the file": a box whose size was never filled in
+                length = size - pos
+            if length < 8 or pos + length > size:
+                return f"the {kind.decode(errors='replace')!r} box is cut short at {size} bytes"
+            seen.add(kind)
+            pos += length
+    missing = [k.decode() for k in (b"ftyp", b"mdat", b"moov") if k not in seen]
+    return f"no {', '.join(missing)} box in {size} bytes" if missing else None

@@ -55,7 +55,8 @@ def effective_gl_backend() -> str:
 def gl_problem(rendering: bool = True) -> str | None:
     """Why offscreen rendering cannot work in this process (None: it may; rendering one frame tells
     for sure). ``rendering=False``: only what makes ``import mujoco`` itself fail (a MUJOCO_GL value
-    MuJoCo does not know), which breaks every MuJoCo env. Reads the environment; imports nothing."""
+    MuJoCo does not know, or egl/osmesa without its library), which breaks every MuJoCo env. Reads
+    the environment and tries to load the backend's libraries; imports nothing."""
     if platform.system() != "Linux":
         return None
     value = effective_gl_backend()
@@ -64,6 +65,9 @@ def gl_problem(rendering: bool = True) -> str | None:
         return (
             f"{shown} is not a MuJoCo GL backend (MuJoCo accepts {list(GL_HEADLESS)} or glfw/glx)"
         )
+    missing = _missing_library(value)
+    if missing is not None:  # import mujoco would die in PyOpenGL (AttributeError, a traceback)
+        return f"{shown} needs lib{missing}, which cannot be loaded here{_working()}"
     if not rendering:
         return None
     if value in GL_OFF:
@@ -72,6 +76,40 @@ def gl_problem(rendering: bool = True) -> str | None:
     if value in GL_WINDOWED and not display:
         return f"{shown} renders through a window system and DISPLAY is not set"
     return None
+
+
+#: The libraries each headless backend loads through PyOpenGL (any one name of each group).
+GL_LIBRARIES = {"egl": (("EGL",), ("OpenGL", "GL")), "osmesa": (("OSMesa",),)}
+
+
+def _loads(name: str) -> bool:
+    """``lib<name>.so`` (or a versioned one) can be loaded, as PyOpenGL looks for it."""
+    for filename in (f"lib{name}.so", *(f"lib{name}.so.{i}" for i in range(9, -1, -1))):
+        try:
+            ctypes.CDLL(filename, mode=ctypes.RTLD_GLOBAL)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+def _missing_library(value: str) -> str | None:
+    """The library a headless ``MUJOCO_GL`` value needs and this machine lacks (None: none is
+    missing, or MuJoCo is already imported and rendering with it)."""
+    if "mujoco.rendering.classic.gl_context" in sys.modules:
+        return None
+    for group in GL_LIBRARIES.get(value, ()):
+        if not any(_loads(name) for name in group):
+            return group[0]
+    return None
+
+
+def _working() -> str:
+    """The MUJOCO_GL values that can work on this machine, for a message."""
+    ok = [value for value in GL_LIBRARIES if all(any(map(_loads, g)) for g in GL_LIBRARIES[value])]
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        ok.append("glfw")
+    return f"; MUJOCO_GL values that work here: {', '.join(ok) or 'none (install one below)'}"
 
 
 def _renderer(
