@@ -19,9 +19,9 @@ import pytest
 from conftest import Children, run_train
 from rlexp.checkpoint import load_checkpoint, step_checkpoints
 
-#: 24 iterations of 256 env steps: the jobs are still training when the signal comes; no eval and
+#: 32 iterations of 256 env steps: the jobs are still training when the signal comes; no eval and
 #: no periodic checkpoint, so the only checkpoint of an interrupted job is the one of its stop.
-TOTAL = 6144
+TOTAL = 8192
 JOB = [
     "env=inverted_pendulum",
     f"trainer.total_frames={TOTAL}",
