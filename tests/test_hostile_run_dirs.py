@@ -721,3 +721,26 @@ def test_report_follows_symlinked_job_dirs_once_each(tmp_path):
     md = report(sweep, plot=False)
     assert "3 jobs expected" in md and "3 finished" in md, md
     assert "Never started" not in md or "## Never started (0)" in md
+
+
+# -- item 5, a reader the issue does not name: the median stopping rule reads siblings' metrics -------
+def test_the_median_stop_rule_reads_a_hostile_siblings_metrics_without_crashing(
+    tmp_path, monkeypatch
+):
+    from rlexp.hooks import builtin
+
+    monkeypatch.setattr(builtin, "SIBLING_READ", 256)  # a read of 256 bytes: the long line spans
+    metric = "eval/episode_return"
+    lines = [
+        json.dumps({"step": 100, metric: 5.0}),
+        '{"step": 200, "' + metric + '": 1' + "0" * 400 + "}",  # beyond float's range
+        '{"step": 250, "' + metric + '": ' + _deep_json(2000) + "}",
+        '{"step": 260, "' + metric + '": 1, "pad": "' + "x" * 600 + '"}',  # longer than a read
+        json.dumps({"step": 300, metric: 7.0}),
+    ]
+    path = tmp_path / "metrics.jsonl"
+    path.write_text("\n".join(lines) + "\n")
+    rule = builtin.MedianStop(metric)
+    looks = [rule._value_at(path, 300) for _ in range(40)]  # each look reads 256 bytes at most
+    assert looks[-1] == 7.0 and looks[0] is None
+    assert rule._offsets[path][1] == [(100, 5.0), (300, 7.0)]

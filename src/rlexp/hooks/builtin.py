@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from rlexp import safe_read
 from rlexp.config.native_task import Flag, Number, Text
 from rlexp.hooks.base import HookControl, HookState, register_hook
 
@@ -213,6 +214,10 @@ class Schedule:
         self.start = sd["start"]
 
 
+#: Bytes of a sibling's new ``metrics.jsonl`` lines read at one look at most.
+SIBLING_READ = 16 << 20
+
+
 @register_hook(
     "median_stop",
     points=("eval_end", "log"),
@@ -268,21 +273,27 @@ class MedianStop(_MetricHook):
         """The sibling's metric at its last logged step <= ``step``, if it has logged the metric at
         ``step`` or later (it reached this step); reads each file's new lines only."""
         offset, points = self._offsets.get(path, (0, []))
-        try:
-            with open(path, "rb") as f:
+        try:  # a sibling's dir is another job's: read bounded (rlexp.safe_read), never trusted
+            with safe_read.open_regular(path) as opened:
+                if opened is None:
+                    return None
+                f, size = opened
                 f.seek(offset)
-                chunk = f.read()
-        except OSError:
+                chunk = f.read(max(0, min(size - offset, SIBLING_READ)))
+        except (OSError, safe_read.Unreadable):
             return None
-        complete = chunk[: chunk.rfind(b"\n") + 1]
+        end = chunk.rfind(b"\n") + 1
+        if end == 0 and len(chunk) == SIBLING_READ:  # one line longer than a read: skip it
+            end = len(chunk)
+        complete = chunk[:end]
         for line in complete.splitlines():
             if self.metric.encode() not in line:
                 continue
             try:
                 row = json.loads(line)
                 points.append((int(row["step"]), float(row[self.metric])))
-            except (ValueError, KeyError, TypeError):
-                continue
+            except (ValueError, KeyError, TypeError, OverflowError, RecursionError):
+                continue  # not a row, or a value beyond float's range (10**400)
         self._offsets[path] = (offset + len(complete), points)
         if not points or max(s for s, _ in points) < step:
             return None
