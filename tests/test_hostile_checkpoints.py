@@ -217,6 +217,26 @@ def test_export_refuses_it_too(run_dir, tmp_path, children, kind):
     assert not (tmp_path / "x.pt").exists()
 
 
+def test_a_stored_config_declaring_a_huge_policy_is_refused_before_it_is_built(
+    run_dir, tmp_path, children
+):
+    """Not in the issue's text: the weights are honest, the stored config declares 16384-wide
+    layers (1 GiB of float32 for one of them). The policy it declares is built on the meta device
+    and compared first; the real one would be allocated (and initialised) before the refusal."""
+    state = _state(run_dir)
+    state["config"]["policy"].update(ortho_init=False)
+    state["config"]["policy"]["actor"]["hidden_sizes"] = [16384, 16384]
+    path = save_checkpoint(tmp_path / "wide.pt", state)
+    code, out, err, rss = _rlexp(children, tmp_path, "eval", path, "--episodes", "1")
+    assert rss < RSS_LIMIT, f"peak RSS {rss / 2**20:.0f} MiB for a refused file: {err}"
+    line = _one_line(code, out, err)
+    assert line == (
+        "rlexp eval: the checkpoint's policy does not fit this config's policy (size mismatch for "
+        f"policy.{WEIGHT}: shape (64, 4) in checkpoint {str(path)!r}, (16384, 4) in this config's "
+        "policy)"
+    )
+
+
 def test_a_resume_falls_back_past_lying_and_non_file_checkpoints(run_dir, tmp_path, children):
     """One resume past four bad newest 'checkpoints' (newest first): a FIFO, a dangling symlink, a
     directory, and a file whose normaliser returns broadcast 3*10^8 float64 (2.4 GB) over one

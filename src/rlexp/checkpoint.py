@@ -13,6 +13,7 @@ import os
 import random
 import re
 import stat
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -252,6 +253,28 @@ def check_checkpoint_fits(ckpt: dict[str, Any], config: Any, policy: torch.nn.Mo
             f"the checkpoint's policy does not fit this config's policy ({detail})"
         ) from None
     _check_optimizer_state(ckpt.get("algorithm") or {}, policy)
+
+
+def check_policy_before_building(
+    ckpt: dict[str, Any], build: Callable[[], torch.nn.Module]
+) -> None:
+    """Build the policy of the checkpoint's own config on the meta device (no memory) and compare
+    its tensors with the checkpoint's: a stored config declaring 65536-wide layers next to small
+    weights is refused before eval or export allocates gigabytes for the real policy."""
+    try:
+        with torch.device("meta"):
+            policy = build()
+    except Exception:  # a builder that needs real data: the real build checks the same, later
+        return
+    check_tensors_fit(ckpt, policy)
+    missing = [key for key in policy.state_dict() if key not in ckpt["policy"]]
+    if missing:
+        shown = ", ".join(missing[:3]) + (
+            f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+        )
+        raise ValueError(
+            f"the checkpoint's policy does not fit this config's policy (Missing key(s): {shown})"
+        )
 
 
 def checkpoint_path(ckpt_dir: Path, exp_name: str, global_step: int) -> Path:

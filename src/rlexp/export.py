@@ -35,11 +35,11 @@ from rlexp.policy_eval import (
     EXPORT_SCHEMA,
     EXPORT_SUFFIXES,
     check_policy_finite,
-    eval_config,
     load_exported,
     load_for_eval,
     metadata_path,
     quiet,
+    typed_config,
 )
 
 #: The exported file's input and output names (ONNX graph names; the metadata states them).
@@ -214,15 +214,15 @@ def export_policy(
 def _actor_of(ckpt: dict[str, Any]) -> tuple[DeterministicActor, Any, dict[str, Any]]:
     """The checkpoint's policy rebuilt on one copy of its env (as ``rlexp eval`` builds it) -> the
     deterministic actor, the typed config, and what the metadata says about the env."""
-    from rlexp.checkpoint import check_checkpoint_fits
-    from rlexp.config.validate import to_root_config
+    from rlexp.checkpoint import check_checkpoint_fits, check_policy_before_building
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import policy_for_env
 
-    config = to_root_config(eval_config(ckpt["config"]))
+    config = typed_config(ckpt["config"], f"checkpoint {ckpt['path']!r}")
     e = config.env
     env = make_env(e, 1, config.seed)
     try:
+        check_policy_before_building(ckpt, lambda: policy_for_env(config.policy, e, env))
         policy = policy_for_env(config.policy, e, env)
         obs_dim = int(env.observation_spec["observation"].shape[-1])
         act_dim = int(env.action_spec.shape[-1])

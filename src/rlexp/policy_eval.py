@@ -97,6 +97,22 @@ def eval_config(saved: dict, render: bool = False) -> dict:
     return config
 
 
+def typed_config(saved: dict, where: str, render: bool = False) -> Any:
+    """``eval_config(saved)`` as the typed RootConfig; ``ValueError`` naming ``where`` (the file the
+    config came from) and the key when the stored config does not validate: a file is data, and an
+    unknown key or a wrong type in it is one line, never a traceback."""
+    from rlexp.config.validate import to_root_config
+
+    try:
+        return to_root_config(eval_config(saved, render=render))
+    except Exception as exc:  # ConfigError, and OmegaConf's own (ConfigKeyError, ValidationError)
+        key = getattr(exc, "full_key", None)
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(
+            f"{where} holds a config rlexp cannot use ({f'{key}: ' if key else ''}{text})"
+        ) from None
+
+
 PolicyBuilder = Callable[[Any, Any], Callable[[Any], Any]]
 
 
@@ -144,11 +160,12 @@ def _is_torchscript(path: Path) -> bool:
 
 def _from_ckpt(ckpt: dict[str, Any]) -> PolicyBuilder:
     def build(config: Any, env: Any) -> Callable[[Any], Any]:
-        from rlexp.checkpoint import check_checkpoint_fits
+        from rlexp.checkpoint import check_checkpoint_fits, check_policy_before_building
         from rlexp.envs.spaces import check_layout
         from rlexp.policies.actor_critic import policy_for_env
 
         check_layout(ckpt.get("observation_layout"), env, f"checkpoint {ckpt.get('path')!r}")
+        check_policy_before_building(ckpt, lambda: policy_for_env(config.policy, config.env, env))
         policy = policy_for_env(config.policy, config.env, env)
         check_checkpoint_fits(
             ckpt, config, policy
@@ -261,11 +278,11 @@ def evaluate(
     source = open_source(checkpoint)
 
     from rlexp.build import seed_everything  # not rlexp.app: that imports Hydra (~0.2 s)
-    from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
     from rlexp.evaluation import run_episodes
 
-    config = to_root_config(eval_config(source.config, render=video is not None))
+    what = "checkpoint" if source.kind == "checkpoint" else "exported policy"
+    config = typed_config(source.config, f"{what} {source.path!r}", render=video is not None)
     e = config.env
     if seed is None:  # the run's own eval seed: the same episodes as the Trainer's eval rounds
         from rlexp.build import EVAL_SEED_OFFSET
