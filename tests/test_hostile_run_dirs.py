@@ -285,6 +285,12 @@ RUNS_CASES = {
         "config.yaml",
     ),
     "config_a_list": (_no_heartbeat(_text("config.yaml", "- a\n- b\n")), "finished", "config"),
+    "config_a_float_tag_abc": (
+        _no_heartbeat(_text("config.yaml", "seed: !!float abc\n")),
+        "finished",
+        "config.yaml",
+    ),
+    "status_a_symlink_loop": (_symlink("status.json", "status.json"), "unknown", "symbolic"),
     "overrides_a_mapping": (
         _text(".hydra/overrides.yaml", "seed: 1\nenv: x\n"),
         "finished",
