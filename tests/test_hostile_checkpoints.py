@@ -345,6 +345,26 @@ def test_a_config_section_of_the_wrong_type_is_one_line(run_dir, tmp_path):
     )
 
 
+@pytest.mark.parametrize("command", ["eval", "export"])
+def test_a_stored_config_that_does_not_validate_is_one_line_naming_file_and_key(
+    run_dir, tmp_path, command
+):
+    """Not in the issue's text: an unknown key in the stored config (OmegaConf's ConfigKeyError,
+    a traceback before) and a value of the wrong type."""
+    for key, value, says in [
+        ("bogus", 1, "trainer.bogus: Key 'bogus' not in 'TrainerConfig'"),
+        ("frames_per_batch", "many", "trainer.frames_per_batch: Value 'many' of type 'str'"),
+    ]:
+        state = _state(run_dir)
+        state["config"]["trainer"][key] = value
+        path = save_checkpoint(tmp_path / f"{key}.pt", state)
+        extra = ["--episodes", "1"] if command == "eval" else ["--out", tmp_path / "x.pt"]
+        line = _one_line(*_cli(command, path, *extra))
+        assert line.startswith(
+            f"rlexp {command}: checkpoint {str(path)!r} holds a config rlexp cannot use ({says}"
+        ), line
+
+
 # -- item 8 (c): a directory, dangling symlink or FIFO with a checkpoint's name -------------------
 @pytest.mark.parametrize("kind", ["directory", "dangling symlink", "fifo"])
 def test_a_non_file_with_a_checkpoint_s_name_is_skipped_like_a_corrupt_one(
