@@ -179,6 +179,21 @@ def test_a_sweep_dir_that_cannot_be_created_or_a_read_only_job_dir_is_refused_be
         precheck([*sweep, f"hydra.sweep.dir={tmp_path / 'sweep'}"], CONF_DIR)
 
 
+def test_a_job_dir_hydra_cannot_create_in_a_sweep_is_one_line_not_hydras_traceback(
+    tmp_path, children
+):
+    """The job dirs are named per job (here a 300-character ``hydra.sweep.subdir``), so only Hydra
+    meets the failure: its error reaches the entry guard, one line naming the path."""
+    sweep = tmp_path / "sweep"
+    subdir = "s" * 300
+    args = ["-m", *SHORT, "logger=none", "seed=1,2", f"hydra.sweep.dir={sweep}",
+            f"hydra.sweep.subdir={subdir}_${{hydra.job.num}}"]  # fmt: skip
+    proc = _launch(children, [sys.executable, TRAIN, *args], tmp_path)
+    assert proc.returncode == 2, proc.stdout[-3000:] + proc.stderr[-3000:]
+    _one_line(proc, f"train.py: {sweep / subdir}_0: {os.strerror(errno.ENAMETOOLONG)}")
+    assert [p.name for p in sweep.iterdir() if p.is_dir()] == []
+
+
 def test_a_read_only_run_dir_on_resume_is_one_line_and_exit_2(tmp_path, children, finished_run):
     run_dir = _copy_run(finished_run, tmp_path / "run")
     before = _snapshot(run_dir)
@@ -205,6 +220,25 @@ def test_rlexp_export_into_a_read_only_run_dir_is_one_line_and_exit_2(
     line = _one_line(proc, "rlexp export: cannot write", str(run_dir / "exported"))
     assert "Read-only file system" in line or "Permission denied" in line, line
     assert not (run_dir / "exported").exists()
+
+
+def test_rlexp_eval_video_into_a_read_only_folder_is_one_line_before_the_episodes(
+    tmp_path, children, finished_run
+):
+    out = tmp_path / "videos"
+    out.mkdir()
+    with _read_only(out):
+        proc = _launch(
+            children,
+            [sys.executable, "-m", "rlexp", "eval", str(finished_run), "--episodes", "1",
+             "--video", str(out / "eval.mp4")],
+            tmp_path,
+        )  # fmt: skip
+    assert proc.returncode == 2, proc.stdout[-3000:] + proc.stderr[-3000:]
+    line = _one_line(proc, f"rlexp eval: --video {str(out / 'eval.mp4')!r} cannot be written")
+    assert "Read-only file system" in line or "Permission denied" in line, line
+    assert "mean return" not in proc.stdout, "the episodes ran before the check"
+    assert list(out.iterdir()) == []
 
 
 def test_a_deleted_working_directory_is_one_line_and_exit_2(tmp_path, children, finished_run):

@@ -449,7 +449,7 @@ def main() -> None:
     os.environ.setdefault("MUJOCO_GL", "egl")
     wanted, rest = distributed.split_flag(sys.argv[1:])
     multirun = any(a in ("-m", "--multirun") for a in rest)
-    outside_run.install(multirun)  # Ctrl-C before the run trains: one line; after its end: no change
+    outside_run.install(multirun)  # Ctrl-C before training: one line; after its end: no change
     if wanted and multirun:
         # A sweep: the launcher's jobs start the ranks (SLURM tasks_per_node); each job joins its group.
         os.environ["RLEXP_DISTRIBUTED"] = "1"
@@ -469,6 +469,7 @@ def main() -> None:
     sys.argv = [sys.argv[0], *rest]
     if multirun:
         _speedups.sweep_gc()
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # its errors reach rlexp.launch.entry's guard
     hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")(_task)()
     if not multirun:
         _prompt_exit()

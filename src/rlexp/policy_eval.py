@@ -336,6 +336,7 @@ class _Video:
             raise ValueError(f"--video {str(out)!r}: give a file name ending in .mp4")
         if not out.parent.is_dir():
             raise FileNotFoundError(f"--video {str(out)!r}: folder {str(out.parent)!r} is missing")
+        _check_writable(out)
         self.params = {**VIDEO_DEFAULTS, **_run_camera(source.config), "env_id": 0}
         try:  # (quiet: Gymnasium's own camera and frame size are no news to an eval)
             with quiet("rlexp.events"):
@@ -366,6 +367,19 @@ class _Video:
                 leftover.unlink()
             tmp.rmdir()
         return self.out
+
+
+def _check_writable(out: Path) -> None:
+    """``--video`` into a folder that cannot be written: one line before the episodes, not an
+    ``OSError`` after them."""
+    from rlexp.launch.entry import os_error_line
+    from rlexp.writable import probe_dir
+
+    longest = len(f".rlexp-video-xxxxxxxx/.eval_step_000000000.tmp-{os.getpid()}.mp4")
+    try:
+        probe_dir(out.parent, longest)
+    except OSError as exc:
+        raise ValueError(f"--video {str(out)!r} cannot be written: {os_error_line(exc)}") from None
 
 
 def _run_camera(saved: dict[str, Any]) -> dict[str, Any]:

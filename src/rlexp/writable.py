@@ -77,12 +77,15 @@ def _write_probe(directory: Path, longest: int) -> None:
     room = _limit(directory, "PC_NAME_MAX", 255)  # one name: never longer than a name may be
     name += "x" * max(0, min(longest, room) - len(name))
     path = directory / name
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     try:
-        os.pwrite(fd, b"\0", 0)  # a full disk refuses a byte (an empty file needs no block)
-    finally:
-        os.close(fd)
-        path.unlink(missing_ok=True)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.pwrite(fd, b"\0", 0)  # a full disk refuses a byte (an empty file needs no block)
+        finally:
+            os.close(fd)
+            path.unlink(missing_ok=True)
+    except OSError as exc:  # named by the folder: the probe's own name means nothing to a user
+        raise OSError(exc.errno, exc.strerror, str(directory)) from None
 
 
 def _limit(path: Path, name: str, default: int) -> int:
@@ -126,14 +129,25 @@ def describe(exc: OSError, what: str, path: Path, longest: int, fix: str) -> str
             else f"{exc.strerror}: the run's checkpoints there would have paths of {full} bytes, "
             f"this filesystem allows {_limit(Path(path), 'PC_PATH_MAX', 4096) - 1}"
         )
-    elif exc.errno in (errno.ENOTDIR, errno.EEXIST):
-        why = f"a part of the path is a file, not a folder ({exc.strerror})"
+    elif exc.errno in (errno.ENOTDIR, errno.EEXIST, errno.ENOENT) and _blocker(Path(path)):
+        why = f"{_blocker(Path(path))} ({exc.strerror})"
     else:
         why = exc.strerror or str(exc)
     failed = str(exc.filename) if exc.filename is not None else ""
     probe = Path(failed).name.startswith(_PROBE)
     where = f" at {failed}" if failed and failed != str(path) and not probe else ""
     return f"{what} {path} cannot be written: {why}{where}; {fix}"
+
+
+def _blocker(path: Path) -> str:
+    """What in ``path`` is in the way of a folder (a file, a link to nothing), or ""."""
+    for part in reversed([path, *Path(os.path.abspath(path)).parents]):
+        if os.path.isdir(part) or not os.path.lexists(part):
+            continue
+        if os.path.islink(part):
+            return f"{part} is a symlink to {os.readlink(part)}, which is not a folder"
+        return f"{part} is a file, not a folder"
+    return ""
 
 
 def check_run_dir_writable(run_dir: Path, exp_name: str, log_name: str | None = None) -> None:

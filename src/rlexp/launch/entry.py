@@ -6,7 +6,10 @@ the environment end in one line on stderr and the documented exit code, never a 
   exit 130, nothing to save (a run that trains handles it itself: ``launch/signals.py``);
 * an ``OSError`` that escaped (a path that cannot be created, read or written): exit 2, naming the
   path and the reason (runs turn the ones met while training into ``failed``, exit 1, first);
-* :class:`EntryError`: a known fault found by a check, exit 2.
+  ``rlexp.app`` sets ``HYDRA_FULL_ERROR`` so that those met inside Hydra (a sweep's job dir that
+  cannot be created) reach this guard too, instead of Hydra's traceback;
+* :class:`EntryError`: a known fault found by a check, exit 2;
+* Hydra's compact errors (a config that does not compose): its own message, exit 1, as Hydra does.
 
 Anything else is a bug in rlexp or a library: it keeps its full traceback, for the bug report.
 """
@@ -68,8 +71,29 @@ def entry_guard(prog: str) -> Iterator[None]:
         _say(prog, "interrupted (Ctrl-C) while no run was training: nothing to save", EXIT_SIGINT)
     except EntryError as exc:
         _say(prog, str(exc), EXIT_BAD_INPUT)
-    except OSError as exc:
+    except Exception as exc:
+        if _hydra_compact(exc):  # Hydra's own one-liners (rlexp.app lets them through: see there)
+            sys.stderr.write("\n".join(_hydra_lines(exc)) + "\n")
+            sys.exit(1)
+        if not isinstance(exc, OSError):
+            raise  # a bug: its traceback is what a report needs
         if exc.errno == errno.EPIPE:  # `rlexp runs | head`: the reader left; say nothing more
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
             sys.exit(0)
         _say(prog, os_error_line(exc), EXIT_BAD_INPUT)
+
+
+def _hydra_compact(exc: BaseException) -> bool:
+    """An error Hydra prints as its message alone (a config that does not compose)."""
+    errors = sys.modules.get("hydra.errors")
+    return errors is not None and isinstance(exc, errors.CompactHydraException)
+
+
+def _hydra_lines(exc: BaseException) -> list[str]:
+    """What Hydra itself prints for it: its message, and the OmegaConf error it wraps."""
+    lines = [str(exc)]
+    omegaconf_errors = sys.modules.get("omegaconf.errors")
+    cause = exc.__cause__
+    if omegaconf_errors is not None and isinstance(cause, omegaconf_errors.OmegaConfBaseException):
+        lines.append(str(cause))
+    return lines
