@@ -341,7 +341,7 @@ def _check_writable(target: Path) -> None:
 
     longest = len(f".{target.stem}.tmp-{os.getpid()}{target.suffix}")
     try:
-        probe_dir(target.parent, longest, keep=True)
+        probe_dir(target.parent, longest)  # and removes the folders it made
     except OSError as exc:
         from rlexp.launch.entry import os_error_line
 
