@@ -169,7 +169,11 @@ def test_a_sweep_dir_that_cannot_be_created_or_a_read_only_job_dir_is_refused_be
     sweep = ["-m", *SWEEP_TINY, "logger=none", "seed=1,2"]
     with pytest.raises(ConfigError) as info:
         precheck([*sweep, f"hydra.sweep.dir={tmp_path / 'afile' / 'sweep'}"], CONF_DIR)
-    assert str(info.value).startswith(f"hydra.sweep.dir (the sweep dir) {tmp_path / 'afile' / 'sweep'} cannot be written: a part of the path is a file")  # fmt: skip
+    assert str(info.value) == (
+        f"hydra.sweep.dir (the sweep dir) {tmp_path / 'afile' / 'sweep'} cannot be written: "
+        f"{tmp_path / 'afile'} is a file, not a folder (Not a directory); use another "
+        "hydra.sweep.dir, or make it writable"
+    )
     assert not (tmp_path / "afile" / "sweep").exists()
     job = tmp_path / "sweep" / "1"  # a job dir of an earlier attempt of this sweep
     job.mkdir(parents=True)
@@ -328,12 +332,15 @@ def test_ctrl_c_in_the_first_seconds_of_start_up_is_one_line_and_exit_130(
     assert proc.returncode == 130, (out[-3000:], err[-3000:])
     both = out + err
     assert "Traceback" not in both, both[-3000:]
+    status = run_dir / "status.json"
+    state = json.loads(status.read_text())["state"] if status.exists() else None
+    assert state in (None, "interrupted"), state  # never "running"
+    if state == "interrupted":  # (a fast machine: the run's own handlers had taken over)
+        return
     lines = [ln for ln in both.splitlines() if "interrupted" in ln]
     assert len(lines) == 1, both[-3000:]
     if err.strip():  # before Hydra's logging: the entry point's line on stderr
         _one_line(done, "train.py: interrupted (Ctrl-C)")
-    status = run_dir / "status.json"
-    assert not status.exists() or json.loads(status.read_text())["state"] != "running"
 
 
 _SLOW_CLOSE = """
