@@ -139,7 +139,9 @@ def _train_locked(
 
     # -- the run dir: what it holds decides what this run does (nothing is written here yet) -------
     if t.resume == "auto":  # a re-run of a job that finished this config: its result, no training
-        done = finished_result(run_dir, to_dict(config), total)  # rlexp.run_proof: proven or refused
+        done = finished_result(
+            run_dir, to_dict(config), total
+        )  # rlexp.run_proof: proven or refused
         if done is not None:
             return done
     if dist.is_main:
