@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
+from datetime import datetime
 from typing import Any
 
 from omegaconf import MISSING, OmegaConf
@@ -24,8 +25,24 @@ def file_name(value: object) -> str:
     return re.sub(r"[^A-Za-z0-9._=+-]+", "-", str(value)).strip("-.") or "env"
 
 
+_LAUNCHED: list[datetime] = []  # this process's launch time, fixed at its first use
+
+
+def launch_time(pattern: str = "%Y-%m-%d/%H-%M-%S.%f") -> str:
+    """``${launch_time:%H-%M-%S.%f}``: this launch's time, the same for every use in the process
+    (Hydra's ``now`` reads the clock at each first use of a pattern: a date and a time read
+    apart can straddle midnight). The default run and sweep dirs end in microseconds, so
+    launches in the same second (a shell loop of ``&``) get dirs of their own, which still sort
+    by time. ``--distributed`` broadcasts rank 0's (``rlexp.launch.distributed``)."""
+    if not _LAUNCHED:
+        _LAUNCHED.append(datetime.now())
+    return _LAUNCHED[0].strftime(pattern)
+
+
 # Registered on import: every process that composes or converts a config imports this module.
 OmegaConf.register_new_resolver("file_name", file_name, replace=True)
+# use_cache: a config resolved once keeps its value in its copies (a sweep's jobs), as Hydra's now
+OmegaConf.register_new_resolver("launch_time", launch_time, replace=True, use_cache=True)
 
 
 @dataclass

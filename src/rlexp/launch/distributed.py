@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import os
-import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -160,7 +159,9 @@ def init(argv: Sequence[str]) -> list[str]:
         "`torchrun --nproc_per_node=N train.py --distributed ...` (or under SLURM, docs/distributed.md)",
         command_line_timeout(argv),
     )
-    stamp = [time.strftime("%Y-%m-%d/%H-%M-%S")] if _INFO.is_main else [None]
+    from rlexp.config.schema import launch_time
+
+    stamp = [launch_time("%Y-%m-%d/%H-%M-%S.%f")] if _INFO.is_main else [None]
     with _bounded("the start (agreeing on the run dir)"):
         dist.broadcast_object_list(stamp, src=0)
     args = list(argv)
