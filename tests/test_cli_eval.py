@@ -81,7 +81,7 @@ def test_a_run_dir_falls_back_past_a_corrupt_newest_checkpoint(copied):
     newest.write_bytes(newest.read_bytes()[: newest.stat().st_size // 2])  # a write cut short
     proc = _eval(copied, "--episodes", "2", "--num-envs", "1")
     assert proc.returncode == 0, proc.stderr
-    assert f"checkpoint {older} (step 256): mean return" in proc.stdout
+    assert f"checkpoint {older} (step 256; the last checkpoint): mean return" in proc.stdout
     skipped = [line for line in proc.stderr.splitlines() if "skipped" in line]
     assert len(skipped) == 1 and newest.name in skipped[0], proc.stderr
     assert "Traceback" not in proc.stderr

@@ -110,13 +110,13 @@ def exported(runs) -> dict[tuple[str, str], Path]:
     files = {}
     for task, run_dir in runs.items():
         for fmt, suffix in FORMATS.items():
-            rc, out, err = _cli("export", run_dir, "--format", fmt)
+            rc, out, err = _cli("export", run_dir, "--format", fmt, "--checkpoint", "best")
             assert rc == 0, err
             best = run_dir / "checkpoints" / "best.pt"
             path = run_dir / "exported" / f"best{suffix}"
             assert out.splitlines() == [
-                f"exported {best} (step {load_checkpoint(best)['global_step']}; best.pt: the best "
-                f"evaluation) as {fmt}: {path}",
+                f"exported {best} (step {load_checkpoint(best)['global_step']}; --checkpoint best: "
+                f"the best evaluation) as {fmt}: {path}",
                 f"metadata: {metadata_path(path)}",
             ], out
             files[task, fmt] = path
@@ -336,7 +336,7 @@ def test_eval_video_writes_a_decodable_mp4_with_the_same_numbers(exported, tmp_p
     ]
 
 
-def test_a_run_dir_without_best_exports_its_last_checkpoint(runs, tmp_path):
+def test_a_run_dir_exports_its_last_checkpoint_and_best_only_when_asked(runs, tmp_path):
     run = shutil.copytree(runs["cart_pole"], tmp_path / "run")
     (run / "checkpoints" / "best.pt").unlink()
     line = _one_line_error(("export", run, "--checkpoint", "best"))
@@ -346,9 +346,7 @@ def test_a_run_dir_without_best_exports_its_last_checkpoint(runs, tmp_path):
     )
     rc, out, err = _cli("export", run, "--out", tmp_path / "out")
     last = step_checkpoints(run / "checkpoints")[-1]
-    assert rc == 0 and out.startswith(
-        f"exported {last} (step 256; the last checkpoint: no best.pt)"
-    ), err
+    assert rc == 0 and out.startswith(f"exported {last} (step 256; the last checkpoint)"), err
     assert (tmp_path / "out.pt").is_file() and (tmp_path / "out.pt.json").is_file()
 
 

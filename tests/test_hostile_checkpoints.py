@@ -378,8 +378,8 @@ def test_a_non_file_with_a_checkpoint_s_name_is_skipped_like_a_corrupt_one(
     with caplog.at_level("WARNING"):
         code, out, err = _run_with_timeout(_cli, "eval", run, "--episodes", "1", "--num-envs", "1")
     assert code == 0, err
-    assert "step_000000512.pt (step 512): mean return" in out, out
-    assert f"rlexp eval: skipped checkpoint {str(bad)!r} is " in caplog.text, caplog.text
+    assert "step_000000512.pt (step 512; the last checkpoint): mean return" in out, out
+    assert f"skipped checkpoint {str(bad)!r} is " in caplog.text, caplog.text
     caplog.clear()
     with caplog.at_level("WARNING"):
         good = _run_with_timeout(latest_good_checkpoint, run / "checkpoints", move_aside=True)

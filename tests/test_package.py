@@ -158,7 +158,10 @@ def test_fresh_venv_user_project(user_venv, user_project):
     assert prov["rlexp_conf"].startswith(str(venv))
 
     evaluated = _run([rlexp, "eval", "run", "--episodes", "2"], project).stdout  # the plugin's task
-    assert "point_reach_ppo_step_000002048.pt (step 2048): mean return" in evaluated
+    assert (
+        "point_reach_ppo_step_000002048.pt (step 2048; the last checkpoint): mean return"
+        in evaluated
+    )
 
     # the core install names the extra an option needs, before anything runs
     refused = subprocess.run(

@@ -303,19 +303,73 @@ CORRUPT_DIR = "corrupt"
 
 
 def latest_good_checkpoint(directory: Path, move_aside: bool = False) -> dict[str, Any] | None:
-    """The newest checkpoint in ``directory`` that loads; corrupt ones are reported and skipped, and
-    with ``move_aside`` (a run resuming) moved into ``corrupt/``, where pruning never counts them
-    and no later resume trips over them again."""
+    """The newest checkpoint in ``directory`` that loads, for a resume; corrupt ones are reported
+    and skipped, and with ``move_aside`` (a run resuming) moved into ``corrupt/``, where pruning
+    never counts them and no later resume trips over them again."""
+    return _newest_loadable(directory, "resume", move_aside)
+
+
+def _newest_loadable(directory: Path, use: Use, move_aside: bool = False) -> dict[str, Any] | None:
     for path in reversed(step_checkpoints(directory)):
         try:
-            return load_checkpoint_file(path, "resume")
+            return load_checkpoint_file(path, use)
         except (ValueError, OSError) as exc:  # OSError: unreadable, or pruned meanwhile
             dest = _move_aside(path) if move_aside and os.path.lexists(path) else None
             if dest is not None:
                 log.warning("%s; moved to %s; falling back to the previous checkpoint", exc, dest)
             else:
-                log.warning("%s; falling back to the previous checkpoint", exc)
+                log.warning("skipped %s; falling back to the previous checkpoint", exc)
     return None
+
+
+def select_checkpoint(path: str | Path, which: str | None = None) -> tuple[dict[str, Any], str]:
+    """The one rule by which ``rlexp eval`` and ``rlexp export`` pick a checkpoint, and why (the
+    commands print it). ``path`` a file: that file. ``path`` a run dir (or its ``checkpoints/``):
+    ``which`` ``last`` (the default: the run's final policy, as rl-zoo's ``enjoy`` loads it) is the
+    newest step checkpoint that loads, newer unreadable ones named and skipped; ``best`` is
+    ``best.pt`` (the best evaluation, chosen on the eval seed's episodes: an optimistic pick);
+    anything else is a checkpoint's path, as given or inside the run's ``checkpoints/``."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"{str(p)!r} does not exist (give a run dir or a checkpoint file)")
+    if not p.is_dir():
+        if which is not None:
+            raise ValueError(
+                f"--checkpoint {which} picks a checkpoint of a run dir; {str(p)!r} is a file: "
+                "leave --checkpoint out"
+            )
+        return load_checkpoint(p, "rebuild"), "as given"
+    which = which or "last"
+    if which == "best":
+        best = next(
+            (b for b in (p / "checkpoints" / "best.pt", p / "best.pt") if b.is_file()), None
+        )
+        if best is None:
+            raise FileNotFoundError(
+                f"no best.pt in {str(p)!r} or its checkpoints/ (the run never evaluated): "
+                "use --checkpoint last"
+            )
+        return load_checkpoint_file(best, "rebuild"), "--checkpoint best: the best evaluation"
+    if which == "last":
+        found = len(step_checkpoints(p))
+        if not found:
+            raise FileNotFoundError(
+                f"no rlexp checkpoint (*_step_N.pt) in {str(p)!r} or its checkpoints/"
+            )
+        ckpt = _newest_loadable(p, "rebuild")
+        if ckpt is None:
+            raise ValueError(
+                f"none of the {found} checkpoints in {str(p)!r} can be read (each skipped above)"
+            )
+        return ckpt, "the last checkpoint"
+    named = Path(which)
+    for candidate in (named, p / named, p / "checkpoints" / named):
+        if candidate.is_file():
+            return load_checkpoint_file(candidate, "rebuild"), "--checkpoint PATH"
+    raise FileNotFoundError(
+        f"--checkpoint {which!r}: no such file, nor in {str(p)!r} or its checkpoints/ "
+        f"(best, last or a checkpoint's path)"
+    )
 
 
 def _move_aside(path: Path) -> Path | None:

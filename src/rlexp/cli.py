@@ -261,10 +261,12 @@ def _main(argv: list[str]) -> None:
         "episodes [and an mp4 of them]",
     )
     ev.add_argument(
-        "checkpoint",
-        help="a checkpoint file, a run dir (its newest readable checkpoint), or a file written by "
-        "rlexp export (its metadata JSON beside it)",
+        "path",
+        metavar="RUN_DIR_OR_FILE",
+        help="a run dir (the checkpoint --checkpoint picks), a checkpoint file, or a file written "
+        "by rlexp export (its metadata JSON beside it)",
     )
+    _add_checkpoint_option(ev)
     ev.add_argument("--episodes", type=_at_least_1, default=10, help="episodes to run (>= 1)")
     ev.add_argument(
         "--num-envs", type=_at_least_1, default=None, help="eval envs (default: the run's)"
@@ -386,7 +388,7 @@ def _add_export_parser(sub: Any) -> None:
     exp.add_argument(
         "path",
         metavar="RUN_DIR_OR_CHECKPOINT",
-        help="a checkpoint file, or a run dir (its best.pt if there is one, else its last)",
+        help="a run dir (the checkpoint --checkpoint picks) or a checkpoint file",
     )
     exp.add_argument(
         "--format",
@@ -400,24 +402,25 @@ def _add_export_parser(sub: Any) -> None:
         metavar="PATH",
         help="the file to write (default: <run_dir>/exported/<checkpoint name>.pt or .onnx)",
     )
-    exp.add_argument(
+    _add_checkpoint_option(exp)
+
+
+def _add_checkpoint_option(parser: argparse.ArgumentParser) -> None:
+    """``--checkpoint`` of eval and export: one rule (``rlexp.checkpoint.select_checkpoint``)."""
+    parser.add_argument(
         "--checkpoint",
-        choices=["best", "last"],
         default=None,
-        help="which checkpoint of a run dir (default: best.pt if there is one, else the last)",
+        metavar="best|last|PATH",
+        help="which checkpoint of a run dir: last (the newest that loads: the run's final policy), "
+        "best (best.pt, its best evaluation) or a checkpoint file's path (default: last)",
     )
 
 
 def _eval(args: argparse.Namespace) -> str:
     """``rlexp eval``: its result line (and the video's)."""
-    video = args.video
-    if video == "":  # --video without a path
-        from rlexp.policy_eval import default_video_path
-
-        video = default_video_path(args.checkpoint)
-    res = evaluate(args.checkpoint, args.episodes, args.num_envs, args.seed, video)
+    res = evaluate(args.path, args.episodes, args.num_envs, args.seed, args.video, args.checkpoint)
     step = res["global_step"]
-    what = f"checkpoint {res['path']} (step {step})"
+    what = f"checkpoint {res['path']} (step {step}; {res['chosen']})"
     if res["kind"] != "checkpoint":
         what = f"exported policy {res['path']} ({res['kind']} of {res['checkpoint']}, step {step})"
     line = (

@@ -31,12 +31,12 @@ from typing import Any
 import torch
 from torch import nn
 
+from rlexp.checkpoint import select_checkpoint
 from rlexp.policy_eval import (
     EXPORT_SCHEMA,
     EXPORT_SUFFIXES,
     check_policy_finite,
     load_exported,
-    load_for_eval,
     metadata_path,
     quiet,
     typed_config,
@@ -46,8 +46,6 @@ from rlexp.policy_eval import (
 INPUT_NAME, OUTPUT_NAME = "observation", "action"
 #: Backends whose envs clip actions to the action bounds before applying them.
 CLIPPING_BACKENDS = ("gymnasium", "native")
-#: ``--checkpoint`` choices for a run dir.
-CHOICES = ("best", "last")
 
 
 class DeterministicActor(nn.Module):
@@ -114,38 +112,6 @@ class Exported:
     global_step: int
 
 
-def choose_checkpoint(path: str | Path, which: str | None = None) -> tuple[dict[str, Any], str]:
-    """The checkpoint to export and why: a file as given; in a run dir (or its ``checkpoints/``)
-    ``best.pt`` when present (or ``which='best'``), else (or ``which='last'``) the newest step
-    checkpoint that loads."""
-    from rlexp.checkpoint import load_checkpoint
-
-    p = Path(path)
-    if which is not None and which not in CHOICES:
-        raise ValueError(f"--checkpoint {which!r}; choose from {list(CHOICES)}")
-    if not p.exists():
-        raise FileNotFoundError(f"{str(p)!r} does not exist (give a run dir or a checkpoint file)")
-    if not p.is_dir():
-        if which is not None:
-            raise ValueError(
-                f"--checkpoint {which} picks a checkpoint of a run dir; {str(p)!r} is a file: "
-                "leave --checkpoint out"
-            )
-        return load_checkpoint(p, "rebuild"), "as given"
-    best = next((b for b in (p / "checkpoints" / "best.pt", p / "best.pt") if b.is_file()), None)
-    if which == "best" and best is None:
-        raise FileNotFoundError(
-            f"no best.pt in {str(p)!r} or its checkpoints/ (the run never evaluated): "
-            "use --checkpoint last"
-        )
-    if best is not None and which != "last":
-        return load_checkpoint(best, "rebuild"), "best.pt: the best evaluation"
-    ckpt = load_for_eval(p)  # the newest step checkpoint that loads, as rlexp eval takes it
-    return ckpt, "the last checkpoint" + (
-        ": --checkpoint last" if which == "last" else ": no best.pt"
-    )
-
-
 def out_path(out: str | Path | None, checkpoint: str | Path, fmt: str) -> Path:
     """Where to write: ``out`` (a file; a folder gets the default name; the format's suffix is
     added when missing), by default ``<run_dir>/exported/<checkpoint stem>.pt|.onnx``."""
@@ -176,7 +142,7 @@ def export_policy(
         from rlexp.extras import require
 
         require("export", "rlexp export --format onnx", ("onnx", "onnxscript", "onnxruntime"))
-    ckpt, chosen = choose_checkpoint(path, which)
+    ckpt, chosen = select_checkpoint(path, which)  # rlexp eval's rule too
     check_policy_finite(ckpt)
     target = out_path(out, ckpt["path"], fmt)
     if target.exists() and not metadata_path(target).is_file():  # a checkpoint, someone's file

@@ -38,31 +38,6 @@ def metadata_path(path: str | Path) -> Path:
     return Path(f"{path}.json")
 
 
-def load_for_eval(path: str | Path) -> dict[str, Any]:
-    """The checkpoint file at ``path``, or a run dir's newest step checkpoint that loads: corrupt
-    newer ones are reported and skipped, as ``trainer.resume=auto`` does."""
-    from rlexp.checkpoint import load_checkpoint, load_checkpoint_file, step_checkpoints
-
-    # torch warns about the pickle protocol of a file it is about to refuse: noise next to the error
-    warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
-    p = Path(path)
-    if not p.is_dir():
-        return load_checkpoint(p, "rebuild")
-    candidates = step_checkpoints(p)
-    if not candidates:
-        raise FileNotFoundError(
-            f"no rlexp checkpoint (*_step_N.pt) in {str(p)!r} or its checkpoints/"
-        )
-    for candidate in reversed(candidates):
-        try:  # (a dir with a checkpoint's name is no run dir: load_checkpoint_file refuses it)
-            return load_checkpoint_file(candidate, "rebuild")
-        except (ValueError, OSError) as exc:  # OSError: unreadable, or pruned meanwhile
-            log.warning("rlexp eval: skipped %s", str(exc).splitlines()[0])
-    raise ValueError(
-        f"none of the {len(candidates)} checkpoints in {str(p)!r} can be read (each skipped above)"
-    )
-
-
 def check_policy_finite(ckpt: dict[str, Any]) -> None:
     """NonFiniteError naming the policy tensors (normaliser statistics included) holding NaN/Inf."""
     import torch
@@ -127,13 +102,23 @@ class EvalSource:
     config: dict[str, Any]
     build: PolicyBuilder
     checkpoint: str | None = None  # an exported file's source checkpoint
+    chosen: str = "as given"  # why this checkpoint (rlexp.checkpoint.select_checkpoint)
 
 
-def open_source(path: str | Path) -> EvalSource:
-    """A checkpoint (file or run dir) or an exported file (a ``.onnx``, or a file with its export
-    metadata JSON beside it)."""
+def open_source(path: str | Path, which: str | None = None) -> EvalSource:
+    """A checkpoint (a file, or the one of a run dir that ``which`` picks: the rule of
+    ``rlexp.checkpoint.select_checkpoint``, shared with ``rlexp export``) or an exported file (a
+    ``.onnx``, or a file with its export metadata JSON beside it)."""
+    from rlexp.checkpoint import select_checkpoint
+
+    # torch warns about the pickle protocol of a file it is about to refuse: noise next to the error
+    warnings.filterwarnings("ignore", "Detected pickle protocol", UserWarning)
     p = Path(path)
     if p.suffix == ".onnx" or metadata_path(p).is_file():
+        if which is not None:
+            raise ValueError(
+                f"--checkpoint {which}: {str(p)!r} is an exported policy, not a run dir"
+            )
         return _exported_source(p)
     if p.is_file() and _is_torchscript(p):
         raise ValueError(
@@ -141,10 +126,15 @@ def open_source(path: str | Path) -> EvalSource:
             f"{metadata_path(p).name!r} beside it (rlexp export writes both): nothing says which "
             "env it acts in"
         )
-    ckpt = load_for_eval(p)  # before the heavy imports: a bad path fails fast
+    ckpt, chosen = select_checkpoint(p, which)  # before the heavy imports: a bad path fails fast
     check_policy_finite(ckpt)
     return EvalSource(
-        ckpt["path"], "checkpoint", int(ckpt["global_step"]), ckpt["config"], _from_ckpt(ckpt)
+        ckpt["path"],
+        "checkpoint",
+        int(ckpt["global_step"]),
+        ckpt["config"],
+        _from_ckpt(ckpt),
+        chosen=chosen,
     )
 
 
@@ -267,15 +257,19 @@ def evaluate(
     num_envs: int | None,
     seed: int | None = None,
     video: str | Path | None = None,
+    which: str | None = None,
 ) -> dict[str, Any]:
-    """Rebuild the run's env and the policy of a checkpoint (a file, or a run dir: its newest good
-    one) or of an exported file, and evaluate it deterministically; ``video``: also write an mp4
-    of env 0's episodes there."""
+    """Rebuild the run's env and the policy of a checkpoint (a file, or the one of a run dir that
+    ``which`` picks: ``select_checkpoint``) or of an exported file, and evaluate it
+    deterministically; ``video``: also write an mp4 of env 0's episodes there ("": beside the
+    evaluated file)."""
     if episodes < 1:
         raise ValueError(f"episodes={episodes}; evaluate at least 1 episode")
     if num_envs is not None and num_envs < 1:
         raise ValueError(f"num_envs={num_envs}; use at least 1 env (None: the run's num_eval_envs)")
-    source = open_source(checkpoint)
+    source = open_source(checkpoint, which)
+    if video == "":  # --video without a path: beside the evaluated file, <stem>.mp4
+        video = Path(source.path).with_suffix(".mp4")
 
     from rlexp.build import seed_everything  # not rlexp.app: that imports Hydra (~0.2 s)
     from rlexp.envs.factory import make_env
@@ -303,24 +297,13 @@ def evaluate(
         "path": source.path,
         "kind": source.kind,
         "checkpoint": source.checkpoint,
+        "chosen": source.chosen,
         "global_step": source.global_step,
         "mean_return": metrics["eval/episode_return"],
         "std_return": metrics["eval/episode_return_std"],
         "episodes": int(metrics["eval/episodes"]),
         "video": None if written is None else str(written),
     }
-
-
-def default_video_path(path: str | Path) -> Path:
-    """``--video`` without a path: next to the evaluated file, ``<stem>.mp4`` (a run dir: its newest
-    checkpoint's name)."""
-    p = Path(path)
-    if p.is_dir():
-        from rlexp.checkpoint import step_checkpoints
-
-        found = step_checkpoints(p)
-        p = found[-1] if found else p / "eval.pt"
-    return p.with_suffix(".mp4")
 
 
 class _Video:
