@@ -22,6 +22,7 @@ import torch
 
 from rlexp.checkpoint_fields import FieldError, Use, check_fields, check_tensors_fit
 from rlexp.checkpoint_scan import ScanError, scan
+from rlexp.fsutil import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -86,15 +87,15 @@ def to_storable(obj: Any) -> Any:
 def save_checkpoint(path: Path, state: dict[str, Any]) -> Path:
     """Write ``state`` to ``path`` atomically (temp file in the same dir, fsync, rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
+    data = to_storable({"format": FORMAT, **state})
+
+    def write(tmp: Path) -> None:
         with open(tmp, "wb") as f:
-            torch.save(to_storable({"format": FORMAT, **state}), f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+            torch.save(data, f)
+
+    try:
+        atomic_write(path, write)
     except BaseException as exc:  # a full disk, a signal: no half file left, the old one intact
-        tmp.unlink(missing_ok=True)
         if isinstance(exc, RuntimeError) and not isinstance(exc, OSError):
             # torch.save reports a failed write (e.g. ENOSPC) as a RuntimeError from its writer
             raise OSError(f"writing {path} failed: {_write_failure(path, exc)}") from None

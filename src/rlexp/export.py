@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from rlexp.checkpoint import select_checkpoint
+from rlexp.fsutil import atomic_write, atomic_write_text
 from rlexp.policy_eval import (
     EXPORT_SCHEMA,
     EXPORT_SUFFIXES,
@@ -155,7 +156,8 @@ def export_policy(
     if not target.parent.is_dir():
         target.parent.mkdir(parents=True)
     try:
-        _atomic(target, lambda tmp: _WRITERS[fmt](actor, tmp))
+        # the exporters choose the format by the suffix: the temporary file keeps it
+        atomic_write(target, lambda tmp: _WRITERS[fmt](actor, tmp), keep_suffix=True)
     except (RuntimeError, TypeError, ValueError, ImportError) as exc:  # the exporters' own kinds
         text = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise ValueError(f"writing the {fmt} file {str(target)!r} failed: {text}") from exc
@@ -173,7 +175,7 @@ def export_policy(
         target.unlink()  # a file that does not act as the policy is worse than none
         raise
     meta_file = metadata_path(target)
-    _atomic(meta_file, lambda tmp: tmp.write_text(json.dumps(meta, indent=2) + "\n"))
+    atomic_write_text(meta_file, json.dumps(meta, indent=2) + "\n")
     return Exported(target, meta_file, ckpt["path"], chosen, int(ckpt["global_step"]))
 
 
@@ -315,16 +317,6 @@ def _check_writable(target: Path) -> None:
             f"cannot write {str(target)!r}: {os_error_line(exc)}; give --out a path in a "
             "writable folder"
         ) from None
-
-
-def _atomic(path: Path, write: Any) -> None:
-    """``write(tmp)`` to a temporary file beside ``path``, then rename it over ``path``."""
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _write_torchscript(actor: DeterministicActor, path: Path) -> None:

@@ -13,7 +13,6 @@ from one that a SIGKILL, an OOM kill or a lost node left saying ``running`` (doc
 
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import math
@@ -26,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from rlexp.config.validate import ConfigError
+from rlexp.fsutil import HolderBusy, HolderLock, atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -44,34 +44,23 @@ class RunDirBusy(ConfigError):
 
 
 class RunDirLock:
-    """Exclusive lock on a run dir for the life of one run (``with RunDirLock(dir): ...``)."""
+    """Exclusive lock on a run dir for the life of one run (``with RunDirLock(dir): ...``): a
+    ``rlexp.fsutil.HolderLock`` on ``<run_dir>/.rlexp.lock``."""
 
     def __init__(self, run_dir: Path) -> None:
         self.run_dir = Path(run_dir)
         self.path = self.run_dir / LOCK_NAME
-        self._fd: int | None = None
+        self._lock = HolderLock(self.path)
 
     def acquire(self) -> RunDirLock:
         """Take the lock or raise ``RunDirBusy`` naming the holder; creates the dir if needed."""
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            holder = _read_holder(fd)
-            os.close(fd)
+            self._lock.acquire()
+        except HolderBusy as busy:
             raise RunDirBusy(
-                f"run dir {self.run_dir} is in use by another run ({holder}); wait for it to end, "
-                "or use another hydra.run.dir"
+                f"run dir {self.run_dir} is in use by another run ({busy.holder}); wait for it to "
+                "end, or use another hydra.run.dir"
             ) from None
-        info = {
-            "pid": os.getpid(),
-            "host": socket.gethostname(),
-            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        }
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, (json.dumps(info) + "\n").encode(), 0)
-        self._fd = fd
         return self
 
     def check(self) -> None:
@@ -83,33 +72,17 @@ class RunDirLock:
 
     def release(self) -> None:
         """Drop the lock (idempotent)."""
-        if self._fd is None:
-            return
-        try:
-            os.ftruncate(self._fd, 0)
-        except OSError:
-            pass
-        fcntl.flock(self._fd, fcntl.LOCK_UN)
-        os.close(self._fd)
-        self._fd = None
+        self._lock.release()
 
     @property
     def held(self) -> bool:
-        return self._fd is not None
+        return self._lock.held
 
     def __enter__(self) -> RunDirLock:
         return self.acquire()
 
     def __exit__(self, *exc: object) -> None:
         self.release()
-
-
-def _read_holder(fd: int) -> str:
-    try:
-        info = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
-        return f"PID {info['pid']} on host {info['host']}, since {info['started']}"
-    except (OSError, ValueError, KeyError, TypeError):
-        return "holder unknown"
 
 
 def read_status(run_dir: Path) -> dict[str, Any]:
@@ -142,10 +115,8 @@ def write_status(
         "host": socket.gethostname(),
         **extra,
     }
-    run_dir = Path(run_dir)
-    tmp = run_dir / f".status.json.tmp-{os.getpid()}"
-    tmp.write_text(json.dumps(status, indent=2) + "\n")
-    os.replace(tmp, run_dir / "status.json")
+    # synced: sweeps and resumes decide from it, after a crash of the node too
+    atomic_write_text(Path(run_dir) / "status.json", json.dumps(status, indent=2) + "\n")
 
 
 def clean_temp_files(run_dir: Path) -> list[Path]:
@@ -421,10 +392,9 @@ class Heartbeat:
             extra, _ = self._sample()
         data = _json_safe({**self._who, "time": round(time.time(), 3),
                            "step_time": round(self._step_time or time.time(), 3), **extra})  # fmt: skip
-        tmp = self.path.with_name(f".{HEARTBEAT_NAME}.tmp-{os.getpid()}")
-        try:
-            tmp.write_text(json.dumps(data, allow_nan=False, default=str) + "\n")
-            os.replace(tmp, self.path)
+        try:  # not synced: rewritten every few seconds, it only says the process lives
+            text = json.dumps(data, allow_nan=False, default=str) + "\n"
+            atomic_write_text(self.path, text, fsync=False)
         except (OSError, ValueError) as exc:
             if not self._warned:
                 log.warning("could not write %s: %s", self.path, exc)

@@ -14,6 +14,7 @@ from typing import Any
 
 from rlexp.config.native_task import Flag, OrNull, SavePath
 from rlexp.events.manager import EventContext
+from rlexp.fsutil import atomic_write
 
 
 def save_params(default: str) -> dict[str, Any]:
@@ -77,13 +78,4 @@ def write_new_file(path: Path, write: Callable[[Path], None]) -> None:
     """Write ``path`` through a temporary file created in its folder (never an existing file or
     link) and renamed over it: a link at ``path`` is replaced, not followed, and a killed run
     leaves no half-written file under the final name."""
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
-    tmp.unlink(missing_ok=True)
-    os.close(
-        os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
-    )
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_write(path, write, keep_suffix=True)  # the writers choose the format by suffix

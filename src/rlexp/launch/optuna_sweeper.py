@@ -26,14 +26,10 @@ on every run and number the job dirs from 0, over the earlier trials' dirs. Here
 
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import math
-import os
-import socket
 import sys
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +39,8 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.utils import instantiate
 from hydra_plugins.hydra_optuna_sweeper._impl import OptunaSweeperImpl, create_params_from_overrides
 from omegaconf import DictConfig, OmegaConf
+
+from rlexp.fsutil import HolderBusy, HolderLock
 
 log = logging.getLogger(__name__)
 
@@ -90,34 +88,24 @@ def check_sqlalchemy() -> None:
 
 
 class SweepLock:
-    """An exclusive ``flock`` on ``<sweep dir>/optuna.lock`` for the life of the sweep."""
+    """An exclusive ``flock`` on ``<sweep dir>/optuna.lock`` for the life of the sweep (a
+    ``rlexp.fsutil.HolderLock``)."""
 
     def __init__(self, sweep_dir: Path) -> None:
         self.path = sweep_dir / LOCK_FILE
-        self._fd: int | None = None
+        self._lock = HolderLock(self.path)
 
     def acquire(self) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            holder = os.pread(fd, 4096, 0).decode(errors="replace").strip() or "unknown"
-            os.close(fd)
+            self._lock.acquire()
+        except HolderBusy as busy:
             raise SweepRefused(
-                f"sweep dir {self.path.parent} is in use by another Optuna sweep ({holder}): "
+                f"sweep dir {self.path.parent} is in use by another Optuna sweep ({busy.holder}): "
                 "wait for it to end (a killed sweep holds nothing)"
             ) from None
-        who = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%FT%T")}
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, (json.dumps(who) + "\n").encode(), 0)
-        self._fd = fd
 
     def release(self) -> None:
-        if self._fd is not None:
-            fcntl.flock(self._fd, fcntl.LOCK_UN)
-            os.close(self._fd)
-            self._fd = None
+        self._lock.release()
 
 
 def job_of(trial: Any) -> int | None:

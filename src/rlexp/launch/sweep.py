@@ -14,17 +14,16 @@ In a single run (no ``-m``) Hydra instantiates it too; it does nothing there.
 
 from __future__ import annotations
 
-import fcntl
 import logging
-import os
 import sys
-import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
+
+from rlexp.fsutil import HolderLock, atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -119,16 +118,10 @@ def claim_sweep_dir(sweep_dir: Path, config: DictConfig) -> None:
     before the other had written) and mixed their jobs; now the second one to take the lock sees
     the first one's ``multirun.yaml`` and gets ``SweepDirTaken``. The lock is held for
     milliseconds; the file stays (removing it would race with the next holder)."""
-    sweep_dir.mkdir(parents=True, exist_ok=True)
-    fd = os.open(sweep_dir / CLAIM_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+    with HolderLock(sweep_dir / CLAIM_LOCK).acquire(blocking=True):
         check_same_sweep(sweep_dir, config)
-        tmp = sweep_dir / f".multirun.yaml.tmp-{os.getpid()}-{threading.get_ident()}"
-        OmegaConf.save(config, tmp)
-        os.replace(tmp, sweep_dir / "multirun.yaml")  # readers never see half a file
-    finally:
-        os.close(fd)  # and with it the lock
+        # readers never see half a file
+        atomic_write(sweep_dir / "multirun.yaml", lambda tmp: OmegaConf.save(config, tmp))
 
 
 def _joblib_with_stop_handling(config: DictConfig) -> None:
