@@ -67,6 +67,23 @@ def run_train(
     return proc
 
 
+def rlexp_cli(*args) -> tuple[int, str, str]:
+    """``rlexp ARGS`` in this process (the imports paid once; a traceback fails the test):
+    (exit code, stdout, stderr)."""
+    import io
+
+    from rlexp import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    code = 0
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            cli.main([str(a) for a in args])
+        except SystemExit as exc:
+            code = int(exc.code or 0)
+    return code, out.getvalue(), err.getvalue()
+
+
 #: What rlexp stops on (rlexp.launch.signals.STOP_SIGNALS).
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 

@@ -9,6 +9,7 @@ import shutil
 import pytest
 
 from conftest import TINY, run_train
+from conftest import rlexp_cli as _cli
 from rlexp.checkpoint import load_checkpoint, select_checkpoint, step_checkpoints
 
 
@@ -21,20 +22,6 @@ def run(tmp_path_factory):
         cwd=root,
     )
     return root / "run"
-
-
-def _cli(capsys, *args) -> tuple[int, str, str]:
-    """``rlexp ARGS`` in this process (imports paid once): exit code, stdout, stderr."""
-    from rlexp.cli import main
-
-    capsys.readouterr()
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def test_the_selector_takes_last_by_default_best_and_a_path_when_asked(run, tmp_path):
@@ -57,23 +44,23 @@ def test_the_selector_takes_last_by_default_best_and_a_path_when_asked(run, tmp_
     assert select_checkpoint(broken)[0]["global_step"] == 512
 
 
-def test_eval_and_export_take_the_same_checkpoint_for_each_choice(run, tmp_path, capsys):
+def test_eval_and_export_take_the_same_checkpoint_for_each_choice(run, tmp_path):
     steps = step_checkpoints(run / "checkpoints")
     wanted = {None: steps[-1], "last": steps[-1], "best": run / "checkpoints" / "best.pt",
               steps[0].name: steps[0]}  # fmt: skip
     for choice, path in wanted.items():
         flag = [] if choice is None else ["--checkpoint", choice]
-        code, out, err = _cli(capsys, "eval", run, "--episodes", "1", "--num-envs", "1", *flag)
+        code, out, err = _cli("eval", run, "--episodes", "1", "--num-envs", "1", *flag)
         assert code == 0, err
         assert re.match(rf"checkpoint {re.escape(str(path))} \(step \d+; ", out), out
-        code, out, err = _cli(capsys, "export", run, "--out", tmp_path / f"{choice}.pt", *flag)
+        code, out, err = _cli("export", run, "--out", tmp_path / f"{choice}.pt", *flag)
         assert code == 0, err
         assert out.startswith(f"exported {path} (step "), out
 
 
-def test_a_checkpoint_that_is_not_there_is_one_line_for_both(run, capsys):
+def test_a_checkpoint_that_is_not_there_is_one_line_for_both(run):
     for command in ("eval", "export"):
-        code, _, err = _cli(capsys, command, run, "--checkpoint", "nope.pt")
+        code, _, err = _cli(command, run, "--checkpoint", "nope.pt")
         assert code == 2 and "Traceback" not in err
         assert err.strip().splitlines() == [
             f"rlexp {command}: --checkpoint 'nope.pt': no such file, nor in {str(run)!r} or its "

@@ -6,8 +6,6 @@ numbers; ``rlexp eval --video`` writes a decodable mp4; bad input is one line, e
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import os
 import re
@@ -22,7 +20,7 @@ import pytest
 import torch
 
 from conftest import REPO, Children
-from rlexp import cli
+from conftest import rlexp_cli as _cli
 from rlexp.checkpoint import load_checkpoint, save_checkpoint, step_checkpoints
 from rlexp.policy_eval import evaluate, metadata_path, open_source
 
@@ -55,18 +53,6 @@ CART_POLE = [
     "trainer.progress=false",
 ]
 FORMATS = {"torchscript": ".pt", "onnx": ".onnx"}
-
-
-def _cli(*args: str) -> tuple[int, str, str]:
-    """``rlexp ARGS`` in this process: (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    code = 0
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            cli.main([str(a) for a in args])
-        except SystemExit as exc:
-            code = int(exc.code or 0)
-    return code, out.getvalue(), err.getvalue()
 
 
 def _one_line_error(args: tuple, code: int = 2) -> str:

@@ -32,7 +32,7 @@ import torch
 from torch._utils import _rebuild_tensor_v2
 
 from conftest import REPO, SHORT, Children, run_train
-from rlexp import cli
+from conftest import rlexp_cli as _cli
 from rlexp.checkpoint import latest_good_checkpoint, load_checkpoint, save_checkpoint
 
 #: The tensor the item-7 files lie about, and its real shape (InvertedPendulum: 4 observations).
@@ -160,18 +160,6 @@ def _rlexp(children: Children, tmp_path: Path, *args) -> tuple[int, str, str, in
         guard.cancel()
     proc.returncode = os.waitstatus_to_exitcode(status)
     return proc.returncode, out.read_text(), err.read_text(), usage.ru_maxrss * 1024
-
-
-def _cli(*args) -> tuple[int, str, str]:
-    """``rlexp ARGS`` in this process (fast; a traceback fails the test): (code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    code = 0
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            cli.main([str(a) for a in args])
-        except SystemExit as exc:
-            code = int(exc.code or 0)
-    return code, out.getvalue(), err.getvalue()
 
 
 def _one_line(code: int, out: str, err: str, want: int = 2) -> str:

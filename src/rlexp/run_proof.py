@@ -23,6 +23,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from rlexp import rundir
 from rlexp.config.validate import ConfigError
 from rlexp.rundir import RESUME_MAY_CHANGE, config_differences, read_status
 
@@ -36,19 +37,8 @@ TAIL_BYTES = 64 * 1024
 
 def saved_config(run_dir: Path) -> dict[str, Any] | None:
     """The run dir's ``config.yaml`` as a plain dict (None when there is none); ``ConfigError``
-    when it cannot be read as a config mapping."""
-    from omegaconf import OmegaConf
-
-    path = Path(run_dir) / "config.yaml"
-    if not path.is_file():
-        return None
-    try:
-        saved = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    except Exception as exc:  # a damaged config.yaml: say so rather than guess
-        raise ConfigError(f"{path} is unreadable ({exc}); {FIX}") from None
-    if not isinstance(saved, dict):
-        raise ConfigError(f"{path} is not a config mapping; {FIX}")
-    return saved
+    when it cannot be read as a config mapping (``rlexp.rundir.saved_config``)."""
+    return rundir.saved_config(run_dir, FIX)
 
 
 def precheck_run_dir(run_dir: Path, config: Any) -> None:

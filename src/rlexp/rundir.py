@@ -198,23 +198,34 @@ def holds_a_run(run_dir: Path) -> str:
     return ""
 
 
+def saved_config(run_dir: Path, fix: str = "move the run dir aside") -> dict[str, Any] | None:
+    """The run dir's ``config.yaml`` as a plain dict (None when there is none); ``ConfigError``
+    naming it and ``fix`` when it cannot be read as a config mapping."""
+    from omegaconf import OmegaConf
+
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        return None
+    try:
+        saved = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    except Exception as exc:  # a damaged config.yaml: say so rather than guess
+        raise ConfigError(f"{path} is unreadable ({exc}); {fix}") from None
+    if not isinstance(saved, dict):
+        raise ConfigError(f"{path} is not a config mapping; {fix}")
+    return saved
+
+
 def check_same_experiment(run_dir: Path, config_dict: dict[str, Any]) -> None:
     """A dir that holds a checkpoint holds an experiment: continuing there with another config would
     mix two runs. A dir with a ``config.yaml`` but no checkpoint (a run that failed before training)
     holds nothing yet and takes the corrected config."""
-    from omegaconf import OmegaConf
-
     from rlexp.checkpoint import step_checkpoints
 
-    saved_path = Path(run_dir) / "config.yaml"
-    if not saved_path.is_file() or not step_checkpoints(Path(run_dir) / "checkpoints"):
+    if not step_checkpoints(Path(run_dir) / "checkpoints"):
         return
-    try:
-        saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=True)
-    except Exception as exc:  # a damaged config.yaml: say so rather than guess
-        raise ConfigError(f"{saved_path} is unreadable ({exc}); move the run dir aside") from None
-    if not isinstance(saved, dict):
-        raise ConfigError(f"{saved_path} is not a config mapping; move the run dir aside")
+    saved = saved_config(run_dir)
+    if saved is None:
+        return
     diffs = config_differences(saved, config_dict, ignore=RESUME_MAY_CHANGE)
     if diffs:
         raise ConfigError(
