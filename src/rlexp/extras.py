@@ -22,16 +22,15 @@ if TYPE_CHECKING:
 EXTRAS: dict[str, tuple[str, ...]] = {
     "wandb": ("wandb",),
     "slurm": ("submitit", "hydra_plugins.hydra_submitit_launcher"),
-    "optuna": ("optuna", "hydra_plugins.hydra_optuna_sweeper"),
+    "optuna": ("optuna",),
     "video": ("imageio", "imageio_ffmpeg"),
     "report": ("scipy", "matplotlib"),
 }
 
-#: Hydra config groups that only a plugin package of an extra provides.
+#: Hydra config groups that only a plugin package of an extra provides (rlexp ships
+#: hydra/sweeper/optuna itself: its sweeper names the optuna extra when optuna is missing).
 HYDRA_CONFIGS: dict[str, str] = {
     "hydra/launcher/submitit": "slurm",
-    "hydra/sweeper/optuna": "optuna",
-    "hydra/sweeper/sampler": "optuna",
 }
 
 
