@@ -92,13 +92,14 @@ def search_space(lines: Sequence[str]) -> tuple[dict[str, BaseDistribution], dic
     line for the same key wins (the command line over ``hydra.sweeper.params``)."""
     from hydra.errors import HydraException
 
-    try:
-        parsed = OverridesParser.create().parse_overrides(list(lines))
-    except HydraException as exc:
-        raise SearchSpaceError(str(exc).strip().splitlines()[0]) from None
+    parser = OverridesParser.create()
     dists: dict[str, BaseDistribution] = {}
     fixed: dict[str, str] = {}
-    for override in parsed:
+    for line in lines:
+        try:
+            override = parser.parse_override(line)
+        except HydraException as exc:
+            raise SearchSpaceError(f"{line}: {str(exc).strip().splitlines()[0]}") from None
         key = override.get_key_element()
         dists.pop(key, None)
         fixed.pop(key, None)
@@ -114,20 +115,22 @@ def from_dict(key: str, spec: Mapping[str, Any]) -> BaseDistribution:
     """One entry of the deprecated ``hydra.sweeper.search_space`` (``type``: int, float or
     categorical; ``low``, ``high``, ``log``, ``step``, ``choices``)."""
     kind = str(spec.get("type", ""))
+    if kind not in ("int", "float", "categorical"):
+        raise SearchSpaceError(
+            f"hydra.sweeper.search_space.{key}.type={kind!r}: choose from int, float, categorical "
+            f"(or write hydra.sweeper.params.{key}: interval(...), range(...) or choice(...))"
+        )
     try:
         if kind == "categorical":
             return CategoricalDistribution(list(spec["choices"]))
         low, high, log, step = spec["low"], spec["high"], bool(spec.get("log")), spec.get("step")
         if kind == "int":
             return IntDistribution(int(low), int(high), log=log, step=int(step or 1))
-        if kind == "float":
-            return FloatDistribution(float(low), float(high), log=log, step=step)
-    except (KeyError, TypeError, ValueError) as exc:
+        return FloatDistribution(float(low), float(high), log=log, step=step)
+    except KeyError as exc:
+        raise SearchSpaceError(f"hydra.sweeper.search_space.{key}: {exc} is missing") from None
+    except (TypeError, ValueError) as exc:
         raise SearchSpaceError(f"hydra.sweeper.search_space.{key}: {exc}") from None
-    raise SearchSpaceError(
-        f"hydra.sweeper.search_space.{key}.type={kind!r}: choose from int, float, categorical "
-        f"(or write hydra.sweeper.params.{key}: interval(...), range(...) or choice(...))"
-    )
 
 
 def grid_choices(key: str, dist: BaseDistribution) -> list[Any]:

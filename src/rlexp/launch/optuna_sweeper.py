@@ -255,6 +255,7 @@ class OptunaSweep:
         self.config: DictConfig | None = None
         self.launcher: Any = None
         self.sweep_dir = Path(".")
+        self.study: Any = None  # the optuna Study once the sweep opened it
 
     def setup(self, *, hydra_context: Any, task_function: Any, config: DictConfig) -> None:
         from hydra.core.plugins import Plugins
@@ -275,7 +276,8 @@ class OptunaSweep:
         try:
             lock.acquire()
             spec = check_spec(self.cfg, arguments)
-            self._run(self._open_study(spec), spec)
+            self.study = self._open_study(spec)
+            self._run(self.study, spec)
         except (SweepRefused, StudyConfigError, SearchSpaceError) as exc:
             log.error("%s", exc)
             sys.exit(EXIT_REFUSED)
