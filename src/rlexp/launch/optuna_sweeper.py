@@ -57,8 +57,6 @@ OBJECTIVE = "eval/episode_return"
 #: Exit code when the sweep cannot start (the dir is in use, the storage cannot be opened).
 EXIT_REFUSED = 2
 
-__all__ = ["JOB_ATTR", "RETRY_ATTR", "job_of"]  # re-exported: the trial attrs' home was here
-
 
 class SweepRefused(Exception):
     """The sweep cannot start: one line for the user, then exit :data:`EXIT_REFUSED`."""
