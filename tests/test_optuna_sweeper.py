@@ -375,3 +375,22 @@ def test_hydra_sweeper_optuna_runs_rlexps_sweeper_and_continues_its_journal(tmp_
     assert {n: (sweep / n / "status.json").read_bytes() for n in ("0", "1")} == before
     launcher = OmegaConf.load(sweep / "multirun.yaml").hydra.launcher
     assert launcher._target_.endswith("RlexpJoblibLauncher")
+
+
+def test_a_left_over_hydra_optuna_sweeper_is_named_with_its_fix(monkeypatch):
+    """pip does not remove hydra-optuna-sweeper when rlexp's optuna extra drops it; its ConfigStore
+    entries then clash with rlexp's hydra/sweeper files (Hydra checks them against its schemas),
+    and the one line says to uninstall it."""
+    from rlexp import extras
+
+    message = "Error merging 'hydra/sweeper/sampler/tpe' with schema: Incompatible value 'None'"
+    plugin = "hydra_plugins.hydra_optuna_sweeper"
+    monkeypatch.setattr(extras, "_installed", lambda module: module == plugin)
+    assert extras.hint(message).endswith(
+        "(hydra-optuna-sweeper is installed and clashes with rlexp's own hydra/sweeper=optuna "
+        "(Hydra checks rlexp's files against the plugin's schemas): pip uninstall -y "
+        "hydra-optuna-sweeper (rlexp's optuna extra no longer uses it; docs/sweeps.md, Optuna))"
+    )
+    assert extras.hint("Error merging 'env/hopper' with schema") == "Error merging 'env/hopper' with schema"  # fmt: skip
+    monkeypatch.setattr(extras, "_installed", lambda module: module != plugin)
+    assert extras.hint(message) == message  # not installed: nothing to remove
