@@ -1,10 +1,9 @@
 """Resumable Optuna sweeps (+sweep=ppo_optuna: hydra/sweeper=optuna, its study in the sweep dir's
-optuna.journal): a 6-trial sweep killed
-(SIGKILL to its whole process group) while its 4th trial trains, then the same command again: the
-study ends with 6 trials in 6 job dirs, the first 3 untouched, the killed one re-run in its dir.
-Also: trials that fail are told FAIL and a sweep where all fail ends with rlexp's summary, not a
-traceback; a re-run retries them in their dirs; the sweep's batching and work plan; rlexp report's
-trial table."""
+optuna.journal): a 6-trial sweep killed (SIGKILL to its whole process group) while its 4th trial
+trains, then the same command again: the study ends with 6 trials in 6 job dirs, the first 3
+untouched, the killed one re-run in its dir. Also: trials that fail are told FAIL and a sweep where
+all fail ends with rlexp's summary, not a traceback; a re-run retries them in their dirs; the
+sweep's batching and work plan; rlexp report's trial table."""
 
 from __future__ import annotations
 
