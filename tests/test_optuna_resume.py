@@ -1,9 +1,9 @@
-"""Resumable Optuna sweeps (hydra/sweeper=rlexp_optuna, +sweep=ppo_optuna): a 6-trial sweep killed
-(SIGKILL to its whole process group) while its 4th trial trains, then the same command again: the
-study ends with 6 trials in 6 job dirs, the first 3 untouched, the killed one re-run in its dir.
-Also: trials that fail are told FAIL and a sweep where all fail ends with rlexp's summary, not a
-traceback; a re-run retries them in their dirs; the sweep's batching and work plan; rlexp report's
-trial table."""
+"""Resumable Optuna sweeps (+sweep=ppo_optuna: hydra/sweeper=optuna, its study in the sweep dir's
+optuna.journal): a 6-trial sweep killed (SIGKILL to its whole process group) while its 4th trial
+trains, then the same command again: the study ends with 6 trials in 6 job dirs, the first 3
+untouched, the killed one re-run in its dir. Also: trials that fail are told FAIL and a sweep where
+all fail ends with rlexp's summary, not a traceback; a re-run retries them in their dirs; the
+sweep's batching and work plan; rlexp report's trial table."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ import hashlib
 import json
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 import time
@@ -36,43 +35,27 @@ def command(sweep: Path, n_trials: int, *extra: str) -> list[str]:
     ]
 
 
-def study_trials(sweep: Path) -> list[dict]:
-    """The study's trials read with sqlite3 alone (not through rlexp or optuna): number, state,
-    value, params, system attrs."""
-    con = sqlite3.connect(sweep / "optuna.db")
-    try:
-        out = []
-        for trial_id, number, state in con.execute(
-            "select trial_id, number, state from trials order by number"
-        ):
-            value = con.execute(
-                "select value from trial_values where trial_id=?", (trial_id,)
-            ).fetchone()
-            params = dict(
-                con.execute(
-                    "select param_name, param_value from trial_params where trial_id=?",
-                    (trial_id,),
-                )
-            )
-            attrs = {
-                k: json.loads(v)
-                for k, v in con.execute(
-                    "select key, value_json from trial_system_attributes where trial_id=?",
-                    (trial_id,),
-                )
-            }
-            out.append(
-                {
-                    "number": number,
-                    "state": state,
-                    "value": value[0] if value else None,
-                    "params": params,
-                    "attrs": attrs,
-                }
-            )
-        return out
-    finally:
-        con.close()
+def study_trials(sweep: Path, storage: str | None = None) -> list[dict]:
+    """The study's trials read with optuna alone (not through rlexp), from the sweep dir's journal
+    file (or ``storage``): number, state, value, params, user attrs."""
+    import optuna
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+
+    if storage is None:
+        assert (sweep / "optuna.journal").is_file(), sorted(p.name for p in sweep.iterdir())
+        storage = JournalStorage(JournalFileBackend(str(sweep / "optuna.journal")))
+    (name,) = optuna.get_all_study_names(storage)
+    return [
+        {
+            "number": t.number,
+            "state": t.state.name,
+            "value": t.value if t.values is not None and len(t.values) == 1 else None,
+            "params": dict(t.params),
+            "attrs": dict(t.user_attrs),
+        }
+        for t in optuna.load_study(study_name=name, storage=storage).get_trials(deepcopy=False)
+    ]
 
 
 def status(job: Path) -> dict:
@@ -154,11 +137,12 @@ def test_the_same_command_continues_the_sweep_to_n_trials_in_all(killed_and_reru
     assert [p.name for p in jobs] == ["0", "1", "2", "3", "4", "5"]
     for job, trial in zip(jobs, after, strict=True):
         assert status(job)["state"] == "finished" and status(job)["global_step"] == 512
-        # the trial's parameters are the job's overrides (the float ones exactly: the categorical
-        # entropy_coeff is stored as its index), and its value is the job's final eval
+        # the trial's parameters are the job's overrides, exactly, in the search space's order,
+        # and its value is the job's final eval
         ov = overrides(job)
-        assert list(ov)[:3] == ["algorithm.lr", "algorithm.clip_epsilon", "algorithm.entropy_coeff"]
-        for key in ("algorithm.lr", "algorithm.clip_epsilon"):
+        keys = ["algorithm.lr", "algorithm.clip_epsilon", "algorithm.entropy_coeff"]
+        assert list(ov)[:3] == keys
+        for key in keys:
             assert float(ov[key]) == trial["params"][key]
         assert trial["value"] == status(job)["final_eval"]["eval/episode_return"]
     # trials 0-2 and their job dirs: untouched (not launched again); trial 2 told its dir's result
@@ -257,13 +241,19 @@ def test_work_plan_and_batches():
 
     from rlexp.launch.optuna_sweeper import batches, plan_work
 
+    def t(number, state, job=None, legacy=False):
+        attrs = {} if job is None else {"rlexp_job": job}
+        # legacy: a study of an rlexp before optuna 4 kept the job as a system attr
+        return T(number=number, state=state, user_attrs={} if legacy else attrs,
+                 system_attrs=attrs if legacy else {})  # fmt: skip
+
     trials = [
-        T(number=0, state=S.COMPLETE, system_attrs={"rlexp_job": 0}),
-        T(number=1, state=S.FAIL, system_attrs={"rlexp_job": 1}),
-        T(number=2, state=S.FAIL, system_attrs={"rlexp_job": 2}),
-        T(number=3, state=S.RUNNING, system_attrs={"rlexp_job": 3}),
-        T(number=4, state=S.COMPLETE, system_attrs={"rlexp_job": 1}),  # job 1's retry finished
-        T(number=5, state=S.FAIL, system_attrs={}),  # not one of rlexp's: ignored
+        t(0, S.COMPLETE, 0, legacy=True),
+        t(1, S.FAIL, 1),
+        t(2, S.FAIL, 2),
+        t(3, S.RUNNING, 3),
+        t(4, S.COMPLETE, 1),  # job 1's retry finished
+        t(5, S.FAIL),  # not one of rlexp's: ignored
     ]
     work, heads = plan_work(trials, 6)
     assert [(w.kind, w.job) for w in work] == [
@@ -272,7 +262,7 @@ def test_work_plan_and_batches():
         ("new", 4),
         ("new", 5),
     ]
-    assert heads[1].number == 4 and work[0].retry_of.number == 2
+    assert heads[1].number == 4 and work[0].retry_of.number == 2 and heads[0].number == 0
     assert [[w.job for w in b] for b in batches(work, 2)] == [[2, 3], [4, 5]]
     assert [[w.job for w in b] for b in batches(work, 3)] == [[2, 3, 4], [5]]
     assert (

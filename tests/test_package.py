@@ -441,17 +441,24 @@ def test_a_broken_plugin_stops_rlexp_train_in_one_line(tmp_path):
 def test_a_missing_extra_is_named(monkeypatch):
     from conftest import compose
     from rlexp import extras
+    from rlexp.config.precheck import precheck
     from rlexp.config.validate import to_root_config
+    from rlexp.paths import CONF_DIR
 
-    monkeypatch.setattr(extras, "_installed", lambda module: module not in ("wandb", "optuna"))
+    missing = ("wandb", "optuna", "hydra_plugins.hydra_submitit_launcher")
+    monkeypatch.setattr(extras, "_installed", lambda module: module not in missing)
     config = to_root_config(compose(["logger=wandb"]))
     with pytest.raises(
         extras.MissingExtra, match=r"logger.wandb.enabled=true .*pip install 'wandb"
     ):
         extras.check_config(config)
-    msg = "In 'hydra/config': Could not find 'hydra/sweeper/optuna'"
-    assert extras.hint(msg).endswith(f"(rlexp's 'optuna' extra is not installed: {extras.install_hint('optuna')})")  # fmt: skip
-    assert "pip install 'hydra-optuna-sweeper" in extras.install_hint("optuna")
+    msg = "In 'hydra/config': Could not find 'hydra/launcher/submitit'"
+    assert extras.hint(msg).endswith(f"(rlexp's 'slurm' extra is not installed: {extras.install_hint('slurm')})")  # fmt: skip
+    # rlexp ships hydra/sweeper=optuna itself: a sweep with it names the extra before Hydra starts
+    with pytest.raises(extras.MissingExtra, match=r"hydra/sweeper=optuna .*pip install 'optuna"):
+        precheck(["-m", "hydra/sweeper=optuna", "seed=0"], CONF_DIR)
+    assert extras.hint("No module named 'optuna'").endswith(f"{extras.install_hint('optuna')})")
+    assert "hydra-optuna-sweeper" not in extras.install_hint("optuna")
     assert extras.hint("ModuleNotFoundError: No module named 'wandb.sdk'").endswith(
         f"{extras.install_hint('wandb')})"
     )

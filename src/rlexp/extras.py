@@ -22,16 +22,28 @@ if TYPE_CHECKING:
 EXTRAS: dict[str, tuple[str, ...]] = {
     "wandb": ("wandb",),
     "slurm": ("submitit", "hydra_plugins.hydra_submitit_launcher"),
-    "optuna": ("optuna", "hydra_plugins.hydra_optuna_sweeper"),
+    "optuna": ("optuna",),
     "video": ("imageio", "imageio_ffmpeg"),
     "report": ("scipy", "matplotlib"),
 }
 
-#: Hydra config groups that only a plugin package of an extra provides.
+#: Hydra config groups that only a plugin package of an extra provides (rlexp ships
+#: hydra/sweeper/optuna itself: its sweeper names the optuna extra when optuna is missing).
 HYDRA_CONFIGS: dict[str, str] = {
     "hydra/launcher/submitit": "slurm",
-    "hydra/sweeper/optuna": "optuna",
-    "hydra/sweeper/sampler": "optuna",
+}
+
+
+#: Installed packages that break a config rlexp ships: module -> (the config group it clashes in,
+#: the fix). hydra-optuna-sweeper registers hydra/sweeper/optuna and hydra/sweeper/sampler/* in
+#: Hydra's ConfigStore, and Hydra then checks rlexp's files of those names against its schemas.
+CONFLICTS: dict[str, tuple[str, str]] = {
+    "hydra_plugins.hydra_optuna_sweeper": (
+        "hydra/sweeper",
+        "hydra-optuna-sweeper is installed and clashes with rlexp's own hydra/sweeper=optuna "
+        "(Hydra checks rlexp's files against the plugin's schemas): pip uninstall -y "
+        "hydra-optuna-sweeper (rlexp's optuna extra no longer uses it; docs/sweeps.md, Optuna)",
+    ),
 }
 
 
@@ -103,16 +115,18 @@ def check_config(config: RootConfig) -> None:
 
 def hint(message: str) -> str:
     """``message`` plus the extra to install, when it says that a module or a Hydra config that
-    an uninstalled extra provides is missing."""
+    an uninstalled extra provides is missing, or the package to remove, when it is about a
+    config group an installed package clashes in (:data:`CONFLICTS`)."""
     wanted = set()
     for module in re.findall(r"No module named '([\w.]+)'", message):
         wanted |= {e for e, mods in EXTRAS.items() if any(module.startswith(m) for m in mods)}
     for config in re.findall(r"Could not (?:find|load) '([\w/]+)'", message):
         wanted |= {e for prefix, e in HYDRA_CONFIGS.items() if config.startswith(prefix)}
     wanted = {e for e in wanted if missing(e) is not None and install_hint(e) not in message}
-    if not wanted:
-        return message
-    fixes = "; ".join(
-        f"rlexp's '{e}' extra is not installed: {install_hint(e)}" for e in sorted(wanted)
-    )
-    return f"{message} ({fixes})"
+    fixes = [f"rlexp's '{e}' extra is not installed: {install_hint(e)}" for e in sorted(wanted)]
+    fixes += [
+        fix
+        for module, (group, fix) in CONFLICTS.items()
+        if f"'{group}/" in message and fix not in message and _installed(module)
+    ]
+    return f"{message} ({'; '.join(fixes)})" if fixes else message

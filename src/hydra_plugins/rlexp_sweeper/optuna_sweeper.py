@@ -1,6 +1,5 @@
-"""``hydra/sweeper=rlexp_optuna``: hydra-optuna-sweeper with its study in the sweep dir, so that a
-sweep can be continued (``rlexp.launch.optuna_sweeper`` has the loop; this is the plugin Hydra finds).
-"""
+"""``hydra/sweeper=optuna`` (or ``rlexp_optuna``): rlexp's resumable ask-and-tell Optuna sweeper
+(``rlexp.launch.optuna_sweeper`` has the loop; this is the plugin class Hydra finds)."""
 
 from __future__ import annotations
 
@@ -12,36 +11,16 @@ from omegaconf import DictConfig
 
 
 class RlexpOptunaSweeper(Sweeper):
-    """Takes hydra-optuna-sweeper's config (``hydra/sweeper/optuna``); optuna is imported only when
-    the sweeper is built, so Hydra's plugin scan works without rlexp's ``optuna`` extra."""
+    """Takes ``hydra.sweeper`` (``OptunaSweeperConfig``); optuna is imported only when the sweeper
+    is built, so Hydra's plugin scan works without rlexp's ``optuna`` extra."""
 
-    def __init__(
-        self,
-        sampler: Any,
-        direction: Any,
-        storage: Any,
-        study_name: str | None,
-        n_trials: int,
-        n_jobs: int,
-        max_failure_rate: float,
-        search_space: DictConfig | None,
-        custom_search_space: str | None,
-        params: DictConfig | None,
-    ) -> None:
-        from rlexp.launch.optuna_sweeper import ResumableOptunaSweeperImpl
+    def __init__(self, **sweeper: Any) -> None:
+        from rlexp.extras import require
 
-        self.sweeper = ResumableOptunaSweeperImpl(
-            sampler,
-            direction,
-            storage,
-            study_name,
-            n_trials,
-            n_jobs,
-            max_failure_rate,
-            search_space,
-            custom_search_space,
-            params,
-        )
+        require("optuna", "hydra/sweeper=optuna (rlexp's Optuna sweeper)")
+        from rlexp.launch.optuna_sweeper import OptunaSweep
+
+        self.sweeper = OptunaSweep(**sweeper)
 
     def setup(
         self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig

@@ -141,7 +141,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
     from hydra._internal.utils import get_args_parser
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
-    from omegaconf import open_dict
+    from omegaconf import OmegaConf, open_dict
     from omegaconf.errors import OmegaConfBaseException
 
     from rlexp.config.schema import register_configs
@@ -168,14 +168,14 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
             cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)
         run_dir = _run_dir(cfg)
         planned = planned_dir(cfg, args.multirun)  # where it will write (rlexp.writable)
+        sweeper = OmegaConf.to_container(cfg.hydra.sweeper, resolve=False)
         with open_dict(cfg):
             del cfg["hydra"]
         if args.multirun:
-            from omegaconf import OmegaConf
-
             from rlexp.config.validate import check_known_keys
 
             check_known_keys(OmegaConf.merge(OmegaConf.structured(RootConfig), cfg))
+            check_sweeper(sweeper, args.overrides)
             check_planned_dir(planned)  # before Hydra creates the sweep dir
             return None
         config = to_root_config(cfg)
@@ -203,6 +203,26 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
 
             precheck_run_dir(run_dir, config)
     return config
+
+
+def check_sweeper(sweeper: Any, overrides: Sequence[str]) -> None:
+    """rlexp's Optuna sweeper: its extra is installed and its search space, sampler, pruner,
+    storage and direction are usable (``rlexp.launch.optuna_sweeper.check_spec``), before Hydra
+    creates the sweep dir."""
+    import re
+
+    if not str(sweeper.get("_target_", "")).startswith("hydra_plugins.rlexp_sweeper."):
+        return
+    from rlexp.extras import require
+
+    require("optuna", "hydra/sweeper=optuna (rlexp's Optuna sweeper)")
+    from rlexp.launch.optuna_sweeper import check_spec
+
+    task = [o for o in overrides if not re.match(r"[+~]*hydra[./]", o)]
+    try:
+        check_spec(sweeper, task)
+    except ValueError as exc:  # StudyConfigError, SearchSpaceError: one line naming the key
+        raise ConfigError(str(exc)) from None
 
 
 def _run_dir(cfg: Any) -> Path | None:

@@ -1,23 +1,27 @@
-"""``hydra/sweeper=rlexp_optuna``: hydra-optuna-sweeper whose study lives in the sweep dir, so that
-re-running the same ``python train.py -m ...`` command continues the sweep.
+"""``hydra/sweeper=optuna`` (also ``rlexp_optuna``): rlexp's Optuna sweeper, ask-and-tell on
+Optuna >= 4, whose study lives in the sweep dir, so that re-running the same
+``python train.py -m ...`` command continues the sweep.
 
-Hydra's own sweepers cannot resume (facebookresearch/hydra#3328): they ask ``n_trials`` new trials
-on every run and number the job dirs from 0, over the earlier trials' dirs. Here:
+Each batch of ``n_jobs`` trials is asked (``study.ask(distributions)``), launched through Hydra's
+launcher (basic, ``hydra/launcher=local``, ``slurm``), and told its job's value or ``FAIL``
+(``study.tell``). Hydra's own sweepers cannot resume (facebookresearch/hydra#3328): they ask
+``n_trials`` new trials on every run and number the job dirs from 0, over the earlier trials' dirs.
+Here:
 
-- the study is kept in ``hydra.sweeper.storage``, by default ``<sweep dir>/optuna.db`` (SQLite,
-  Optuna's RDB storage; optuna 2.x, which hydra-optuna-sweeper pins, has no JournalStorage). Only
-  this process writes it: the trials' jobs never open it, so a sweep dir on NFS is fine;
+- the study is kept in ``hydra.sweeper.storage``, by default ``<sweep dir>/optuna.journal``
+  (Optuna's JournalStorage, safe on a cluster's shared file system; ``rlexp.launch.optuna_study``);
+  only this process writes it: the trials' jobs never open it;
 - ``n_trials`` is the study's total: each trial owns a job dir named by its job number
   (``hydra.job.num``; the trial number unless a failed trial was retried), recorded on the trial
-  (system attr :data:`JOB_ATTR`). A re-run keeps the finished trials and their dirs untouched,
-  re-runs a trial left ``RUNNING`` by a killed sweep in place (the same trial, the same dir: the
-  job resumes from its newest checkpoint; a job that had finished is not run again, the trial is
-  told the result in its dir), retries a ``FAIL`` trial with the same parameters
-  (Optuna's way: ``study.enqueue_trial(params)``; a new trial of the study, in the failed one's dir,
-  as a grid sweep re-runs a failed job), and asks new trials only for the job dirs still missing;
+  (user attr ``rlexp_job``). A re-run keeps the finished trials and their dirs untouched, re-runs
+  a trial left ``RUNNING`` by a killed sweep in place (the same trial, the same dir: the job
+  resumes from its newest checkpoint; a job that had finished is not run again, the trial is told
+  the result in its dir), retries a ``FAIL`` trial with the same parameters (Optuna's way:
+  ``study.enqueue_trial(params)``; a new trial of the study, in the failed one's dir, as a grid
+  sweep re-runs a failed job), and asks new trials only for the job dirs still missing;
 - a trial whose job failed (rlexp's task function returns None) is told ``FAIL`` and the sweep goes
-  on; a sweep in which no trial completed ends without ``optimization_results.yaml`` and without
-  Optuna's traceback: rlexp's summary line (``rlexp.launch.sweep``) says what happened;
+  on; a sweep in which no trial completed ends without ``optimization_results.yaml`` and without a
+  traceback: rlexp's summary line (``rlexp.launch.sweep``) says what happened;
 - a resumed study reseeds the sampler with ``seed + trials so far``, so it does not propose again
   the parameters its first run started with;
 - one sweep at a time per sweep dir (a lock file beside the study): a second one would re-run the
@@ -26,32 +30,28 @@ on every run and number the job dirs from 0, over the earlier trials' dirs. Here
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import math
 import sys
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from hydra.core.utils import JobReturn, JobStatus
-from hydra.utils import instantiate
-from hydra_plugins.hydra_optuna_sweeper._impl import OptunaSweeperImpl, create_params_from_overrides
 from omegaconf import DictConfig, OmegaConf
 
 from rlexp.fsutil import HolderBusy, HolderLock
+from rlexp.launch import optuna_space, optuna_study
+from rlexp.launch.optuna_space import SearchSpaceError
+from rlexp.launch.optuna_study import JOB_ATTR, RETRY_ATTR, StudyConfigError, job_of
 
 log = logging.getLogger(__name__)
 
-#: The study's file in the sweep dir (conf/hydra/sweeper/rlexp_optuna.yaml's default storage).
-STUDY_FILE = "optuna.db"
 #: Held by the sweep that runs the study (flock), with its pid and host for the one that is refused.
 LOCK_FILE = "optuna.lock"
-#: Trial system attr: the job number (job dir name) the trial runs in.
-JOB_ATTR = "rlexp_job"
-#: Trial system attr of a retry: the number of the failed trial it repeats.
-RETRY_ATTR = "rlexp_retry_of"
 #: What rlexp's task function returns for a trial (``rlexp.app._task``): its final eval return.
 OBJECTIVE = "eval/episode_return"
 #: Exit code when the sweep cannot start (the dir is in use, the storage cannot be opened).
@@ -68,23 +68,21 @@ class Work:
 
     kind: str  # "resume" | "retry" | "new"
     job: int
-    trial: Any = None  # resume: the RUNNING optuna Trial
+    trial: Any = None  # resume: the RUNNING FrozenTrial
     retry_of: Any = None  # retry: the failed FrozenTrial
 
 
-def check_sqlalchemy() -> None:
-    """optuna 2.x's RDB storage cannot open SQLite with SQLAlchemy 2 (its alembic stamp is never
-    committed: an AssertionError, then 'database is locked'); say so in one line."""
-    import optuna
-    import sqlalchemy
+@dataclass
+class SweepSpec:
+    """The sweeper's config, checked: what a sweep needs before it opens the study."""
 
-    if int(optuna.__version__.split(".")[0]) < 3 and int(sqlalchemy.__version__.split(".")[0]) >= 2:
-        raise SweepRefused(
-            f"optuna {optuna.__version__} (pinned by hydra-optuna-sweeper) cannot keep a study in "
-            f"SQLite with SQLAlchemy {sqlalchemy.__version__}: pip install 'sqlalchemy<2' "
-            "'alembic<1.17' (rlexp's optuna extra pins them), or set hydra.sweeper.storage=null "
-            "(in memory: the sweep cannot be continued)"
-        )
+    directions: list[str]
+    sampler: dict[str, Any] | None
+    pruner: dict[str, Any] | None
+    dists: dict[str, Any]
+    fixed: dict[str, str]
+    custom: Callable[[DictConfig, Any], None] | None = None
+    grid: dict[str, list[Any]] | None = field(default=None)
 
 
 class SweepLock:
@@ -108,12 +106,6 @@ class SweepLock:
         self._lock.release()
 
 
-def job_of(trial: Any) -> int | None:
-    """The job number a trial ran in (None: a trial rlexp did not launch)."""
-    job = trial.system_attrs.get(JOB_ATTR)
-    return job if isinstance(job, int) else None
-
-
 def plan_work(trials: Sequence[Any], n_trials: int) -> tuple[list[Work], dict[int, Any]]:
     """What a (re-)run of the study does: per job dir its latest trial decides (RUNNING: killed,
     re-run in place; FAIL: retried; COMPLETE/PRUNED: kept), then new trials up to ``n_trials``
@@ -128,7 +120,7 @@ def plan_work(trials: Sequence[Any], n_trials: int) -> tuple[list[Work], dict[in
     work = []
     for job, t in sorted(heads.items()):
         if t.state == TrialState.RUNNING:
-            work.append(Work("resume", job))
+            work.append(Work("resume", job, trial=t))
         elif t.state == TrialState.FAIL:
             work.append(Work("retry", job, retry_of=t))
     start = max(heads) + 1 if heads else 0
@@ -195,116 +187,163 @@ def _job_overrides(job_dir: Path) -> list[str]:
     return [str(o) for o in listed] if isinstance(listed, list) else []
 
 
-class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
-    """hydra-optuna-sweeper's implementation (search space, sampler, overrides) with the resumable
-    sweep loop described in the module docstring."""
+def _plain(value: Any) -> Any:
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
+
+
+def check_spec(sweeper: Any, arguments: Sequence[str]) -> SweepSpec:
+    """``hydra.sweeper`` (a mapping of its keys) and the sweep's command-line ``arguments``,
+    checked: a ValueError (``StudyConfigError``, ``SearchSpaceError``) naming the key otherwise.
+    Imports nothing it would have to run."""
+    get = sweeper.get
+    rate = get("max_failure_rate", 1.0)
+    if not isinstance(rate, (int, float)) or not 0.0 <= rate <= 1.0:
+        raise StudyConfigError(f"hydra.sweeper.max_failure_rate={rate!r}: a share in [0, 1]")
+    sampler = optuna_study.leaf_config(
+        "hydra.sweeper.sampler", _plain(get("sampler")), optuna_study.SAMPLERS
+    )
+    pruner = optuna_study.leaf_config(
+        "hydra.sweeper.pruner", _plain(get("pruner")), optuna_study.PRUNERS
+    )
+    optuna_study.check_pruner(pruner)
+    params = _plain(get("params")) or {}
+    lines = [f"{k}={v}" for k, v in params.items()] + list(arguments)
+    dists, fixed = optuna_space.search_space(lines)
+    old = _plain(get("search_space")) or {}
+    dists = {
+        **{str(k): optuna_space.from_dict(str(k), v) for k, v in old.items() if k not in fixed},
+        **dists,
+    }
+    spec = SweepSpec(optuna_study.directions(get("direction")), sampler, pruner, dists, fixed)
+    if sampler is not None and sampler["_target_"] == optuna_study.SAMPLERS["grid"]:
+        spec.grid = {k: optuna_space.grid_choices(k, d) for k, d in dists.items()}
+    custom = get("custom_search_space")
+    if custom:
+        module, _, name = str(custom).rpartition(".")
+        try:
+            spec.custom = getattr(importlib.import_module(module), name)
+        except (ImportError, AttributeError, ValueError) as exc:
+            raise StudyConfigError(
+                f"hydra.sweeper.custom_search_space={custom!r} cannot be imported: {exc}"
+            ) from None
+    return spec
+
+
+def _tell(study: Any, number: int, values: Any = None, state: Any = None) -> None:
+    """``study.tell``; the grid and brute-force samplers call ``study.stop()`` once every point is
+    asked, which Optuna refuses outside ``optimize`` (the trial is recorded all the same)."""
+    try:
+        study.tell(number, values, state=state)
+    except RuntimeError as exc:
+        if "Study.stop" not in str(exc):
+            raise
+
+
+class OptunaSweep:
+    """The resumable ask-and-tell loop described in the module docstring (the Hydra plugin class
+    ``hydra_plugins.rlexp_sweeper.RlexpOptunaSweeper`` hands its config here)."""
+
+    def __init__(self, **sweeper: Any) -> None:
+        self.cfg = sweeper
+        self.n_trials = int(sweeper.get("n_trials", 20))
+        self.n_jobs = max(1, int(sweeper.get("n_jobs", 1)))
+        self.max_failure_rate = float(sweeper.get("max_failure_rate", 1.0))
+        self.storage = sweeper.get("storage")
+        self.study_name = sweeper.get("study_name")
+        self.config: DictConfig | None = None
+        self.launcher: Any = None
+        self.sweep_dir = Path(".")
+        self.study: Any = None  # the optuna Study once the sweep opened it
 
     def setup(self, *, hydra_context: Any, task_function: Any, config: DictConfig) -> None:
-        super().setup(hydra_context=hydra_context, task_function=task_function, config=config)
-        self.sampler_config = OmegaConf.select(config, "hydra.sweeper.sampler")
+        from hydra.core.plugins import Plugins
+
+        launcher = Plugins.instance().instantiate_launcher(
+            config=config, hydra_context=hydra_context, task_function=task_function
+        )
+        self.bind(config, launcher)
+
+    def bind(self, config: DictConfig, launcher: Any) -> None:
+        """The sweep's config and the launcher its batches go through (``setup``, or a test)."""
+        self.config, self.launcher = config, launcher
+        self.sweep_dir = Path(str(config.hydra.sweep.dir))
 
     def sweep(self, arguments: list[str]) -> None:
         """Continue (or start) the study in the sweep dir up to ``n_trials`` job dirs."""
-        lock = SweepLock(Path(str(self.sweep_dir)))
+        lock = SweepLock(self.sweep_dir)
         try:
             lock.acquire()
-            study = self._open_study()
-            self._run(study, arguments)
-        except SweepRefused as exc:
+            spec = check_spec(self.cfg, arguments)
+            self.study = self._open_study(spec)
+            self._run(self.study, spec)
+        except (SweepRefused, StudyConfigError, SearchSpaceError) as exc:
             log.error("%s", exc)
             sys.exit(EXIT_REFUSED)
         finally:
             lock.release()
 
-    def _configure_trials(
-        self, trials: list[Any], search_space_distributions: dict, fixed_params: dict
-    ) -> Sequence[Sequence[str]]:
-        """The plugin's overrides, in the search space's order: a trial re-run from the storage
-        lists its params by name, and its job's overrides must read as its first attempt's."""
-        overrides = super()._configure_trials(trials, search_space_distributions, fixed_params)
-        order = {name: i for i, name in enumerate([*search_space_distributions, *fixed_params])}
-        rank = lambda o: order.get(o.split("=", 1)[0], len(order))  # noqa: E731
-        return [tuple(sorted(o, key=rank)) for o in overrides]
+    def storage_spec(self) -> Any:
+        """``hydra.sweeper.storage``; the default journal becomes the sweep dir's ``optuna.db``
+        where an rlexp before the journal left its study there (and no journal exists yet)."""
+        path = optuna_study.journal_path(self.storage) if isinstance(self.storage, str) else None
+        legacy = self.sweep_dir / "optuna.db"
+        if path is not None and path.name == "optuna.journal" and not path.exists():
+            if path.parent.resolve() == self.sweep_dir.resolve() and legacy.is_file():
+                log.info("continuing the SQLite study of an earlier rlexp: %s", legacy)
+                return f"sqlite:///{legacy}"
+        return self.storage
 
-    def _open_study(self) -> Any:
+    def _open_study(self, spec: SweepSpec) -> Any:
         import optuna
 
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
         if self.storage is None:
             log.warning(
                 "hydra.sweeper.storage is null: the study is in memory and this sweep cannot be "
                 "continued by running it again"
             )
-        elif str(self.storage).startswith("sqlite:"):
-            check_sqlalchemy()
-            Path(str(self.sweep_dir)).mkdir(parents=True, exist_ok=True)
-        directions = self._get_directions()
-        try:
-            study = optuna.create_study(
-                study_name=self.study_name,
-                storage=self.storage,
-                sampler=self.sampler if not callable(self.sampler) else None,
-                directions=directions,
-                load_if_exists=True,
-            )
-        except Exception as exc:  # a URL it cannot open, a file that is not a study
-            raise SweepRefused(f"cannot open the Optuna study in {self.storage}: {exc}") from None
-        have = [d.name.lower() for d in study.directions]
-        if have != [d.lower() for d in directions]:
-            raise SweepRefused(
-                f"study {study.study_name!r} in {self.storage} was created to {have}, this sweep "
-                f"asks {directions} (hydra.sweeper.direction): use a new hydra.sweep.dir or "
-                "hydra.sweeper.study_name"
-            )
+        self.storage = self.storage_spec()
+        storage = optuna_study.make_storage(self.storage)
+        pruner = optuna_study.build(spec.pruner)
+        study = optuna_study.open_study(
+            storage, self.storage, self.study_name, spec.directions, None, pruner
+        )
+        if spec.grid is not None:
+            self.n_trials = min(self.n_trials, math.prod(len(v) for v in spec.grid.values()))
+            log.info("GridSampler: n_trials is %d, the size of the grid", self.n_trials)
         return study
 
-    def _search_space(self, arguments: list[str]) -> tuple[dict, dict]:
-        """(distributions, fixed params) from hydra.sweeper.params and the command line, as the
-        plugin's ``sweep`` builds them; a GridSampler is built and caps ``n_trials``."""
-        import functools
+    def _sampler(self, spec: SweepSpec, n_before: int) -> Any:
+        """The configured sampler; a seeded one gets ``seed + n_before`` on a resumed study: the
+        same seed would propose the first run's parameters again (TPE's first trials are its
+        random sampler's)."""
+        if spec.sampler is None:
+            return None
+        kwargs: dict[str, Any] = {}
+        if spec.grid is not None:
+            kwargs["search_space"] = spec.grid
+        seed = spec.sampler.get("seed")
+        if n_before and seed is not None:
+            kwargs["seed"] = int(seed) + n_before
+        sampler = optuna_study.build(spec.sampler, **kwargs)
+        if "seed" in kwargs and n_before:
+            log.info(
+                "resumed study: sampler %s reseeded with %d", type(sampler).__name__, kwargs["seed"]
+            )
+        return sampler
 
-        import optuna
+    def _run(self, study: Any, spec: SweepSpec) -> None:
+        from optuna.trial import TrialState
 
-        self._process_searchspace_config()
-        params_conf = self._parse_sweeper_params_config() + list(arguments)
-        dists, fixed = create_params_from_overrides(params_conf)
-        if self.search_space_distributions:
-            dists = {**self.search_space_distributions, **dists}
-        if (
-            isinstance(self.sampler, functools.partial)
-            and self.sampler.func == optuna.samplers.GridSampler
-        ):
-            grid = {name: self._to_grid_sampler_choices(d) for name, d in dists.items()}
-            self.sampler = self.sampler(grid)
-            self.n_trials = min(self.n_trials, math.prod(len(v) for v in grid.values()))
-            log.info("GridSampler: n_trials is %d, the size of the grid", self.n_trials)
-        for name in fixed:
-            dists.pop(name, None)
-        return dists, fixed
-
-    def _reseed(self, study: Any, n_before: int) -> None:
-        """A resumed study with a seeded sampler gets ``seed + n_before``: the same seed would
-        propose the first run's parameters again (TPE's first trials are its random sampler's)."""
-        cfg = self.sampler_config
-        if n_before == 0 or cfg is None or cfg.get("_partial_") or cfg.get("seed") is None:
-            return
-        seed = int(cfg.seed) + n_before
-        study.sampler = instantiate(cfg, seed=seed)
-        log.info("resumed study: sampler %s reseeded with %d", type(study.sampler).__name__, seed)
-
-    def _run(self, study: Any, arguments: list[str]) -> None:
-        from optuna.trial import Trial, TrialState
-
-        dists, fixed = self._search_space(arguments)
-        if self.sampler is not None and not callable(self.sampler):
-            study.sampler = self.sampler
         trials = study.get_trials(deepcopy=False)
-        directions = self._get_directions()
         for t in trials:  # killed between ask() and recording its job: it never ran
             if t.state == TrialState.RUNNING and job_of(t) is None:
-                study.tell(t.number, state=TrialState.FAIL)
-        if len(directions) == 1:
-            self._tell_finished_jobs(study, fixed)
-        self._reseed(study, len(trials))
+                _tell(study, t.number, state=TrialState.FAIL)
+        if len(spec.directions) == 1:
+            self._tell_finished_jobs(study, spec)
+        sampler = self._sampler(spec, len(trials))
+        if sampler is not None:
+            study.sampler = sampler
         work, heads = plan_work(study.get_trials(deepcopy=False), self.n_trials)
         kept = sum(t.state in (TrialState.COMPLETE, TrialState.PRUNED) for t in heads.values())
         counts = {k: sum(w.kind == k for w in work) for k in ("resume", "retry", "new")}
@@ -319,30 +358,19 @@ class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
             counts["new"],
             self.n_trials,
         )
-        for batch in batches(work, max(1, self.n_jobs)):
-            trials_now = []
-            for w in batch:
-                if w.kind == "resume":
-                    trial = Trial(study, heads[w.job]._trial_id)
-                else:
-                    if w.kind == "retry":
-                        study.enqueue_trial(dict(w.retry_of.params))
-                    trial = study.ask()
-                    trial.set_system_attr(JOB_ATTR, w.job)
-                    if w.kind == "retry":
-                        trial.set_system_attr(RETRY_ATTR, w.retry_of.number)
-                trials_now.append(trial)
-            overrides = self._configure_trials(trials_now, dists, fixed)
+        for batch in batches(work, self.n_jobs):
+            asked = [self._ask(study, spec, w) for w in batch]
+            overrides = [optuna_space.trial_overrides(p, spec.dists, spec.fixed) for _, p in asked]
             returns = self.launcher.launch(overrides, initial_job_idx=batch[0].job)
             failed = 0
-            for w, trial, ret in zip(batch, trials_now, returns, strict=True):
-                values = trial_value(ret, len(directions))
+            for w, (number, _), ret in zip(batch, asked, returns, strict=True):
+                values = trial_value(ret, len(spec.directions))
                 if values is None:
                     failed += 1
-                    study.tell(trial, state=TrialState.FAIL)
-                    log.info("trial %d (job %d) failed", trial.number, w.job)
+                    _tell(study, number, state=TrialState.FAIL)
+                    log.info("trial %d (job %d) failed", number, w.job)
                 else:
-                    study.tell(trial, values)
+                    _tell(study, number, values)
             if failed / len(batch) > self.max_failure_rate:
                 log.error(
                     "stopping the sweep: %d of %d trials of the last batch failed "
@@ -352,9 +380,24 @@ class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
                     self.max_failure_rate,
                 )
                 break
-        self._save_results(study, directions)
+        self._save_results(study, spec.directions)
 
-    def _tell_finished_jobs(self, study: Any, fixed: dict[str, Any]) -> None:
+    def _ask(self, study: Any, spec: SweepSpec, w: Work) -> tuple[int, dict[str, Any]]:
+        """(trial number, parameters) of ``w``: the killed trial itself, or a trial asked now (a
+        retry enqueued first with the failed trial's parameters), its job dir recorded on it."""
+        if w.kind == "resume":
+            return w.trial.number, dict(w.trial.params)
+        if w.kind == "retry":
+            study.enqueue_trial(dict(w.retry_of.params))
+        trial = study.ask(spec.dists)
+        trial.set_user_attr(JOB_ATTR, w.job)
+        if w.kind == "retry":
+            trial.set_user_attr(RETRY_ATTR, w.retry_of.number)
+        if spec.custom is not None:
+            spec.custom(self.config, trial)
+        return trial.number, dict(trial.params)
+
+    def _tell_finished_jobs(self, study: Any, spec: SweepSpec) -> None:
         """A trial left RUNNING whose job had finished (the sweep was killed while another job of
         its batch trained: a launcher returns a batch's results together) is told the result its
         job dir holds, the value rlexp's task function returns on a re-run, and is not launched
@@ -365,10 +408,10 @@ class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
         for job, t in sorted(heads.items()):
             if t.state != TrialState.RUNNING:
                 continue
-            ran_with = [f"{k}={v}" for k, v in {**t.params, **fixed}.items()]  # as launched
-            value = finished_value(Path(str(self.sweep_dir)) / str(job), ran_with)
+            ran_with = optuna_space.trial_overrides(t.params, spec.dists, spec.fixed)
+            value = finished_value(self.sweep_dir / str(job), ran_with)
             if value is not None:
-                study.tell(t.number, value)
+                _tell(study, t.number, value)
                 log.info(
                     "trial %d: its job dir %d had finished (%s = %s): told, not run again",
                     t.number,
@@ -378,8 +421,8 @@ class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
                 )
 
     def _save_results(self, study: Any, directions: list[str]) -> None:
-        """``optimization_results.yaml`` as the plugin writes it, plus the best trial's number and
-        job dir; none when no trial completed (the summary line says why)."""
+        """``optimization_results.yaml`` as hydra-optuna-sweeper wrote it, plus the best trial's
+        number and job dir; none when no trial completed (the summary line says why)."""
         from optuna.trial import TrialState
 
         done = [t for t in study.get_trials(deepcopy=False) if t.state == TrialState.COMPLETE]
@@ -411,40 +454,4 @@ class ResumableOptunaSweeperImpl(OptunaSweeperImpl):
             ]
             results = {"name": "optuna", "solutions": front}
             log.info("Pareto front: %d trial(s)", len(front))
-        OmegaConf.save(
-            OmegaConf.create(results), Path(str(self.sweep_dir)) / "optimization_results.yaml"
-        )
-
-
-def read_trials(sweep_dir: Path) -> list[dict[str, Any]] | str:
-    """The trials of the study in ``<sweep_dir>/optuna.db`` (number, job, state, values, params,
-    retry_of), or why they cannot be read. Read-only in effect: an existing study is only loaded."""
-    path = sweep_dir / STUDY_FILE
-    if not path.is_file():
-        return f"no {STUDY_FILE} in the sweep dir"
-    try:
-        import optuna
-
-        check_sqlalchemy()
-        optuna.logging.set_verbosity(optuna.logging.WARNING)
-        storage = f"sqlite:///{path}"
-        out = []
-        for summary in optuna.get_all_study_summaries(storage):
-            study = optuna.load_study(study_name=summary.study_name, storage=storage)
-            for t in study.get_trials(deepcopy=False):
-                out.append(
-                    {
-                        "study": summary.study_name,
-                        "number": t.number,
-                        "job": job_of(t),
-                        "state": t.state.name,
-                        "values": t.values,
-                        "params": dict(t.params),
-                        "retry_of": t.system_attrs.get(RETRY_ATTR),
-                    }
-                )
-        return out
-    except (ImportError, SweepRefused) as exc:
-        return str(exc)
-    except Exception as exc:  # a damaged or foreign file: the report goes on without it
-        return f"{STUDY_FILE} is not readable ({type(exc).__name__}: {str(exc).splitlines()[0]})"
+        OmegaConf.save(OmegaConf.create(results), self.sweep_dir / "optimization_results.yaml")

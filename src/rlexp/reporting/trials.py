@@ -1,4 +1,5 @@
-"""The trials table of an Optuna sweep's study (``<sweep dir>/optuna.db``) in ``report.md``."""
+"""The trials table of an Optuna sweep's study (``<sweep dir>/optuna.journal``, or ``optuna.db``
+from before rlexp used the journal) in ``report.md``."""
 
 from __future__ import annotations
 
@@ -7,22 +8,24 @@ from pathlib import Path
 from rlexp.reporting.jobs import first_line
 from rlexp.table import fixed, markdown_cell
 
-#: The study of an Optuna sweep (``rlexp.launch.optuna_sweeper.STUDY_FILE``): its trials are listed.
-OPTUNA_STUDY = "optuna.db"
+#: The study files of an Optuna sweep (``rlexp.launch.optuna_study.STUDY_FILES``): their trials
+#: are listed; the first one found is read.
+OPTUNA_STUDY = ("optuna.journal", "optuna.db")
 
 
 def optuna_markdown(sweep_dir: Path) -> list[str]:
-    """The trials of an Optuna sweep's study (``<sweep dir>/optuna.db``, rlexp's resumable
-    sweeper): number, job dir, state, value and parameters; [] when the sweep dir has no study."""
-    if not (sweep_dir / OPTUNA_STUDY).is_file():
+    """The trials of an Optuna sweep's study (rlexp's resumable sweeper): number, job dir, state,
+    value and parameters; [] when the sweep dir has no study."""
+    found = next((name for name in OPTUNA_STUDY if (sweep_dir / name).is_file()), None)
+    if found is None:
         return []
     try:
-        from rlexp.launch.optuna_sweeper import read_trials
+        from rlexp.launch.optuna_study import read_trials
     except ImportError as exc:  # no rlexp[optuna] where the report runs
-        return ["", "## Optuna trials", "", f"`{OPTUNA_STUDY}` not read: {first_line(exc)}."]
+        return ["", "## Optuna trials", "", f"`{found}` not read: {first_line(exc)}."]
     trials = read_trials(sweep_dir)
     if isinstance(trials, str):
-        return ["", "## Optuna trials", "", f"`{OPTUNA_STUDY}` not read: {trials}."]
+        return ["", "## Optuna trials", "", f"`{found}` not read: {trials}."]
     lines: list[str] = []
     for name in dict.fromkeys(t["study"] for t in trials):
         mine = [t for t in trials if t["study"] == name]
@@ -32,7 +35,7 @@ def optuna_markdown(sweep_dir: Path) -> list[str]:
             "",
             f"## Optuna trials (study `{name}`: {len(mine)} trials, {n_done} complete)",
             "",
-            f"From `{OPTUNA_STUDY}`, in trial order. Job: the trial's dir; a failed trial is retried "
+            f"From `{found}`, in trial order. Job: the trial's dir; a failed trial is retried "
             "with its parameters in its own dir (`retry of`: the trial it repeats).",
             "",
             "| trial | job | state | value | "
