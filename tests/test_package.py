@@ -301,7 +301,9 @@ def test_fresh_venv_own_gymnasium_env(user_venv, user_project):
     assert _metric_rows(whole, 8192) == _metric_rows(resumed, 8192)
 
     # (3) exported; played by plain torch + gymnasium; the same actions as the checkpoint's policy
-    out = _run([rlexp, "export", "grid_whole", "--format", "torchscript"], project).stdout
+    out = _run(
+        [rlexp, "export", "grid_whole", "--checkpoint", "best", "--format", "torchscript"], project
+    ).stdout
     exported = whole / "exported" / "best.pt"
     assert "as torchscript: grid_whole/exported/best.pt" in out, out
     (project / "deploy.py").write_text(_DEPLOY)

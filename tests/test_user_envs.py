@@ -232,7 +232,17 @@ def test_exported_discrete_policy_acts_as_the_checkpoint_without_rlexp(tmp_path)
     )
     for fmt in ("torchscript", "onnx"):
         out = subprocess.run(
-            [sys.executable, "-m", "rlexp", "export", str(run_dir), "--format", fmt],
+            [
+                sys.executable,
+                "-m",
+                "rlexp",
+                "export",
+                str(run_dir),
+                "--checkpoint",
+                "best",
+                "--format",
+                fmt,
+            ],  # fmt: skip
             capture_output=True,
             text=True,
             timeout=300,
@@ -296,7 +306,7 @@ def test_rlexp_eval_of_an_exported_discrete_policy_with_start_equals_its_checkpo
         assert out.returncode == 0, out.stderr
         return out.stdout
 
-    rlexp("export", str(run_dir), "--format", "torchscript")
+    rlexp("export", str(run_dir), "--checkpoint", "best", "--format", "torchscript")
     meta = json.loads((run_dir / "exported" / "best.pt.json").read_text())
     assert meta["action_space"]["start"] == [-1] and meta["action_dtype"] == "int64"
     ret = re.compile(r"mean return (-?[\d.]+) \+- ([\d.]+) over 4 episodes")
