@@ -37,9 +37,11 @@ install: $(VENV)/.installed
 train: install
 	$(PY) train.py $(ARGS)
 
-## The default test suite (fast; what CI runs).
+## The default test suite (what CI runs): TEST_WORKERS processes, each test file on one of them
+## (its module fixtures built once); most tests wait on the train.py processes they start.
+TEST_WORKERS ?= 2
 test: install
-	$(PY) -m pytest -q $(ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile $(ARGS)
 
 ## Learning tests (minutes to hours): the agent really improves.
 test-slow: install
