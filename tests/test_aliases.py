@@ -74,3 +74,14 @@ def test_every_alias_names_a_real_key_and_is_a_row_of_the_docs_table():
         assert named, f"docs/ppo.md's table has no row naming `{alias.name}`"
         if alias.key is not None:
             assert any(f"`{alias.key}`" in r for r in named), (alias.name, alias.key, named)
+
+
+def test_the_json_loaders_names_mean_what_the_command_lines_hints_say():
+    """The JSON format and the hints know the same library names: they must agree on the key."""
+    from rlexp.config.json_format.train_section import PPO_KEYS
+
+    by_name = {alias.name: alias.key for alias in ALIASES}
+    shared = [name for name in PPO_KEYS if name in by_name]
+    assert len(shared) >= 6, shared  # learning_rate, n_epochs, batch_size, gae_lambda, clip_coef...
+    for name in shared:
+        assert by_name[name] == f"algorithm.{PPO_KEYS[name][0]}", name

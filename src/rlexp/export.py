@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +31,7 @@ import torch
 from torch import nn
 
 from rlexp.checkpoint import select_checkpoint
-from rlexp.fsutil import atomic_write, atomic_write_text
+from rlexp.fsutil import atomic_write, atomic_write_text, temp_path
 from rlexp.policy_eval import (
     EXPORT_SCHEMA,
     EXPORT_SUFFIXES,
@@ -307,7 +306,7 @@ def _check_writable(target: Path) -> None:
     created or written: before the policy is built, not halfway through the export."""
     from rlexp.writable import probe_dir
 
-    longest = len(f".{target.stem}.tmp-{os.getpid()}{target.suffix}")
+    longest = len(temp_path(target, keep_suffix=True).name)  # what atomic_write writes through
     try:
         probe_dir(target.parent, longest)  # and removes the folders it made
     except OSError as exc:

@@ -17,18 +17,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rlexp.fsutil import temp_path
+
 #: The names a run gives its files under its run dir (rlexp.checkpoint, rlexp.rundir).
 CHECKPOINTS = "checkpoints"
 _PROBE = ".rlexp-write-test"
 
 
-def checkpoint_temp_name(exp_name: str, pid: int | None = None) -> str:
-    """The temporary name of a step checkpoint (``rlexp.checkpoint.save_checkpoint``), at the
-    widest step the name has room for: the longest file name a run writes."""
+def checkpoint_temp_name(exp_name: str) -> str:
+    """The temporary name of a step checkpoint (``rlexp.checkpoint.save_checkpoint`` writes through
+    ``rlexp.fsutil.temp_path``), at the widest step the name has room for: the longest file name a
+    run writes."""
     from rlexp.checkpoint import checkpoint_path
 
-    final = checkpoint_path(Path(), exp_name, 999_999_999).name
-    return f".{final}.tmp-{os.getpid() if pid is None else pid}"
+    return temp_path(checkpoint_path(Path(), exp_name, 999_999_999)).name
 
 
 def run_dir_longest(exp_name: str) -> int:
