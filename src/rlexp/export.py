@@ -45,7 +45,7 @@ from rlexp.policy_eval import (
 #: The exported file's input and output names (ONNX graph names; the metadata states them).
 INPUT_NAME, OUTPUT_NAME = "observation", "action"
 #: Backends whose envs clip actions to the action bounds before applying them.
-CLIPPING_BACKENDS = ("gymnasium", "native")
+CLIPPING_BACKENDS = ("gymnasium", "gymnasium_async", "envpool", "native")
 
 
 class DeterministicActor(nn.Module):

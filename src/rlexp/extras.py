@@ -25,6 +25,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "optuna": ("optuna",),
     "video": ("imageio", "imageio_ffmpeg"),
     "report": ("scipy", "matplotlib"),
+    "envpool": ("envpool",),
 }
 
 #: Hydra config groups that only a plugin package of an extra provides (rlexp ships
@@ -104,7 +105,9 @@ def require(extra: str, what: str, modules: tuple[str, ...] | None = None) -> No
 
 
 def check_config(config: RootConfig) -> None:
-    """The extras a config turns on are installed (W&B logging, mp4 videos)."""
+    """The extras a config turns on are installed (W&B logging, mp4 videos, EnvPool)."""
+    if config.env.backend == "envpool":
+        require("envpool", "env.backend=envpool")
     if config.logger.wandb.enabled:
         require("wandb", "logger.wandb.enabled=true (logger=wandb)")
     for manager in ("train", "eval"):

@@ -26,8 +26,14 @@ DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")
 #: Activation names the MLP builder accepts (rlexp.policies.actor_critic.ACTIVATIONS; a test keeps
 #: the two in step). Here so that a typo fails before torch is imported.
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "swish", "tanh")
-#: Env backends (rlexp.envs.factory builds them).
-BACKENDS = ("gymnasium", "native", "torchrl_gym")
+#: Env backends (rlexp.envs.factory builds them; docs/envs.md). gymnasium: Gymnasium copies stepped
+#: in the training process; gymnasium_async: Gymnasium's AsyncVectorEnv (a worker process per copy);
+#: envpool: EnvPool's C++ thread pool; native: rlexp's batched MuJoCo tasks; vecenv: a batched torch
+#: env of rsl_rl's VecEnv contract; torchrl: a TorchRL EnvBase factory; torchrl_gym: TorchRL's GymEnv
+#: (the reference path).
+BACKENDS = ("gymnasium", "gymnasium_async", "envpool", "native", "vecenv", "torchrl", "torchrl_gym")
+#: Backends whose env is built by a callable the config names (``env.name=package.module:callable``).
+CALLABLE_BACKENDS = ("vecenv", "torchrl")
 #: The metrics an evaluation round logs: what ``trainer.best_metric`` may follow.
 EVAL_METRICS = (
     "eval/episode_return",
@@ -203,9 +209,15 @@ FIELD_RULES: dict[str, Rule] = {
     # env
     "env.name": Rule(
         lambda v: isinstance(v, str) and bool(v.strip()),
-        "a registered Gymnasium id or a native task (checked by building one env)",
+        "a registered Gymnasium id, a native task, or (vecenv, torchrl) package.module:callable "
+        "(checked by building one env)",
     ),
     "env.backend": one_of(*BACKENDS),
+    "env.num_threads": between(0, 1024, " (0: every CPU the process may use; envpool only)"),
+    "env.device": Rule(
+        lambda v: isinstance(v, str) and bool(DEVICE.fullmatch(v)),
+        "auto, cpu, cuda or cuda:N (where a vecenv / torchrl env is built; cpu for the others)",
+    ),
     "env.num_envs": between(1, MAX_ENVS),
     "env.num_eval_envs": between(0, MAX_ENVS, " (0: no evaluation)"),
     "env.max_episode_steps": optional(at_least(1), "the task's own limit"),

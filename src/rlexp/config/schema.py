@@ -198,9 +198,14 @@ class GRPOConfig(BaseAlgorithmConfig):
 class EnvConfig:
     """The training (and evaluation) environment."""
 
-    name: str = "HalfCheetah-v5"  # Gymnasium id (backend=gymnasium) or native task (backend=native)
-    backend: str = "gymnasium"  # gymnasium | native
+    # Gymnasium id (gymnasium, gymnasium_async, envpool), native task (native), or
+    # package.module:callable building a batched torch env (vecenv, torchrl)
+    name: str = "HalfCheetah-v5"
+    # gymnasium | gymnasium_async | envpool | native | vecenv | torchrl | torchrl_gym (docs/envs.md)
+    backend: str = "gymnasium"
     num_envs: int = 1  # parallel training envs
+    num_threads: int = 0  # envpool's thread pool (0: every CPU this process may use, <= num_envs)
+    device: str = "cpu"  # where a vecenv / torchrl env is built and steps (auto: cuda if visible)
     num_eval_envs: int = 1  # parallel evaluation envs
     max_episode_steps: int | None = None  # time limit (None: the task's own)
     normalize_observations: bool = (

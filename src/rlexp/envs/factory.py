@@ -1,4 +1,4 @@
-"""``make_env``: one builder for every environment backend."""
+"""``make_env``: one builder for every environment backend (docs/envs.md)."""
 
 from __future__ import annotations
 
@@ -13,11 +13,25 @@ log = logging.getLogger(__name__)
 
 
 def make_env(cfg: EnvConfig, num_envs: int, seed: int, device: str = "cpu") -> EnvBase:
-    """Build ``num_envs`` batched copies of the configured task, seeded with ``seed``."""
+    """Build ``num_envs`` batched copies of the configured task, seeded with ``seed``.
+
+    ``device`` is where the CPU backends put their tensors (always ``cpu`` today); the batched torch
+    backends (``vecenv``, ``torchrl``) are built on ``env.device`` instead: the env lives where its
+    simulator does, and the policy follows ``trainer.device``."""
     if cfg.backend == "gymnasium":
         from rlexp.envs.gym import GymnasiumEnv
 
         env = GymnasiumEnv(cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs, device=device)
+    elif cfg.backend == "gymnasium_async":
+        from rlexp.envs.gym_async import AsyncGymnasiumEnv
+
+        env = AsyncGymnasiumEnv(cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs)
+    elif cfg.backend == "envpool":
+        from rlexp.envs.envpool_env import EnvPoolEnv
+
+        env = EnvPoolEnv(
+            cfg.name, num_envs, seed, cfg.max_episode_steps, cfg.kwargs, cfg.num_threads
+        )
     elif cfg.backend == "native":
         from rlexp.envs.native import make_native_env
 
@@ -27,6 +41,10 @@ def make_env(cfg: EnvConfig, num_envs: int, seed: int, device: str = "cpu") -> E
                 "use env=push_cube or env=cart_pole"
             )
         env = make_native_env(cfg.native, num_envs, seed, cfg.max_episode_steps, device=device)
+    elif cfg.backend in ("vecenv", "torchrl"):
+        from rlexp.envs.batched import make_batched_env
+
+        env = make_batched_env(cfg, num_envs, seed)
     elif cfg.backend == "torchrl_gym":
         from rlexp.envs.gym import make_torchrl_gym_env
 

@@ -34,7 +34,7 @@ SUCCESS_METRIC = "eval/success_rate"
 RESULT_METRICS = (TRAIN_METRIC, EVAL_METRIC, SUCCESS_METRIC)
 #: Env backends whose tasks have no success signal: Gymnasium's tasks (MuJoCo among them) define
 #: none, and the evaluation's ``eval/success_rate`` is a constant 0 for them, so it is not shown.
-NO_SUCCESS_BACKENDS = ("gymnasium",)
+NO_SUCCESS_BACKENDS = ("gymnasium", "gymnasium_async", "envpool")
 
 
 def env_of(job: Job) -> str | None:
