@@ -131,7 +131,9 @@ def _train_locked(
     dist = distributed.info()
     from rlexp.build import resolve_device
 
-    device = resolve_device(t.device, t.strict_device)
+    # auto is decided by build() once the env exists (the env's GPU, or the CPU for a CPU env and
+    # a small MLP: rlexp.devices.auto_device); a device named outright is resolved here
+    device = t.device if t.device == "auto" else resolve_device(t.device, t.strict_device)
     if dist.enabled and device.startswith("cuda"):
         device = f"cuda:{dist.local_rank}"  # each rank on its own GPU
     seed_everything(config.seed + dist.rank)
@@ -171,6 +173,9 @@ def _train_locked(
         raise
     except Exception as exc:
         raise ConfigError(f"the run cannot be built from this config: {first_line(exc)}") from None
+    if objects.device != device:  # auto, decided from the env: the saved config records it
+        device = t.device = objects.device
+        config_dict = to_dict(config)
 
     # -- from here on the run dir is written -------------------------------------------------------
     if dist.is_main:

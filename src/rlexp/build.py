@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Any
 
 from rlexp.config.schema import RootConfig
-from rlexp.config.validate import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -28,19 +27,25 @@ def seed_everything(seed: int) -> None:
 
 def resolve_device(device: str, strict: bool = False) -> str:
     """``auto`` -> ``cuda`` when a GPU is visible, else ``cpu``; CUDA asked on a CPU-only machine
-    falls back to CPU with one warning unless ``strict``."""
-    import torch
+    falls back to CPU with one warning unless ``strict`` (``rlexp.devices``). The training run
+    decides ``auto`` from its built env instead (``build``)."""
+    from rlexp.devices import resolve_device as resolve
 
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        if strict:
-            raise ConfigError(
-                f"trainer.device={device!r} but CUDA is not available on this machine "
-                "(trainer.strict_device=true); use trainer.device=auto or cpu"
-            )
-        log.warning("trainer.device=%r but CUDA is not available: running on cpu", device)
-        return "cpu"
+    return resolve(device, strict)
+
+
+def training_device(requested: str, env: Any, config: RootConfig) -> str:
+    """``trainer.device`` for this run: as given (resolved by the app), or ``auto`` decided from
+    the env just built (``rlexp.devices.auto_device``), logged once with why."""
+    if requested != "auto":
+        return requested
+    from rlexp.devices import auto_device
+    from rlexp.launch import distributed
+
+    dist = distributed.info()
+    local_rank = dist.local_rank if dist.enabled else None
+    device, why = auto_device(getattr(env, "device", None), config.policy, local_rank)
+    log.info("[device] trainer.device=auto -> %s: %s", device, why)
     return device
 
 
@@ -60,6 +65,7 @@ class Built:
     algorithm: Any
     events: Any
     eval_events: Any
+    device: str = "cpu"  # trainer.device as used (auto decided from the env)
 
     def trainer(
         self, logger: Any, config_dict: dict, versions: dict, eval_async: bool = False
@@ -100,7 +106,8 @@ class Built:
 
 
 def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
-    """Envs, policy, algorithm and event managers, in that order (nothing is written)."""
+    """Envs, policy, algorithm and event managers, in that order (nothing is written); ``device``:
+    the policy's, or ``auto`` (decided once the training env exists: ``training_device``)."""
     from rlexp.algorithms import make_algorithm
     from rlexp.envs.factory import make_env
     from rlexp.events import EventManager
@@ -126,6 +133,7 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
     log.info(
         "env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, env.action_spec.shape[-1]
     )
+    device = training_device(device, env, config)
     policy = policy_for_env(config.policy, e, env).to(device)
     if dist.enabled:  # same initial parameters everywhere
         distributed.broadcast_([*policy.parameters(), *policy.buffers()])
@@ -141,4 +149,5 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
         algorithm=algorithm,
         events=EventManager(config.events.train, "events.train", seed=config.seed + 2),
         eval_events=EventManager(config.events.eval, "events.eval", seed=config.seed + 3),
+        device=device,
     )

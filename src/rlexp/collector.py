@@ -3,12 +3,17 @@
 TorchRL's generic loop spends ~0.3 ms of Python per env step on TensorDict bookkeeping (carrier
 updates, ``step_mdp``, spec-driven done handling, device casts) — several times the cost of a
 Gymnasium MuJoCo step. For envs that expose ``step_action`` / ``autoreset_observation`` (rlexp's
-Gymnasium adapter and native tasks), with the sampling policy on CPU and no transforms, this
-collector runs a tight loop instead: the policy network on a plain tensor, the env's own step, and
-one ``torch.stack`` per key at the end. It draws the same random numbers in the same order, so every
-value it produces is identical to the generic loop's (tested); it leaves out the root copies of the
-previous step's done flags and per-term rewards, which nothing reads (GAE and the loss use the
-``"next"`` ones). Anything else falls back to TorchRL's loop.
+Gymnasium adapter, native tasks and batched torch envs), with rlexp's sampling policy and no
+transforms, this collector runs a tight loop instead: the policy network on a plain tensor, the
+env's own step, and one ``torch.stack`` per key at the end. It draws the same random numbers in the
+same order, so every value it produces is identical to the generic loop's (tested); it leaves out
+the root copies of the previous step's done flags and per-term rewards, which nothing reads (GAE and
+the loss use the ``"next"`` ones). Anything else falls back to TorchRL's loop.
+
+Devices: env and policy on one device (the CPU, or a batched torch env's GPU with the policy
+there too), nothing leaves it. On two devices, each step moves the observation to the policy's
+device and the action to the env's (once each), and the rollout is handed over on the policy's
+device, where GAE and the update run.
 """
 
 from __future__ import annotations
@@ -20,26 +25,36 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, TransformedEnv
 
+from rlexp.devices import module_device, same_device
 from rlexp.policies.actor_critic import SamplingPolicy
 
 
 def supports_fast_rollout(env: EnvBase, policy) -> bool:
-    """The lean loop applies: rlexp env without transforms, rlexp sampling policy, all on CPU."""
+    """The lean loop applies: rlexp env without transforms, rlexp sampling policy (on any devices:
+    ``devices``)."""
     return (
         not isinstance(env, TransformedEnv)  # (it forwards attributes to its base env: check first)
         and hasattr(env, "step_action")
         and hasattr(env, "autoreset_observation")
         and isinstance(policy, SamplingPolicy)
         and env.device is not None
-        and env.device.type == "cpu"
-        and all(p.device.type == "cpu" for p in policy.parameters())
     )
+
+
+def devices(env: EnvBase, policy) -> tuple[torch.device, torch.device | None]:
+    """The policy's device, and the env's where it is another one (None: the same, no copies)."""
+    policy_device = module_device(policy)
+    return policy_device, None if same_device(env.device, policy_device) else env.device
 
 
 class RolloutCollector(Collector):
     """A TorchRL ``Collector`` (same construction, iteration and output keys) with a fast path."""
 
     def __init__(self, env: EnvBase, policy, **kwargs) -> None:
+        policy_device, env_device = devices(env, policy)
+        if env_device is not None:  # TorchRL's loop casts between them, and stores on the policy's
+            kwargs = {"env_device": env_device, "policy_device": policy_device,
+                      "storing_device": policy_device, **kwargs}  # fmt: skip
         super().__init__(env, policy, **kwargs)
         self._sampler = policy
         self._fast = supports_fast_rollout(env, policy)
@@ -70,6 +85,7 @@ class RolloutCollector(Collector):
         if not self._fast:
             return super().rollout()
         env, sample = self.env, self._sampler.sampler()  # constants of this rollout computed once
+        to_policy, to_env = devices(env, self._sampler)
         # A flat dict of tensors per step where the env offers one (the Gymnasium adapter), else
         # its TensorDict (native tasks: nested per-term entries).
         step = getattr(env, "step_tensors", None) or env.step_action
@@ -81,8 +97,11 @@ class RolloutCollector(Collector):
         action_at = keys.index("action") - 1
         nexts: list[Any] = []
         for _ in range(steps):
+            if to_env is not None:  # env and policy apart: one copy each way per step
+                obs = obs.to(to_policy)
             out = sample(obs)
-            nxt = step(out[action_at])
+            action = out[action_at]
+            nxt = step(action if to_env is None else action.to(to_env))
             observations.append(obs)
             for values, v in zip(outputs, out):  # noqa: B905  (same length: the policy's out_keys)
                 values.append(v)
@@ -96,4 +115,6 @@ class RolloutCollector(Collector):
             batch["next"] = TensorDict._new_unsafe(nxt, batch_size=size, device=env.device)
         else:
             batch["next"] = torch.stack(nexts, dim=1)
-        return TensorDict(batch, batch_size=size, device=env.device)
+        if to_env is not None:  # the env's side of the rollout, once, to where the update runs
+            batch["next"] = batch["next"].to(to_policy)
+        return TensorDict(batch, batch_size=size, device=to_policy)

@@ -313,6 +313,8 @@ def decide_eval_async(
             False,
             f"events.eval ({', '.join(config.events.eval)}) run in this process's eval env",
         )
+    if e.backend in ("vecenv", "torchrl"):  # a simulator (and its GPU memory) in a second process
+        return False, f"env.backend={e.backend}: the worker would build a second simulator"
     consumers = eval_consumers(config)
     if consumers:
         return (

@@ -1,7 +1,8 @@
 """Deterministic evaluation episodes: what the Trainer's ``eval_once`` and ``rlexp eval`` both run.
 
 Two loops give the same numbers (tested). The lean one, for rlexp's envs with rlexp's sampling policy
-on CPU (``rlexp.collector.supports_fast_rollout``), is the collector's: the deterministic sampler on
+(``rlexp.collector.supports_fast_rollout``; on a GPU env it reads rewards back in chunks of steps),
+is the collector's: the deterministic sampler on
 plain tensors, the env's own ``step_action`` / ``autoreset_observation``. TorchRL's
 ``step_and_maybe_reset`` loop serves everything else (transformed envs, other policies) and callers
 that need each step's tensordict (``on_step``: the eval events of mode step / interval, e.g. the eval
@@ -21,7 +22,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-from rlexp.collector import supports_fast_rollout
+from rlexp.collector import devices, supports_fast_rollout
 from rlexp.loop import base_env
 
 
@@ -178,7 +179,7 @@ def run_episodes(
     if lean and not usable:
         raise ValueError(
             "run_episodes(lean=True) needs an rlexp env without transforms, rlexp's sampling "
-            "policy on CPU and no on_step callback"
+            "policy and no on_step callback"
         )
     tally = EpisodeTally(int(env.batch_size.numel()), episodes)
     td = env.reset()
@@ -191,21 +192,56 @@ def run_episodes(
     return tally.metrics()
 
 
+#: An eval round on a GPU env reads rewards and done flags back to the host every this many steps
+#: (a round runs up to CHUNK - 1 steps past its last episode; the envs are reseeded every round).
+DEVICE_CHUNK = 32
+
+
 def _lean_loop(env: EnvBase, policy, obs: torch.Tensor, tally: EpisodeTally) -> None:
     """The collector's fast path: deterministic actions from plain tensors, the env's own step."""
     sample = policy.sampler()  # the parameters do not change during a round: built once
+    to_policy, to_env = devices(env, policy)
+    if env.device.type != "cpu":
+        _device_loop(env, sample, obs, tally, to_policy, to_env)
+        return
     n = len(tally.quota)
     success_key = None
     first = True
     while not tally.finished:
+        if to_env is not None:
+            obs = obs.to(to_policy)
         action = sample(obs)[-2]  # (..., action, log-prob)
-        nxt = env.step_action(action)
+        nxt = env.step_action(action if to_env is None else action.to(to_env))
         if first:  # an env's step output always has the same keys
             first = False
             success_key = _success_key(env, nxt)
         success = None if success_key is None else nxt.get(success_key).numpy().reshape(n)
         tally.add(nxt.get("reward").numpy().reshape(n), nxt.get("done").numpy().reshape(n), success)
         obs = env.autoreset_observation(nxt)
+
+
+def _device_loop(env, sample, obs, tally: EpisodeTally, to_policy, to_env) -> None:
+    """The lean loop for an env on a GPU: rewards and done flags stay there, read back to the host
+    once per ``DEVICE_CHUNK`` steps (no host round trip per step); the same tally, step by step."""
+    n = len(tally.quota)
+    success_key, first = None, True
+    while not tally.finished:
+        chunk: list[tuple[torch.Tensor, ...]] = []
+        for _ in range(DEVICE_CHUNK):
+            if to_env is not None:
+                obs = obs.to(to_policy)
+            action = sample(obs)[-2]  # (..., action, log-prob)
+            nxt = env.step_action(action if to_env is None else action.to(to_env))
+            if first:
+                success_key, first = _success_key(env, nxt), False
+            keys = ("reward", "done") if success_key is None else ("reward", "done", success_key)
+            chunk.append(tuple(nxt.get(k).reshape(n) for k in keys))
+            obs = env.autoreset_observation(nxt)
+        host = [torch.stack(column).float().cpu().numpy() for column in zip(*chunk, strict=True)]
+        for t in range(DEVICE_CHUNK):
+            tally.add(host[0][t], host[1][t] > 0, None if success_key is None else host[2][t])
+            if tally.finished:
+                return
 
 
 def _torchrl_loop(

@@ -12,8 +12,10 @@ Folded in:
   statistics are checkpointed), not with a TorchRL transform on the env: ``(x - mean) / sqrt(var +
   eps)`` as the ``_scale`` / ``_shift`` buffers hold it, clipped to +-``env.clip_observations``;
   with ``env.normalize_observations=false`` it is the identity (and nothing is clipped);
-- the clipping of the action to the action bounds, which rlexp's envs (gymnasium, native) apply
-  before acting; ``env.backend=torchrl_gym`` hands actions on unclipped, and so does its export.
+- the clipping of the action to the action bounds, which rlexp's envs (gymnasium, native, the
+  batched torch envs: vecenv, torchrl) apply before acting; ``env.backend=torchrl_gym`` hands
+  actions on unclipped, and so does its export. An unbounded side (a batched env's Box without
+  bounds) clips nothing; the metadata writes it as null.
 
 Only the actor is exported (PPO's critic is not); actor-critic and actor-only policies alike.
 """
@@ -45,7 +47,7 @@ from rlexp.policy_eval import (
 #: The exported file's input and output names (ONNX graph names; the metadata states them).
 INPUT_NAME, OUTPUT_NAME = "observation", "action"
 #: Backends whose envs clip actions to the action bounds before applying them.
-CLIPPING_BACKENDS = ("gymnasium", "gymnasium_async", "envpool", "native")
+CLIPPING_BACKENDS = ("gymnasium", "gymnasium_async", "envpool", "native", "vecenv", "torchrl")
 
 
 class DeterministicActor(nn.Module):
@@ -76,8 +78,9 @@ class DeterministicActor(nn.Module):
         self.register_buffer("obs_scale", norm._scale.detach().clone().float())
         self.register_buffer("obs_shift", norm._shift.detach().clone().float())
         self.mlp = copy.deepcopy(policy.actor_net.mlp).float().requires_grad_(False)
-        self.register_buffer("action_low", low.detach().clone().float())
-        self.register_buffer("action_high", high.detach().clone().float())
+        # (an env on a GPU has its bounds there; the file runs on the CPU)
+        self.register_buffer("action_low", low.detach().cpu().clone().float())
+        self.register_buffer("action_high", high.detach().cpu().clone().float())
         self.categorical = policy.categorical
         nvec = list(policy.nvec) if policy.categorical else [1]
         self.nvec = nvec  # TorchScript infers List[int] from the value (no annotation: no warning)
@@ -219,7 +222,7 @@ def _actor_of(ckpt: dict[str, Any]) -> tuple[DeterministicActor, Any, dict[str, 
             # how the env's observation became the input vector (Dict / Tuple / Discrete parts)
             "observation_layout": layout.record() if layout is not None else None,
             # what the output is and how it becomes the env's action (docs/export.md)
-            "action_space": coding.record() if coding is not None else None,
+            "action_space": _json_safe(coding.record()) if coding is not None else None,
             "action_dtype": "int64" if policy.categorical else "float32",
             "action_low": None if policy.categorical else _finite_or_none(low),
             "action_high": None if policy.categorical else _finite_or_none(high),
@@ -266,6 +269,15 @@ def _names(env: Any, config: Any) -> dict[str, Any]:
 
 def _element(name: str, i: int, size: int) -> str:
     return name if size == 1 else f"{name}[{i}]"
+
+
+def _json_safe(record: dict[str, Any]) -> dict[str, Any]:
+    """An action coding's record with unbounded sides (+-inf: a batched torch env's Box) as null."""
+    return {
+        k: [None if isinstance(x, float) and x in (float("inf"), float("-inf")) else x for x in v]
+        if k in ("low", "high") else v
+        for k, v in record.items()
+    }  # fmt: skip
 
 
 def _finite_or_none(values: torch.Tensor) -> list[float | None]:

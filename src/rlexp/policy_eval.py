@@ -160,7 +160,8 @@ def _from_ckpt(ckpt: dict[str, Any]) -> PolicyBuilder:
         check_checkpoint_fits(
             ckpt, config, policy
         )  # loads the weights; ValueError if they do not fit
-        return policy.sampling_policy(deterministic=True)
+        # on the env's device: a batched torch env on a GPU is evaluated without copies per step
+        return policy.to(env.device or "cpu").sampling_policy(deterministic=True)
 
     return build
 
@@ -247,7 +248,8 @@ class ExportedPolicy:
         self.act = act
 
     def __call__(self, td: Any) -> Any:
-        td.set("action", self.act(td.get("observation")))
+        obs = td.get("observation")  # the file runs on the CPU; the env may be on a GPU
+        td.set("action", self.act(obs.cpu()).to(obs.device))
         return td
 
 

@@ -26,6 +26,7 @@ from rlexp.checkpoint import (
 )
 from rlexp.collector import RolloutCollector
 from rlexp.config.schema import TrainerConfig
+from rlexp.devices import module_device
 from rlexp.episodes import EpisodeStats
 from rlexp.eval_worker import EvalRound, EvalWorker, record
 from rlexp.evaluation import eval_line, run_round
@@ -210,6 +211,7 @@ class Trainer:
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """The algorithm's update on the rollout, then fold its observations into the normaliser."""
         t0 = time.perf_counter()
+        batch = batch.to(module_device(self.policy))  # (a no-op: the collector stores it there)
         try:
             losses = self.algorithm.update(batch)
         except NonFiniteError as exc:

@@ -36,7 +36,7 @@ def check_buildable(config: RootConfig) -> None:
     except Exception as exc:
         msg = first_line(exc)
         bad_kwarg = re.search(r"unexpected keyword argument '([^']+)'", msg)
-        if bad_kwarg and bad_kwarg.group(1) in e.kwargs:
+        if bad_kwarg and bad_kwarg.group(1) in e.kwargs and not msg.startswith("env."):
             msg = (
                 f"env.kwargs.{bad_kwarg.group(1)} is not an argument of {e.name} "
                 f"(gymnasium.make({e.name!r}, ...) refused it)"
@@ -46,6 +46,8 @@ def check_buildable(config: RootConfig) -> None:
         raise ConfigError(msg) from None
     t = config.trainer
     try:
+        if hasattr(env, "check_first_step"):  # a batched torch env: its first step, checked
+            env.check_first_step()
         _check_env_state(env, e.name)
         policy = policy_for_env(config.policy, e, env)
         train_events = EventManager(config.events.train, "events.train")

@@ -70,7 +70,7 @@ class ObservationNormalizer(nn.Module):
         centred = x - self.mean
         stats = torch.cat(
             [
-                torch.tensor([float(x.shape[0])], dtype=torch.float64),
+                torch.full((1,), float(x.shape[0]), dtype=torch.float64, device=x.device),
                 centred.sum(0),
                 centred.pow(2).sum(0),
             ]

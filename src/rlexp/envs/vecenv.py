@@ -1,0 +1,201 @@
+"""``env.backend=vecenv``: a batched torch env of rsl_rl's ``VecEnv`` contract as an rlexp env.
+
+What rlexp reads of the env (docs/batched_envs.md): ``num_envs``, ``num_actions``, ``device``;
+``get_observations()`` returning the policy's observation as a tensor [N, ...], as rsl_rl 2.x's
+``(obs, extras)``, or as rsl_rl 3.x's TensorDict / dict of observation groups (the ``"policy"``
+group is the policy's); ``step(actions [N, A]) -> (obs, rewards [N], dones [N], extras)`` with the
+time-outs in ``extras["time_outs"]``; optionally ``reset()``, ``seed(seed)``, ``get_state()`` /
+``set_state(state)``, and a Gymnasium ``single_action_space`` / ``action_space`` (the action bounds,
+or discrete actions; without one: unbounded float actions of ``num_actions``).
+
+The env resets finished copies inside ``step``: ``terminated = dones & ~time_outs``, ``truncated =
+dones & time_outs``. A truncated episode bootstraps from its true final observation when the env
+hands it over as ``extras["final_observation"]`` (the observation's own form, every copy's
+observation before its reset; only finished copies' rows are read). Without it rlexp does what
+rsl_rl does: a time-out bootstraps from V of the observation the policy acted on (rsl_rl adds
+``gamma * V(s_t)`` to a time-out's reward); here that observation stands in as the step's ``"next"``
+one, so GAE computes the same ``r + gamma * V(s_t) - V(s_t)``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+
+from rlexp.envs.batched_base import FLOATS, BatchedAdapter, check_tensor, flat_layout
+from rlexp.envs.spaces import ActionCoding, action_coding
+
+log = logging.getLogger(__name__)
+
+#: The extras key of the true final observations (before the autoreset).
+FINAL_OBS_KEY = "final_observation"
+#: The extras key of the time-outs (rsl_rl's).
+TIME_OUTS_KEY = "time_outs"
+#: Dtypes a done or time-out flag may have (non-zero: set).
+FLAGS = (torch.bool, torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64, *FLOATS)
+#: What the contract asks of the env (rsl_rl's VecEnv), for messages.
+CONTRACT = "rsl_rl's VecEnv: num_envs, num_actions, device, get_observations(), step(actions)"
+
+
+def policy_observation(out: Any, where: str, what: str) -> tuple[Any, str]:
+    """The policy's observation in what ``get_observations()`` / ``step()`` returned, and its
+    group key ("" for a plain tensor): a tensor, ``(obs, extras)``, or a mapping with ``"policy"``."""
+    if isinstance(out, tuple | list) and out:
+        return policy_observation(out[0], where, what)
+    if isinstance(out, Mapping | TensorDictBase):
+        if "policy" not in out.keys():
+            raise ValueError(
+                f"{where}: {what} is a {type(out).__name__} without a 'policy' group (its keys: "
+                f"{sorted(map(str, out.keys()))}); rsl_rl 3.x's observation groups name the "
+                "policy's 'policy'"
+            )
+        return out["policy"], "policy"
+    return out, ""
+
+
+class VecEnvAdapter(BatchedAdapter):
+    """An rsl_rl-style ``VecEnv`` (``raw``) as rlexp's batched env, on the env's own device."""
+
+    contract = "vecenv"
+
+    def __init__(self, raw: Any, name: str) -> None:
+        where = f"env.name={name!r}"
+        for attr in ("num_envs", "num_actions", "device"):
+            if not hasattr(raw, attr):
+                raise TypeError(f"{where}: the env has no {attr!r} attribute ({CONTRACT})")
+        for method in ("get_observations", "step"):
+            if not callable(getattr(raw, method, None)):
+                raise TypeError(f"{where}: the env has no {method}() method ({CONTRACT})")
+        try:
+            n, num_actions = int(raw.num_envs), int(raw.num_actions)
+            device = torch.device(raw.device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise TypeError(
+                f"{where}: num_envs, num_actions or device is unusable ({exc}); {CONTRACT}"
+            ) from None
+        obs, key = policy_observation(raw.get_observations(), where, "get_observations()")
+        check_tensor(where, "get_observations()'s observation", obs, None, FLOATS, device)
+        if obs.dim() < 2 or obs.shape[0] != n:
+            raise ValueError(
+                f"{where}: get_observations()'s observation has shape {list(obs.shape)}, expected "
+                f"[num_envs={n}, ...]"
+            )
+        super().__init__(
+            raw, name, n, device, flat_layout(key, tuple(obs.shape[1:])),
+            _coding(raw, n, num_actions, where),
+        )  # fmt: skip
+        self._obs_shape = tuple(obs.shape)
+        self._has_reset = callable(getattr(raw, "reset", None))
+        self._seedable = callable(getattr(raw, "seed", None))
+        self._no_time_outs = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
+        self._live.obs_now = self._flat(obs)
+
+    def _flat(self, obs: torch.Tensor) -> torch.Tensor:
+        return obs.reshape(self.num_envs, self.obs_dim).to(torch.float32)
+
+    # -- the contract ------------------------------------------------------------------------------
+    def _raw_seed(self, seed: int) -> bool:
+        if self._seedable:
+            self.raw.seed(seed)
+        return self._seedable
+
+    def _raw_reset(self) -> torch.Tensor:
+        if self._has_reset:
+            self.raw.reset()
+        obs, _ = policy_observation(self.raw.get_observations(), self.where, "get_observations()")
+        what = "get_observations()'s observation after reset()"
+        return self._flat(check_tensor(self.where, what, obs, self._obs_shape, FLOATS, self.device))
+
+    def _raw_step(
+        self, action: torch.Tensor, prev: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        out = self.raw.step(action)
+        if not self._live.checked:  # the first step: what the env returns, then trusted
+            self._check_step(out)
+        obs_raw, rewards, dones, extras = out
+        obs = self._flat(policy_observation(obs_raw, self.where, "step()'s observation")[0])
+        reward = rewards.reshape(self.num_envs, 1).to(torch.float32)
+        done = dones.reshape(self.num_envs, 1)
+        if done.dtype != torch.bool:
+            done = done != 0
+        time_outs = extras.get(TIME_OUTS_KEY) if extras else None
+        if time_outs is None:
+            truncated = self._no_time_outs
+        else:
+            time_outs = time_outs.reshape(self.num_envs, 1)
+            truncated = done & (time_outs if time_outs.dtype == torch.bool else time_outs != 0)
+        final = extras.get(FINAL_OBS_KEY) if extras else None
+        if final is None:  # rsl_rl's stand-in: V of the observation acted on (module docstring)
+            nxt = torch.where(done, prev, obs)
+        else:
+            fin = policy_observation(final, self.where, f"extras[{FINAL_OBS_KEY!r}]")[0]
+            nxt = torch.where(done, self._flat(fin), obs)
+        return obs, nxt, reward, done, truncated
+
+    def _check_step(self, out: Any) -> None:
+        """The first step's return, against the contract (one line naming the problem)."""
+        w, n, dev = self.where, self.num_envs, self.device
+        if not isinstance(out, tuple | list) or len(out) != 4:
+            raise TypeError(
+                f"{w}: step() returned a {type(out).__name__}"
+                + (f" of {len(out)}" if isinstance(out, tuple | list) else "")
+                + "; expected (obs, rewards, dones, extras)"
+            )
+        obs_raw, rewards, dones, extras = out
+        obs = policy_observation(obs_raw, w, "step()'s observation")[0]
+        check_tensor(w, "step()'s observation", obs, self._obs_shape, FLOATS, dev)
+        rows = [(n,), (n, 1)]
+        for what, value, dtypes in (("rewards", rewards, FLOATS), ("dones", dones, FLAGS)):
+            check_tensor(w, f"step()'s {what}", value, None, dtypes, dev)
+            if tuple(value.shape) not in rows:
+                raise ValueError(
+                    f"{w}: step()'s {what} has shape {list(value.shape)}, expected [{n}] or [{n}, 1]"
+                )
+        if extras is not None and not isinstance(extras, Mapping | TensorDictBase):
+            raise TypeError(f"{w}: step()'s extras is a {type(extras).__name__}, not a dict")
+        extras = extras or {}
+        if TIME_OUTS_KEY in extras:
+            value = check_tensor(w, "extras['time_outs']", extras[TIME_OUTS_KEY], None, FLAGS, dev)
+            if tuple(value.shape) not in rows:
+                raise ValueError(
+                    f"{w}: extras['time_outs'] has shape {list(value.shape)}, expected [{n}]"
+                )
+        else:
+            log.warning(
+                "%s: step() gives no extras['time_outs']: every done is a termination (no "
+                "bootstrapping at time limits)", w,
+            )  # fmt: skip
+        if FINAL_OBS_KEY in extras:
+            fin = policy_observation(extras[FINAL_OBS_KEY], w, f"extras[{FINAL_OBS_KEY!r}]")[0]
+            check_tensor(w, f"extras[{FINAL_OBS_KEY!r}]", fin, self._obs_shape, FLOATS, dev)
+        self._live.checked = True
+
+
+def _coding(raw: Any, n: int, num_actions: int, where: str) -> ActionCoding:
+    """The actions: from the env's Gymnasium action space where it has one (a batched ``Box``
+    [N, A] gives row 0's bounds), else unbounded float actions of ``num_actions``."""
+    import gymnasium as gym
+
+    space = getattr(raw, "single_action_space", None)
+    if space is None:
+        space = getattr(getattr(raw, "unwrapped", None), "single_action_space", None)
+    if space is None:
+        space = getattr(raw, "action_space", None)
+        if isinstance(space, gym.spaces.Box) and len(space.shape) == 2 and space.shape[0] == n:
+            space = gym.spaces.Box(space.low[0], space.high[0], dtype=space.dtype)
+    if not isinstance(space, gym.spaces.Space):
+        inf = float("inf")
+        return ActionCoding(
+            "box", (num_actions,), num_actions, low=(-inf,) * num_actions, high=(inf,) * num_actions
+        )
+    coding = action_coding(space, where)
+    if coding.dim != num_actions:
+        raise ValueError(
+            f"{where}: the action space {space} has {coding.dim} "
+            f"{'components' if coding.categorical else 'dimensions'}, but num_actions={num_actions}"
+        )
+    return coding
