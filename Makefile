@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 ARGS ?=
 export MUJOCO_GL ?= egl
 
-.PHONY: install train test test-slow test-slurm test-package lint format bench bench-e2e results-classic clean
+.PHONY: install train test test-slow test-gpu test-slurm test-package lint format bench bench-e2e results-classic clean
 
 $(VENV)/.created:
 	$(PYTHON) -m venv $(VENV)
@@ -50,6 +50,11 @@ test-slow: install
 ## rlexp as users get it: its wheel and examples/user_project's in a fresh virtualenv (also in `test`).
 test-package: install
 	$(PY) -m pytest -q -m package $(ARGS)
+
+## The GPU path (tests marked `gpu`, skipped without CUDA): a batched torch env on cuda trained,
+## resumed, evaluated and exported; trainer.device=auto's choices.
+test-gpu: install
+	$(PY) -m pytest -q -m gpu $(ARGS)
 
 ## Sweeps on a real SLURM cluster (tests marked `slurm`): starts a local single-node cluster first
 ## (scripts/local-slurm.sh; root, installs slurm-wlm + munge with apt-get when missing).

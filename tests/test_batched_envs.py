@@ -169,6 +169,33 @@ def test_torchrl_step_against_hand_computed_values():
     assert (after[1:, 0] == 0).all() and (after[1:, 5:] == 0).all()  # phase 0, at rest
 
 
+def test_the_chunked_eval_loop_equals_torchrl_s_loop(monkeypatch):
+    """What an eval round runs on a GPU env (rewards and done flags read back every DEVICE_CHUNK
+    steps, none per step), here on the CPU: TorchRL's step-by-step loop's episodes and numbers."""
+    from batched_toy import ToyVecEnv
+
+    from rlexp import evaluation
+    from rlexp.config.schema import EnvConfig, PolicyConfig
+    from rlexp.envs.vecenv import VecEnvAdapter
+    from rlexp.policies.actor_critic import policy_for_env
+
+    def env_and_policy():
+        env = VecEnvAdapter(ToyVecEnv(3, seed=2), "toy")
+        torch.manual_seed(0)
+        policy = policy_for_env(PolicyConfig(), EnvConfig(normalize_observations=False), env)
+        env.set_seed(7)
+        return env, policy.sampling_policy(deterministic=True)
+
+    monkeypatch.setattr(evaluation, "DEVICE_CHUNK", 5)  # chunk ends fall inside episodes
+    env, policy = env_and_policy()
+    tally = evaluation.EpisodeTally(3, 7)
+    obs = env.reset()["observation"]
+    with torch.no_grad():  # (as run_episodes runs it)
+        evaluation._device_loop(env, policy.sampler(), obs, tally, torch.device("cpu"), None)
+    reference = evaluation.run_episodes(*env_and_policy(), 7, lean=False)
+    assert tally.metrics() == reference and reference["eval/episodes"] == 7
+
+
 def test_torchrl_action_specs_become_rlexp_actions():
     from torchrl.data import Binary, Bounded, Categorical, MultiCategorical, OneHot
 

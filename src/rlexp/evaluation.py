@@ -237,7 +237,7 @@ def _device_loop(env, sample, obs, tally: EpisodeTally, to_policy, to_env) -> No
             keys = ("reward", "done") if success_key is None else ("reward", "done", success_key)
             chunk.append(tuple(nxt.get(k).reshape(n) for k in keys))
             obs = env.autoreset_observation(nxt)
-        host = [torch.stack(column).float().cpu().numpy() for column in zip(*chunk, strict=True)]
+        host = [torch.stack(col).detach().float().cpu().numpy() for col in zip(*chunk, strict=True)]
         for t in range(DEVICE_CHUNK):
             tally.add(host[0][t], host[1][t] > 0, None if success_key is None else host[2][t])
             if tally.finished:
