@@ -10,7 +10,8 @@ A package declares one entry point in its ``pyproject.toml``::
 each entry point and, when the entry point names a function, calls it without arguments. A plugin
 registers what it adds in rlexp's registries: native tasks (``rlexp.envs.native.TASKS``), reward,
 observation, event and action terms (``REWARDS``, ``OBSERVATIONS``, ``EVENTS``, ``ACTIONS``), event
-functions (``rlexp.events.register_event``, ``allow_event_module``). An installed package is trusted
+functions (``rlexp.events.register_event``, ``allow_event_module``), batched torch env factories
+(``rlexp.envs.batched.register_env_factory``, ``allow_env_module``). An installed package is trusted
 code; a config file still names only what is registered, and cannot import arbitrary modules.
 """
 

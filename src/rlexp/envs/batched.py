@@ -109,12 +109,17 @@ def resolve_env_factory(name: str, backend: str) -> Callable[..., Any]:
 
 
 def resolve_env_device(device: str) -> str:
-    """``env.device`` as a torch device string: ``auto`` -> ``cuda`` where a GPU is visible;
-    ``cuda`` on a machine without one -> ``cpu`` with one warning (a run's saved config still
-    evaluates and exports there)."""
+    """``env.device`` as a torch device string: ``auto`` -> ``cuda`` where a GPU is visible
+    (``cuda:<local rank>`` in a distributed run); ``cuda`` on a machine without one -> ``cpu`` with
+    one warning (a run's saved config still evaluates and exports there)."""
     from rlexp.devices import resolve_device
+    from rlexp.launch import distributed
 
-    return resolve_device(device, key="env.device")
+    resolved = resolve_device(device, key="env.device")
+    dist = distributed.info()
+    if resolved == "cuda" and dist.enabled:  # each rank's envs on its own GPU, as its policy
+        return f"cuda:{dist.local_rank}"
+    return resolved
 
 
 def factory_arguments(
@@ -194,8 +199,9 @@ def make_batched_env(cfg: EnvConfig, num_envs: int, seed: int) -> EnvBase:
     if not takes_count and count != cfg.num_envs:
         env.close()
         raise ValueError(
-            f"{where} builds {count} envs (the callable takes no num_envs parameter: its own "
-            f"count) but env.num_envs={cfg.num_envs}; set env.num_envs={count} or give the "
+            f"{where} builds {count} env{'' if count == 1 else 's'} (the callable takes no "
+            f"num_envs parameter: its own count) but env.num_envs={cfg.num_envs}; set "
+            f"env.num_envs={count} or give the "
             "callable a num_envs parameter"
         )
     if takes_count and count != num_envs:
