@@ -122,13 +122,13 @@ class VecEnvAdapter(BatchedAdapter):
         done = dones.reshape(self.num_envs, 1)
         if done.dtype != torch.bool:
             done = done != 0
-        time_outs = extras.get(TIME_OUTS_KEY) if extras else None
+        time_outs = None if extras is None else extras.get(TIME_OUTS_KEY, None)
         if time_outs is None:
             truncated = self._no_time_outs
         else:
             time_outs = time_outs.reshape(self.num_envs, 1)
             truncated = done & (time_outs if time_outs.dtype == torch.bool else time_outs != 0)
-        final = extras.get(FINAL_OBS_KEY) if extras else None
+        final = None if extras is None else extras.get(FINAL_OBS_KEY, None)
         if final is None:  # rsl_rl's stand-in: V of the observation acted on (module docstring)
             nxt = torch.where(done, prev, obs)
         else:
@@ -157,8 +157,8 @@ class VecEnvAdapter(BatchedAdapter):
                 )
         if extras is not None and not isinstance(extras, Mapping | TensorDictBase):
             raise TypeError(f"{w}: step()'s extras is a {type(extras).__name__}, not a dict")
-        extras = extras or {}
-        if TIME_OUTS_KEY in extras:
+        keys = set() if extras is None else set(extras.keys())
+        if TIME_OUTS_KEY in keys:
             value = check_tensor(w, "extras['time_outs']", extras[TIME_OUTS_KEY], None, FLAGS, dev)
             if tuple(value.shape) not in rows:
                 raise ValueError(
@@ -169,7 +169,7 @@ class VecEnvAdapter(BatchedAdapter):
                 "%s: step() gives no extras['time_outs']: every done is a termination (no "
                 "bootstrapping at time limits)", w,
             )  # fmt: skip
-        if FINAL_OBS_KEY in extras:
+        if FINAL_OBS_KEY in keys:
             fin = policy_observation(extras[FINAL_OBS_KEY], w, f"extras[{FINAL_OBS_KEY!r}]")[0]
             check_tensor(w, f"extras[{FINAL_OBS_KEY!r}]", fin, self._obs_shape, FLOATS, dev)
         self._live.checked = True
