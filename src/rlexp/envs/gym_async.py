@@ -41,8 +41,15 @@ log = logging.getLogger(__name__)
 
 
 def start_method() -> str:
-    """``forkserver`` where the platform has it (Linux, macOS), else ``spawn``; never ``fork``."""
-    return "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+    """``forkserver`` where the platform has it (Linux, macOS), else ``spawn``; never ``fork``.
+    The forkserver (one per process, started with the first workers) imports Gymnasium and MuJoCo
+    once, so that each worker it forks starts with them."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return "spawn"
+    multiprocessing.get_context("forkserver").set_forkserver_preload(
+        ["__main__", "gymnasium", "mujoco"]  # (__main__: multiprocessing's default)
+    )
+    return "forkserver"
 
 
 class WorkerError(RuntimeError):
