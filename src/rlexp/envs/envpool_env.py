@@ -24,6 +24,7 @@ import torch
 
 from rlexp.config.rules import available_cpus
 from rlexp.envs.adapter import GymShapedEnv
+from rlexp.envs.gym_ids import GYM_MUJOCO_TASKS
 from rlexp.envs.spaces import UnsupportedSpace, action_coding, obs_layout
 from rlexp.extras import require
 
@@ -44,7 +45,7 @@ def check_envpool_id(name: str) -> None:
         return
     close = difflib.get_close_matches(name, known, n=3)
     hint = f"; did you mean {close[0]!r}?" if close else ""
-    mujoco = [k for k in known if k.endswith("-v5") and k[0].isupper() and "/" not in k][-14:]
+    mujoco = [k for k in GYM_MUJOCO_TASKS if k in known]
     raise KeyError(
         f"env.name={name!r} is not an EnvPool task (env.backend=envpool){hint}; its Gymnasium "
         f"MuJoCo tasks include {mujoco}; any Gymnasium env: env.backend=gymnasium_async"
