@@ -8,10 +8,12 @@ Rows: ``gymnasium`` (the copies one after another in the training process), ``gy
 EnvPool's own autoreset: no policy, no tensors), and rlexp's envpool rows as a fraction of raw
 EnvPool at the same thread count (#31's target: >= 0.8 at 8 and 64 envs).
 
-Each cell: rollouts of ``--frames`` env steps over all envs (rounded to a multiple of the env
+A measurement: rollouts of ``--frames`` env steps over all envs (rounded to a multiple of the env
 count), one warm-up, the median of ``--rounds`` timed ones (wall clock around ``next(collector)``).
+A cell: the median of ``--repeats`` measurements, taken round-robin over the cells of an env count
+(so that load coming and going on the machine hits each alike).
 
-    python benchmarks/env_scale.py                       # ~4 min on 2 cores
+    python benchmarks/env_scale.py                       # ~10 min on 2 cores
     python benchmarks/env_scale.py --envs 1 8 --rounds 3 --backends envpool raw
 """
 
@@ -85,7 +87,8 @@ def main() -> None:
     parser.add_argument("--backends", nargs="+", default=list(BACKENDS), choices=BACKENDS)
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="EnvPool threads")
     parser.add_argument("--frames", type=int, default=4096, help="env steps per rollout")
-    parser.add_argument("--rounds", type=int, default=5, help="timed rollouts per cell")
+    parser.add_argument("--rounds", type=int, default=3, help="timed rollouts per measurement")
+    parser.add_argument("--repeats", type=int, default=3, help="measurements per cell (median)")
     args = parser.parse_args()
     sys.path.insert(0, str(ROOT / "src"))
     import torch
@@ -98,6 +101,7 @@ def main() -> None:
     rows: dict[str, dict[int, float]] = {}
     for n in args.envs:
         frames = max(n, args.frames // n * n)
+        cells = []  # (label, measure): every cell of this env count, measured round-robin
         for backend in args.backends:
             for threads in args.threads if backend in ("envpool", "raw") else [0]:
                 if threads > n:
@@ -106,11 +110,18 @@ def main() -> None:
                 label = name.get(backend, f"rlexp {backend}")
                 label += f", {threads} thread{'s' * (threads > 1)}" if threads else ""
                 if backend == "raw":
-                    rate = raw_envpool_rate(n, threads, frames, args.rounds)
+                    cells.append((label, (raw_envpool_rate, n, threads, frames, args.rounds)))
                 else:
-                    rate = collection_rate(backend, n, threads, frames, args.rounds)
-                rows.setdefault(label, {})[n] = rate
-                print(f"{label}, {n} envs: {rate:,.0f} env-steps/s", file=sys.stderr, flush=True)
+                    cells.append(
+                        (label, (collection_rate, backend, n, threads, frames, args.rounds))
+                    )
+        rates: dict[str, list[float]] = {}
+        for _ in range(args.repeats):  # load that comes and goes hits every cell alike
+            for label, (measure, *params) in cells:
+                rates.setdefault(label, []).append(measure(*params))
+                print(f"{label}, {n} envs: {rates[label][-1]:,.0f} env-steps/s", file=sys.stderr)
+        for label, values in rates.items():
+            rows.setdefault(label, {})[n] = statistics.median(values)
     for threads in args.threads:
         ours, raw = (
             rows.get(f"rlexp envpool, {threads} thread{'s' * (threads > 1)}"),
@@ -121,8 +132,9 @@ def main() -> None:
                 n: ours[n] / raw[n] for n in ours if n in raw
             }
     print(
-        f"\nHalfCheetah-v5, env-steps/s (median of {args.rounds} rollouts of ~{args.frames} steps; "
-        f"{available_cpus()} CPUs, torch threads 1)\n"
+        f"\nHalfCheetah-v5, env-steps/s: median of {args.repeats} measurements taken round-robin, "
+        f"each the median of {args.rounds} rollouts of ~{args.frames} steps ({available_cpus()} "
+        "CPUs, torch threads 1)\n"
     )
     print("| | " + " | ".join(f"{n} env{'s' * (n > 1)}" for n in args.envs) + " |")
     print("|---|" + "---:|" * len(args.envs))

@@ -354,3 +354,27 @@ def test_envpool_backend_trains_stops_on_ctrl_c_resumes_with_new_episodes_and_ex
     assert sorted(r["step"] for r in rows if "eval/episode_return" in r) == [512, 1024, 1536, 2048]
     meta = _eval_and_export(run_dir)
     assert meta["observation_dim"] == 11 and meta["action_space"]["high"] == [1.0] * 3
+
+
+def test_the_eval_worker_evaluates_an_async_run_in_process():
+    """``trainer.eval_async``'s worker is a daemonic process, which may not start workers: it
+    builds the in-process backend, whose episodes are the same value for value."""
+    from rlexp.config.schema import EnvConfig, PolicyConfig
+    from rlexp.envs.gym import GymnasiumEnv
+    from rlexp.eval_worker import EvalSetup
+
+    cfg = EnvConfig(name="Hopper-v5", backend="gymnasium_async", num_eval_envs=2)
+    env, _ = EvalSetup(cfg, PolicyConfig(), seed=3, episodes=2).build()
+    assert type(env) is GymnasiumEnv and env.num_envs == 2
+    env.close()
+
+
+def test_a_local_sweep_job_starts_async_workers(tmp_path):
+    """A ``hydra/launcher=local`` job runs in a joblib worker, whose default start method (loky)
+    a forkserver child does not know: the workers start all the same."""
+    sweep = tmp_path / "sweep"
+    run = [a for a in RUN if not a.startswith(("trainer.total_frames=", "seed="))]
+    args = ["hydra/launcher=local", "env.backend=gymnasium_async", "trainer.total_frames=256"]
+    run_train(["-m", *run, *args, "seed=1", f"hydra.sweep.dir={sweep}"], cwd=tmp_path)
+    status = json.loads((sweep / "0" / "status.json").read_text())
+    assert status["state"] == "finished" and status["global_step"] == 256

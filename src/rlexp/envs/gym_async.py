@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import builtins
+import contextlib
 import functools
 import logging
 import multiprocessing
@@ -26,6 +27,7 @@ import multiprocessing.connection
 import os
 import signal
 import weakref
+from collections.abc import Iterator
 
 import numpy as np
 import torch
@@ -52,6 +54,23 @@ def start_method() -> str:
     return "forkserver"
 
 
+@contextlib.contextmanager
+def default_start_method(method: str) -> Iterator[None]:
+    """While workers start: ``method`` as multiprocessing's default where the default is not one
+    of the standard library's. A worker starts by setting its parent's default start method by
+    name, and a local sweep's job runs in a joblib worker whose default, ``loky``, a forkserver
+    child does not know."""
+    current = multiprocessing.get_start_method(allow_none=True)
+    if current in (None, "fork", "spawn", "forkserver"):
+        yield
+        return
+    multiprocessing.set_start_method(method, force=True)
+    try:
+        yield
+    finally:
+        multiprocessing.set_start_method(current, force=True)
+
+
 class WorkerError(RuntimeError):
     """A worker died or its env raised; the message is one line naming the env and the worker."""
 
@@ -73,12 +92,14 @@ class AsyncGymnasiumEnv(GymShapedEnv):
             kwargs["max_episode_steps"] = max_episode_steps
         make = functools.partial(make_worker_env, env_id, kwargs, os.getpid())
         self._where = f"env.name={env_id!r} (env.backend=gymnasium_async)"
-        with mujoco_build_warnings(env_id):  # AsyncVectorEnv builds one copy here for the spaces
+        method = start_method()
+        # (AsyncVectorEnv builds one copy here for the spaces)
+        with mujoco_build_warnings(env_id), default_start_method(method):
             vec = AsyncVectorEnv(
                 [make] * num_envs,
                 shared_memory=True,
                 copy=False,  # observations are copied out of the shared buffer once, in step
-                context=start_method(),
+                context=method,
                 daemon=True,
                 autoreset_mode=AutoresetMode.SAME_STEP,
             )
