@@ -136,20 +136,30 @@ class GymShapedEnv(EnvBase):
     def step_output(
         self, obs: np.ndarray, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray
     ) -> dict[str, torch.Tensor]:
-        """``step_tensors``' dict from float32 observations [n, D] and the step's reward and flags
-        [n] (any dtype); counts the step."""
-        n = self.num_envs
-        terminated = np.asarray(terminated, dtype=bool).reshape(n, 1)
-        truncated = np.asarray(truncated, dtype=bool).reshape(n, 1)
+        """``step_tensors``' dict from the step's float32 observations [n, D], float32 rewards
+        [n, 1] and bool flags [n, 1] (taken as they are: the tensors share their memory); counts
+        the step."""
         self._live.steps += 1
         self._live.obs_now = obs
         return {
             "observation": torch.from_numpy(obs),
-            "reward": torch.from_numpy(np.asarray(reward, dtype=np.float32).reshape(n, 1)),
+            "reward": torch.from_numpy(reward),
             "done": torch.from_numpy(terminated | truncated),
             "terminated": torch.from_numpy(terminated),
             "truncated": torch.from_numpy(truncated),
         }
+
+    def vector_output(
+        self, obs: np.ndarray, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray
+    ) -> dict[str, torch.Tensor]:
+        """``step_output`` from a vector env's batch: rewards and flags of shape [n], any dtype."""
+        n = self.num_envs
+        return self.step_output(
+            obs,
+            np.asarray(reward, dtype=np.float32).reshape(n, 1),
+            np.asarray(terminated, dtype=bool).reshape(n, 1),
+            np.asarray(truncated, dtype=bool).reshape(n, 1),
+        )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self.step_action(tensordict.get("action"))

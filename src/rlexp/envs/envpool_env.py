@@ -136,7 +136,7 @@ class EnvPoolEnv(GymShapedEnv):
             reset_obs, _ = self._pool.reset(env_id=done.astype(np.int32))
             self._reset_obs[done] = reset_obs
             self._pending_reset[done] = True
-        return self.step_output(obs, reward, terminated, truncated)
+        return self.vector_output(obs, reward, terminated, truncated)
 
     def _reset_copies(self, ids: np.ndarray) -> np.ndarray:
         obs, _ = self._pool.reset(env_id=np.asarray(ids, dtype=np.int32))

@@ -96,9 +96,9 @@ class GymnasiumEnv(GymShapedEnv):
         if self._low is None or self._reshape_actions:  # the env's values / shape, per copy
             actions = [self.action_coding.decode(actions[i]) for i in range(n)]
         obs = np.empty((n, self.obs_dim), dtype=np.float32)
-        reward = np.empty(n, dtype=np.float32)
-        terminated = np.zeros(n, dtype=bool)
-        truncated = np.zeros(n, dtype=bool)
+        reward = np.empty((n, 1), dtype=np.float32)
+        terminated = np.zeros((n, 1), dtype=bool)
+        truncated = np.zeros((n, 1), dtype=bool)
         flatten = None if self._plain_obs else self.obs_layout.flatten_into
         for i, env in enumerate(self._envs):
             o, r, term, trunc, _ = env.step(actions[i])
@@ -106,9 +106,9 @@ class GymnasiumEnv(GymShapedEnv):
                 obs[i] = o
             else:
                 flatten(obs[i], o)
-            reward[i] = r
-            terminated[i] = term
-            truncated[i] = trunc
+            reward[i, 0] = r
+            terminated[i, 0] = term
+            truncated[i, 0] = trunc
             if term or trunc:
                 self._reset_obs[i] = self._reset_one(i)
                 self._pending_reset[i] = True

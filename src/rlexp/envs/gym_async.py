@@ -148,7 +148,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
             for i in done:
                 obs[i] = final[i]
             self._pending_reset[done] = True
-        return self.step_output(obs, reward, terminated, truncated)
+        return self.vector_output(obs, reward, terminated, truncated)
 
     def _seeds(self, ids) -> list[int | None]:
         return [None if self._seed is None else self._seed + int(i) for i in ids]
