@@ -1,13 +1,15 @@
 """Gymnasium environments (the MuJoCo suite, classic control, the user's own) as batched TorchRL
-environments.
+environments, stepped in the training process (``env.backend=gymnasium``).
 
-``GymnasiumEnv`` is a lean ``EnvBase`` over ``num_envs`` Gymnasium copies: the spaces become
-TorchRL specs (``spaces.py``: observations flattened to one float32 vector, Box actions clipped to
-the box, categorical actions decoded to the env's space), and a finished copy is reset inside
-``_step`` (its true final observation goes to ``"next"`` so truncated episodes bootstrap
-correctly; the following masked ``_reset`` hands back the cached reset observation). It exists because TorchRL's ``GymEnv`` + ``DoubleToFloat`` costs ~0.4 ms of Python per
-step here (measured: 1,065 steps/s for collection alone on HalfCheetah-v5 against 15,000 for raw
-Gymnasium); ``env.backend=torchrl_gym`` still builds that reference path.
+``GymnasiumEnv`` is a lean ``EnvBase`` over ``num_envs`` Gymnasium copies (``adapter.py`` holds
+what it shares with the vectorised backends): the spaces become TorchRL specs (``spaces.py``:
+observations flattened to one float32 vector, Box actions clipped to the box, categorical actions
+decoded to the env's space), and a finished copy is reset inside ``_step`` (its true final
+observation goes to ``"next"`` so truncated episodes bootstrap correctly; the following masked
+``_reset`` hands back the cached reset observation). It exists because TorchRL's ``GymEnv`` +
+``DoubleToFloat`` costs ~0.4 ms of Python per step here (measured: 1,065 steps/s for collection
+alone on HalfCheetah-v5 against 15,000 for raw Gymnasium); ``env.backend=torchrl_gym`` still
+builds that reference path.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@
   stream after): the same rollouts, value for value (tested).
 - Workers start with ``forkserver`` (``spawn`` where there is none): the training process has torch
   and its thread pools, which ``fork`` copies half-initialised; a forkserver child starts from a
-  clean single-threaded process and imports only what the env needs.
+  clean single-threaded process (which has imported Gymnasium, MuJoCo and the main module).
 - Resume: exact where the env offers state (MuJoCo integration state, or its
   ``get_state``/``set_state``), saved and restored inside the workers with each copy's RNG and
   time-limit counter; else the documented restart.
@@ -94,15 +94,20 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         self._where = f"env.name={env_id!r} (env.backend=gymnasium_async)"
         method = start_method()
         # (AsyncVectorEnv builds one copy here for the spaces)
-        with mujoco_build_warnings(env_id), default_start_method(method):
-            vec = AsyncVectorEnv(
-                [make] * num_envs,
-                shared_memory=True,
-                copy=False,  # observations are copied out of the shared buffer once, in step
-                context=method,
-                daemon=True,
-                autoreset_mode=AutoresetMode.SAME_STEP,
-            )
+        try:
+            with mujoco_build_warnings(env_id), default_start_method(method):
+                vec = AsyncVectorEnv(
+                    [make] * num_envs,
+                    shared_memory=True,
+                    copy=False,  # observations are copied out of the shared buffer once, in step
+                    context=method,
+                    daemon=True,
+                    autoreset_mode=AutoresetMode.SAME_STEP,
+                )
+        except (EOFError, ConnectionError) as exc:  # (AsyncVectorEnv terminates the others)
+            raise WorkerError(
+                f"{self._where}: a worker failed to start ({exc!r}; its traceback is above)"
+            ) from None
         try:
             obs_space, act_space, kind = self._guarded(vec, vec.call, "rlexp_info")[0]
             where = f"env.name={env_id!r}"
