@@ -153,9 +153,14 @@ def test_a_missing_envpool_extra_is_one_line_naming_it(monkeypatch):
         (["env.backend=envpool", "env.name=toy_envs:DictGoal-v0"], "not a module:EnvId env"),
         (["env.backend=envpool", "+env.kwargs.reset_noise=0.2"], "env.kwargs.reset_noise is not"),
         (["env.backend=gymnasium_async", "env.name=Hoper-v5"], "did you mean 'Hopper-v5'?"),
+        (
+            ["env.backend=gymnasium_async", "events=domain_randomization"],
+            "(env.backend=gymnasium_async) exposes no MuJoCo model to the training process",
+        ),
+        (["env.backend=envpool", "events=eval_video"], "env.backend=envpool does not render"),
     ],
 )
-def test_bad_names_are_one_line_at_the_config_check(overrides, words):
+def test_bad_names_and_what_cannot_run_are_one_line_at_the_config_check(overrides, words):
     from rlexp.config.checks import check_buildable
     from rlexp.config.validate import ConfigError, to_root_config
 

@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 class GymShapedEnv(EnvBase):
     """``num_envs`` copies of a Gymnasium-spaced task as one TorchRL env of rlexp's shape."""
 
+    #: the ``env.backend`` this class implements
+    backend = "gymnasium"
     #: how a checkpoint holds these envs mid-episode (``env_state``): mujoco | state | restart
     state_kind = "restart"
     #: why an env of this kind holds no state (the restart's ``resume_mode``)

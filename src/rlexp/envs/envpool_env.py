@@ -70,6 +70,7 @@ def pool_threads(requested: int, num_envs: int) -> int:
 class EnvPoolEnv(GymShapedEnv):
     """``num_envs`` copies of an EnvPool task stepped by its thread pool, as one TorchRL env."""
 
+    backend = "envpool"
     no_state_reason = "EnvPool offers no env state"
 
     def __init__(

@@ -78,6 +78,8 @@ class WorkerError(RuntimeError):
 class AsyncGymnasiumEnv(GymShapedEnv):
     """``num_envs`` copies of a Gymnasium env, each in a worker process, as one TorchRL env."""
 
+    backend = "gymnasium_async"
+
     def __init__(
         self,
         env_id: str,
