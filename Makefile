@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 ARGS ?=
 export MUJOCO_GL ?= egl
 
-.PHONY: install train test test-slow test-gpu test-slurm test-package lint format bench bench-e2e results-classic clean
+.PHONY: install train test test-slow test-gpu test-slurm test-package lint format bench bench-e2e bench-envs results-backends results-classic clean
 
 $(VENV)/.created:
 	$(PYTHON) -m venv $(VENV)
@@ -88,6 +88,16 @@ bench: $(VENV)/.bench
 ## (1M steps with evaluation, rlexp eval sync + async and SB3, ~35 min); --env, --anchor, --variant.
 bench-e2e: $(VENV)/.bench
 	$(PY) benchmarks/end_to_end.py $(ARGS)
+
+## Batched envs and scale (#31): collection env-steps/s of HalfCheetah-v5 at 1, 8, 64 envs on the
+## gymnasium, gymnasium_async and envpool backends and raw EnvPool (docs/performance.md); ~10 min.
+bench-envs: install
+	$(PY) benchmarks/env_scale.py $(ARGS)
+
+## The backends' learning (#31): +experiment=mujoco_throughput on gymnasium and envpool, HalfCheetah
+## and Hopper, seeds 1 2 3, 1M steps each, launch to exit and returns (docs/performance.md).
+results-backends: install
+	$(PY) benchmarks/backend_learning.py $(ARGS)
 
 ## Learning, measured (#28): the classic-control presets (+experiment=cartpole_ppo, acrobot_ppo,
 ## pendulum_ppo, lunar_lander_ppo) x seeds 0 1 2, one run at a time, and the steps and seconds each

@@ -70,11 +70,11 @@ def test_mujoco_warnings_while_building_go_to_the_log_not_stdout_or_the_working_
 
     import mujoco
 
-    from rlexp.envs import gym as gym_adapter
+    from rlexp.envs import gym_ids as gym_adapter
 
     monkeypatch.chdir(tmp_path)
     capfd.readouterr()
-    with caplog.at_level(logging.WARNING, logger="rlexp.envs.gym"):
+    with caplog.at_level(logging.WARNING, logger="rlexp.envs.gym_ids"):
         GymnasiumEnv("Hopper-v5", num_envs=2).reset()
         out, err = capfd.readouterr()
         assert "settotalmass" not in out + err

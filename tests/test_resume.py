@@ -3,6 +3,7 @@ bit-identical parameters to an uninterrupted run; corrupt checkpoints are skippe
 
 from __future__ import annotations
 
+import os
 import signal
 import time
 from pathlib import Path
@@ -42,23 +43,31 @@ def _kill_after_checkpoint(
     ckpt_dir: Path,
     step: int,
     env_extra: dict[str, str] | None = None,
-) -> None:
-    """``train.py args``, SIGKILLed once the checkpoint of ``step`` exists; its process group is
-    killed when this returns or fails (``Children``); ``env_extra``: more environment variables."""
+    sig: int = signal.SIGKILL,
+) -> int:
+    """``train.py args``, sent ``sig`` once the checkpoint of ``step`` exists (SIGKILL: to the
+    process; another signal: to its process group, as a terminal's Ctrl-C is); its process group
+    is killed when this returns or fails (``Children``); ``env_extra``: more environment variables.
+    The run's PID (its session id: it leads a session of its own)."""
     with Children() as children:
         proc = children.train(args, cwd, cwd / "killed-run.txt", env_extra=env_extra)
         deadline = time.time() + 300
         while time.time() < deadline and proc.poll() is None:
             if any(p.name.endswith(f"_step_{step:09d}.pt") for p in ckpt_dir.glob("*.pt")):
-                proc.send_signal(signal.SIGKILL)
+                if sig == signal.SIGKILL:
+                    proc.send_signal(sig)
+                else:
+                    os.killpg(proc.pid, sig)
                 break
             time.sleep(0.02)
         proc.wait(timeout=60)
-    assert proc.returncode == -signal.SIGKILL, (
-        f"the run was not killed mid-way: {(cwd / 'killed-run.txt').read_text()}"
+    expected = -sig if sig == signal.SIGKILL else 128 + sig  # rlexp stops with 128 + signal
+    assert proc.returncode == expected, (
+        f"the run was not stopped mid-way: {(cwd / 'killed-run.txt').read_text()}"
     )
     steps = [int(p.stem.rsplit("_", 1)[1]) for p in step_checkpoints(ckpt_dir)]
     assert max(steps) < 2 * step, "the run finished before it was killed"
+    return proc.pid
 
 
 def _same(a, b) -> bool:

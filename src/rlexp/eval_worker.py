@@ -18,6 +18,7 @@ update (docs/performance.md, "Evaluation off the critical path").
 from __future__ import annotations
 
 import copy
+import dataclasses
 import io
 import logging
 import os
@@ -60,8 +61,13 @@ class EvalSetup:
         from rlexp.envs.factory import make_env
         from rlexp.policies.actor_critic import policy_for_env
 
-        env = make_env(self.env, self.env.num_eval_envs, self.seed)
-        return env, policy_for_env(self.policy, self.env, env).to(self.device)
+        cfg = self.env
+        if cfg.backend == "gymnasium_async":
+            # This worker is a daemonic process, which may not start processes; the in-process
+            # backend gives the same episodes, value for value (docs/envs.md).
+            cfg = dataclasses.replace(cfg, backend="gymnasium")
+        env = make_env(cfg, cfg.num_eval_envs, self.seed)
+        return env, policy_for_env(self.policy, cfg, env).to(self.device)
 
 
 @dataclass

@@ -226,6 +226,17 @@ class ActionCoding:
             return action.reshape(self.shape) if len(self.shape) != 1 else action
         return (np.asarray(action) + np.asarray(self.start)).reshape(self.shape).astype(self.dtype)
 
+    def decode_batch(self, actions: np.ndarray) -> np.ndarray:
+        """``decode`` for every copy at once (box: float [n, dim], clipped; categorical: int
+        [n, K]): the batched action a vector env (AsyncVectorEnv, EnvPool) takes."""
+        n = actions.shape[0]
+        if self.kind == "box":
+            return actions if len(self.shape) == 1 else actions.reshape(n, *self.shape)
+        if self.kind == "discrete":
+            return (actions[:, 0] + self.start[0]).astype(self.dtype)
+        shifted = np.asarray(actions) + np.asarray(self.start)
+        return shifted.reshape(n, *self.shape).astype(self.dtype)
+
     def record(self) -> dict[str, Any]:
         """Plain data for checkpoints and export metadata."""
         out: dict[str, Any] = {

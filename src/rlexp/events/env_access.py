@@ -52,6 +52,12 @@ def nominal_model(env: Any):
     if model is None or not type(model).__module__.startswith("mujoco"):
         name = getattr(env, "env_id", None)
         what = f"env.name={name!r}" if name else type(env).__name__
+        backend = getattr(env, "backend", "gymnasium")
+        if backend != "gymnasium":  # the models live in worker processes or EnvPool's C++
+            raise TypeError(
+                f"{what} (env.backend={backend}) exposes no MuJoCo model to the training process "
+                "(events that change physics need one: env.backend=gymnasium)"
+            )
         raise TypeError(f"{what} has no MuJoCo model (events that change physics need one)")
     return model
 

@@ -1,0 +1,85 @@
+"""What runs inside a ``gymnasium_async`` worker process: the env, built there, behind a wrapper
+that flattens its observations (``spaces.py``, so shared memory holds one float32 vector per copy),
+drops the per-step infos (rlexp reads none of them: less to pickle through the pipe), and answers
+the adapter's checkpoint calls (``env_state.copy_state`` / ``restore_copy``, run in the worker).
+
+No torch here: each worker imports this module, and torch would cost every worker a second and
+~200 MB.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from rlexp.envs.env_state import copy_state, env_state_kind, restore_copy
+from rlexp.envs.gym_ids import mujoco_build_warnings
+from rlexp.envs.spaces import obs_layout
+
+
+def make_worker_env(env_id: str, kwargs: dict, parent_pid: int) -> WorkerEnv:
+    """Build the env in a worker (``AsyncVectorEnv`` also calls this once in the training process,
+    ``parent_pid``, for the spaces). ``module:EnvId`` imports its module here; an id an rlexp
+    plugin registers needs the plugins loaded here too."""
+    if os.getpid() != parent_pid:
+        # A worker leads a process group of its own: Ctrl-C (SIGINT to the terminal's process
+        # group) and ``kill -TERM -PGID`` are the training process's to handle; it finishes its
+        # iteration, checkpoints and closes the workers. A worker still exits when its pipe closes.
+        os.setpgrp()
+    if ":" not in env_id and env_id not in gym.registry:
+        from rlexp.plugins import load_plugins
+
+        load_plugins()
+    with mujoco_build_warnings(env_id):
+        env = gym.make(env_id, **kwargs)
+    return WorkerEnv(env, env_id)
+
+
+class WorkerEnv(gym.Wrapper):
+    """A worker's env as the adapter drives it: flat float32 observations, no infos, and the
+    ``rlexp_*`` calls (``AsyncVectorEnv.call`` / ``get_attr`` / ``set_attr``) for resume."""
+
+    def __init__(self, env: gym.Env, env_id: str) -> None:
+        super().__init__(env)
+        self.env_id = env_id
+        self.layout = obs_layout(env.observation_space, f"env.name={env_id!r}")
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.layout.dim,), np.float32)
+        self.kind = env_state_kind(env)
+        self._restored = False
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, _ = self.env.reset(seed=seed, options=options or None)
+        return self.layout.flatten(obs), {}
+
+    def step(self, action: Any):
+        obs, reward, terminated, truncated, _ = self.env.step(action)
+        return self.layout.flatten(obs), reward, terminated, truncated, {}
+
+    def rlexp_info(self) -> tuple[gym.Space, gym.Space, str]:
+        """The env's own observation and action spaces and its ``state_kind``."""
+        return self.env.observation_space, self.env.action_space, self.kind
+
+    def rlexp_copy_state(self, kind: str) -> dict | tuple[str, str, str]:
+        """This copy's checkpoint entry; an env whose ``get_state()`` fails answers
+        ``("error", type name, message)`` instead of raising (an exception ends a worker)."""
+        try:
+            return copy_state(self.env, kind, self.env_id)
+        except Exception as exc:
+            return ("error", type(exc).__name__, str(exc))
+
+    @property
+    def rlexp_restore(self) -> bool:
+        """Whether the last ``(kind, entry)`` set here restored this copy (``restore_copy``)."""
+        return self._restored
+
+    @rlexp_restore.setter
+    def rlexp_restore(self, value: tuple[str, dict]) -> None:
+        kind, entry = value
+        self._restored = restore_copy(self.env, entry, kind)
+
+    def rlexp_current_obs(self) -> np.ndarray:
+        """The flattened observation of a MuJoCo env's current (restored) state."""
+        return self.layout.flatten(self.env.unwrapped._get_obs())
