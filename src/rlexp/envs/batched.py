@@ -100,9 +100,13 @@ def resolve_env_factory(name: str, backend: str) -> Callable[..., Any]:
         ) from None
     fn = mod
     for part in attr.split("."):
-        fn = getattr(fn, part, None)
+        owner, fn = fn, getattr(fn, part, None)
         if fn is None:
-            raise ValueError(f"{where}: module {module!r} has no attribute {attr!r}")
+            import difflib
+
+            close = difflib.get_close_matches(part, [n for n in dir(owner) if n[:1] != "_"], n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise ValueError(f"{where}: module {module!r} has no attribute {attr!r}{hint}")
     if not callable(fn):
         raise ValueError(f"{where}: {attr!r} is a {type(fn).__name__}, not a callable")
     return fn
