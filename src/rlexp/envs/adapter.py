@@ -17,11 +17,11 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Unbounded
 from torchrl.envs import EnvBase
 
 from rlexp.envs.env_state import RESTORED, restart_mode, restart_seed
 from rlexp.envs.spaces import ActionCoding, ObsLayout
+from rlexp.envs.specs import set_specs
 
 log = logging.getLogger(__name__)
 
@@ -52,33 +52,12 @@ class GymShapedEnv(EnvBase):
         self.action_coding = coding
         self.obs_dim = layout.dim
         self.act_dim = coding.dim
-        dev = self.device
-        self.observation_spec = Composite(
-            observation=Unbounded(shape=(n, self.obs_dim), dtype=torch.float32, device=dev),
-            shape=(n,),
-            device=dev,
-        )
+        set_specs(self, n, self.obs_dim, coding)
         if coding.categorical:
             self._low = self._high = None
-            self.action_spec = MultiCategorical(
-                nvec=list(coding.nvec), shape=(n, self.act_dim), dtype=torch.int64, device=dev
-            )
         else:
             self._low = np.asarray(coding.low, dtype=np.float64)
             self._high = np.asarray(coding.high, dtype=np.float64)
-            bound = lambda v: torch.as_tensor(v, dtype=torch.float32).expand(n, self.act_dim)  # noqa: E731
-            self.action_spec = Bounded(
-                low=bound(self._low).clone(),
-                high=bound(self._high).clone(),
-                shape=(n, self.act_dim),
-                dtype=torch.float32,
-                device=dev,
-            )
-        self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32, device=dev)
-        flag = lambda: Categorical(2, shape=(n, 1), dtype=torch.bool, device=dev)  # noqa: E731
-        self.done_spec = Composite(
-            done=flag(), terminated=flag(), truncated=flag(), shape=(n,), device=dev
-        )
         self._state_warned = False
         self._seed: int | None = None  # seeds the next full reset (then None: streams continue)
         self._base_seed: int | None = (

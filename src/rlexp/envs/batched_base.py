@@ -20,12 +20,12 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Unbounded
 from torchrl.envs import EnvBase
 
 from rlexp.devices import same_device
 from rlexp.envs.env_state import plain_state
 from rlexp.envs.spaces import ActionCoding, ObsLayout, ObsPart
+from rlexp.envs.specs import set_specs
 
 log = logging.getLogger(__name__)
 
@@ -107,40 +107,17 @@ class BatchedAdapter(EnvBase):
         self.action_coding = coding
         super().__init__(batch_size=torch.Size([n]), device=device)
         self.obs_dim, self.act_dim = obs_layout.dim, coding.dim
+        set_specs(self, n, self.obs_dim, coding)
         dev = self.device
-        self.observation_spec = Composite(
-            observation=Unbounded(shape=(n, self.obs_dim), dtype=torch.float32, device=dev),
-            shape=(n,),
-            device=dev,
-        )
         if coding.categorical:
-            self.action_spec = MultiCategorical(
-                nvec=list(coding.nvec), shape=(n, self.act_dim), dtype=torch.int64, device=dev
-            )
             self._start = torch.tensor(coding.start, dtype=torch.int64, device=dev)
             self._low = self._high = None
         else:
             low = torch.tensor(coding.low, dtype=torch.float32, device=dev)
             high = torch.tensor(coding.high, dtype=torch.float32, device=dev)
-            self.action_spec = Bounded(
-                low=low.expand(n, self.act_dim).clone(),
-                high=high.expand(n, self.act_dim).clone(),
-                shape=(n, self.act_dim),
-                dtype=torch.float32,
-                device=dev,
-            )
             bounded = any(abs(v) != float("inf") for v in (*coding.low, *coding.high))
             self._low, self._high = (low, high) if bounded else (None, None)  # None: no clip
             self._start = None
-        self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32, device=dev)
-        flag = {"n": 2, "shape": (n, 1), "dtype": torch.bool, "device": dev}
-        self.done_spec = Composite(
-            done=Categorical(**flag),
-            terminated=Categorical(**flag),
-            truncated=Categorical(**flag),
-            shape=(n,),
-            device=dev,
-        )
         get, put = getattr(raw, "get_state", None), getattr(raw, "set_state", None)
         #: how a checkpoint holds the env mid-episode: state (its get_state) | restart
         self.state_kind = "state" if callable(get) and callable(put) else "restart"
