@@ -224,7 +224,7 @@ def _device_loop(env, sample, obs, tally: EpisodeTally, to_policy, to_env) -> No
     """The lean loop for an env on a GPU: rewards and done flags stay there, read back to the host
     once per ``DEVICE_CHUNK`` steps (no host round trip per step); the same tally, step by step."""
     n = len(tally.quota)
-    success_key, first = None, True
+    success_key, first, keys = None, True, ("reward", "done")
     while not tally.finished:
         chunk: list[tuple[torch.Tensor, ...]] = []
         for _ in range(DEVICE_CHUNK):
@@ -232,9 +232,11 @@ def _device_loop(env, sample, obs, tally: EpisodeTally, to_policy, to_env) -> No
                 obs = obs.to(to_policy)
             action = sample(obs)[-2]  # (..., action, log-prob)
             nxt = env.step_action(action if to_env is None else action.to(to_env))
-            if first:
+            if first:  # an env's step output always has the same keys
                 success_key, first = _success_key(env, nxt), False
-            keys = ("reward", "done") if success_key is None else ("reward", "done", success_key)
+                keys = (
+                    ("reward", "done") if success_key is None else ("reward", "done", success_key)
+                )
             chunk.append(tuple(nxt.get(k).reshape(n) for k in keys))
             obs = env.autoreset_observation(nxt)
         host = [torch.stack(col).detach().float().cpu().numpy() for col in zip(*chunk, strict=True)]
