@@ -90,12 +90,13 @@ def _pair(nvec, compile_choice="false", **overrides):
     pol = _policy(nvec)
     cfg = AlgorithmConfig(**{**SETTINGS, **overrides})
     ref = make_algorithm(cfg, copy.deepcopy(pol), total_iterations=1_000_000)
+    ref.use_fused_step = False  # today's path: ClipPPOLoss + guarded_step
     fused = make_algorithm(
         AlgorithmConfig(**{**SETTINGS, **overrides, "compile": compile_choice}),
         pol,
         total_iterations=1_000_000,
     )
-    fused.use_fused_step = True
+    assert fused.use_fused_step, "the fused step is the default"
     return fused, ref
 
 
@@ -167,7 +168,7 @@ def test_fused_loss_and_gradients_equal_clipppoloss_on_one_minibatch(head):
 def test_hook_changes_take_effect_as_in_the_reference():
     """clip_epsilon, critic_coeff, max_grad_norm (0: off), entropy_coeff (0: the term leaves the
     loss and loss/entropy_term the metrics) and lr, set between updates as hooks do."""
-    fused, ref = _pair(HEADS["gaussian"])
+    fused, ref = _pair(HEADS["gaussian"], anneal_lr=True)
     batch = _rollout(fused.policy)
     changes = [
         {"clip_epsilon": 0.3, "critic_coeff": 0.2},
@@ -214,7 +215,6 @@ def test_what_the_fused_step_does_not_cover_keeps_todays_path_and_says_why(caplo
     )
     with caplog.at_level(logging.INFO, logger="rlexp.algorithms.ppo"):
         for algo in (distributed, adaptive):
-            algo.use_fused_step = True
             algo.update(batch.clone())
             assert algo.fused is None
     assert "not fused: distributed gradient averaging" in caplog.text

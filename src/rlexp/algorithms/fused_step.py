@@ -94,6 +94,7 @@ class FusedPPOStep:
         self.compiled = compiled
         self.compile_choice: str = algo.compile
         self._first = compiled  # the first compiled call compiles (``_first_step``)
+        self._state: tuple[list[torch.Tensor], ...] | None = None  # Adam's, per update
         self._grads: Callable = self._loss_and_grads
         self._apply: Callable = self._clip_and_adam
         if compiled:
@@ -219,8 +220,8 @@ class FusedPPOStep:
             param.sub_(step_size * m / denom)
 
     def _adam_state(self) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
-        """Adam's state tensors (created as ``Adam._init_group`` does with ``fused=True`` when
-        missing), looked up afresh per update: ``load_state_dict`` replaces them."""
+        """Adam's state tensors: step counts, first and second moments (created as
+        ``Adam._init_group`` does with ``fused=True`` where missing)."""
         for p in self.params:
             state = self.optimizer.state[p]
             if not state:
@@ -239,7 +240,6 @@ class FusedPPOStep:
         minibatch: Sequence[torch.Tensor],
         hyper: torch.Tensor,
         lr: torch.Tensor | float,
-        state: tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]],
         where: str,
     ) -> torch.Tensor:
         """One guarded minibatch step; its statistics in STEP_STATS order."""
@@ -250,7 +250,9 @@ class FusedPPOStep:
                 del terms["loss_entropy"]
             what = what_was_non_finite(terms, total, self.params, self.param_names, False)
             raise NonFiniteError(f"non-finite {what} in {where}")
-        self._apply(grad_norm, hyper, lr, state)
+        if self._state is None:  # Adam's state appears at its first step, as torch.optim.Adam's
+            self._state = self._adam_state()
+        self._apply(grad_norm, hyper, lr, self._state)
         return torch.cat([stats[:4], grad_norm.reshape(1), stats[4:]])
 
     def epochs(
@@ -266,7 +268,8 @@ class FusedPPOStep:
         lr: torch.Tensor | float = float(self.optimizer.param_groups[0]["lr"])
         if self.compiled:  # a tensor: a new rate (annealing, hooks) must not recompile
             lr = torch.tensor(lr, dtype=torch.float64, device=device)
-        state = self._adam_state()
+        # Adam's state tensors, looked up afresh: ``load_state_dict`` replaces them.
+        self._state = self._adam_state() if self.optimizer.state else None
         rows = []
         for epoch in range(cfg.num_epochs):
             # One gather per epoch, then contiguous slices (views), as ppo.update does.
@@ -276,10 +279,10 @@ class FusedPPOStep:
                 where = f"PPO update (epoch {epoch}, minibatch {start // mb})"
                 batch = [t[start : start + mb] for t in shuffled]
                 step = self._first_step if self._first else self.step
-                rows.append(step(batch, hyper, lr, state, where))
+                rows.append(step(batch, hyper, lr, where))
         return rows
 
-    def _first_step(self, batch, hyper, lr, state, where) -> torch.Tensor:
+    def _first_step(self, batch, hyper, lr, where) -> torch.Tensor:
         """The first compiled step compiles: its random draws undone (a resumed run compiles at
         another point), a backend failure falls back to eager unless ``algorithm.compile=true``."""
         from rlexp.checkpoint import rng_state, set_rng_state
@@ -288,7 +291,7 @@ class FusedPPOStep:
         t0 = time.perf_counter()
         rng = rng_state()
         try:
-            out = self.step(batch, hyper, lr, state, where)
+            out = self.step(batch, hyper, lr, where)
         except NonFiniteError:
             raise
         except Exception as exc:
@@ -300,7 +303,7 @@ class FusedPPOStep:
                 self._clip_and_adam,
                 False,
             )
-            return self.step(batch, hyper, float(lr), state, where)
+            return self.step(batch, hyper, float(lr), where)
         finally:
             set_rng_state(rng)  # the step itself draws nothing: only compiling did
         log.info(

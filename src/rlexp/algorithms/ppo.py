@@ -7,9 +7,12 @@ minibatch step from the KL between the behaviour and the current policy (Gaussia
 
 Speed (docs/performance.md): the loss can run through ``torch.compile`` (``algorithm.compile``), Adam
 is the fused kernel where torch has one, and the per-minibatch statistics stay tensors until the end
-of the update. None of it changes the maths: ``tests/test_ppo_math.py`` checks a whole update
-against a plain-torch PPO. The guarded optimiser step (gradient sync, NaN guard, clipping) and Adam
-are shared with GRPO (``base.py``).
+of the update. The minibatch step is ``fused_step.py`` (ClipPPOLoss's maths on plain tensors,
+backward, clipping and Adam; compiled with the loss's decision) wherever it covers the run, today's
+path (ClipPPOLoss, then ``guarded_step``) otherwise, chosen once at the first update and logged.
+None of it changes the maths: ``tests/test_ppo_math.py`` checks a whole update against a plain-torch
+PPO, ``tests/test_fast_update.py`` the fused step against ClipPPOLoss. The guarded optimiser step
+(gradient sync, NaN guard, clipping) and Adam are shared with GRPO (``base.py``).
 """
 
 from __future__ import annotations
@@ -114,7 +117,7 @@ class PPO(MutableHyperparameters):
     """One PPO learner: ``update(batch)`` runs GAE then the clipped-surrogate epochs on a rollout."""
 
     #: Whether the first update may choose the fused minibatch step (fused_step.py) over today's.
-    use_fused_step: bool = False
+    use_fused_step: bool = True
 
     def __init__(
         self,
