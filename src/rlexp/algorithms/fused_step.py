@@ -73,6 +73,21 @@ def unsupported(algo) -> str | None:
     return None
 
 
+def _step_hooks(optimizer: torch.optim.Optimizer) -> tuple[list[Callable], list[Callable]]:
+    """The pre- and post-step hooks ``optimizer.step()`` would run (global ones included)."""
+    from torch.optim import optimizer as optim
+
+    pre = [
+        *optim._global_optimizer_pre_hooks.values(),
+        *optimizer._optimizer_step_pre_hooks.values(),
+    ]
+    post = [
+        *optimizer._optimizer_step_post_hooks.values(),
+        *optim._global_optimizer_post_hooks.values(),
+    ]
+    return pre, post
+
+
 class FusedPPOStep:
     """PPO's minibatch steps over plain tensors: ``epochs`` runs an update's, one statistics row
     (STEP_STATS) per minibatch."""
@@ -252,7 +267,12 @@ class FusedPPOStep:
             raise NonFiniteError(f"non-finite {what} in {where}")
         if self._state is None:  # Adam's state appears at its first step, as torch.optim.Adam's
             self._state = self._adam_state()
+        pre, post = _step_hooks(self.optimizer)
+        for hook in pre:  # as torch.optim.Optimizer.step: callbacks see every optimiser step
+            hook(self.optimizer, (), {})
         self._apply(grad_norm, hyper, lr, self._state)
+        for hook in post:
+            hook(self.optimizer, (), {})
         return torch.cat([stats[:4], grad_norm.reshape(1), stats[4:]])
 
     def epochs(
