@@ -6,7 +6,8 @@ fused step (``rlexp/algorithms/fused_step.py``), eager and compiled.
 Shapes: the standard setting (64x64 tanh, obs 17, act 6, minibatch 64); rlexp's rows time whole
 updates of a 2048-sample rollout x 10 epochs (GAE and the flatten included) divided by the 320
 minibatch steps. Compile time is not counted (one untimed warm-up update or 50 steps first). One
-torch thread. Prints a markdown table of microseconds per minibatch step (median of ``--repeats``).
+torch thread. The contenders are timed in turns, ``--repeats`` rounds; prints a markdown table of
+microseconds per minibatch step (medians).
 
     PYTHONPATH=src .venv/bin/python benchmarks/ppo_floor.py --repeats 5
 """
@@ -72,18 +73,19 @@ def plain_step_fn(compiled: bool):
     return lambda: fn(*data)
 
 
-def time_plain(compiled: bool, steps: int, repeats: int) -> list[float]:
-    """Microseconds per plain-torch step, one value per repeat."""
+def plain_contender(compiled: bool, steps: int):
+    """A callable timing ``steps`` plain-torch steps (microseconds per step); warmed up."""
     call = plain_step_fn(compiled)
     for _ in range(50):
         call()
-    out = []
-    for _ in range(repeats):
+
+    def run() -> float:
         t0 = time.perf_counter()
         for _ in range(steps):
             call()
-        out.append((time.perf_counter() - t0) / steps * 1e6)
-    return out
+        return (time.perf_counter() - t0) / steps * 1e6
+
+    return run
 
 
 def rlexp_setup(compile_choice: str, fused: bool):
@@ -122,17 +124,18 @@ def rlexp_setup(compile_choice: str, fused: bool):
     return algo, batch
 
 
-def time_rlexp(compile_choice: str, fused: bool, updates: int, repeats: int) -> list[float]:
-    """Microseconds per minibatch step of rlexp's update (whole update / minibatch steps)."""
+def rlexp_contender(compile_choice: str, fused: bool, updates: int):
+    """A callable timing ``updates`` rlexp updates (microseconds per minibatch step); warmed up."""
     algo, batch = rlexp_setup(compile_choice, fused)
     algo.update(copy.deepcopy(batch))  # warm-up: compiles where compile is on
-    out = []
-    for _ in range(repeats):
+
+    def run() -> float:
         t0 = time.perf_counter()
         for _ in range(updates):
             algo.update(batch.clone())
-        out.append((time.perf_counter() - t0) / (updates * EPOCHS * (SAMPLES // MB)) * 1e6)
-    return out
+        return (time.perf_counter() - t0) / (updates * EPOCHS * (SAMPLES // MB)) * 1e6
+
+    return run
 
 
 def main() -> None:
@@ -143,16 +146,19 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    n, k = args.repeats, args.updates
-    rows = {
-        "plain torch, eager": lambda: time_plain(False, args.steps, n),
-        "plain torch, one compiled step (floor)": lambda: time_plain(True, args.steps, n),
-        "rlexp today (ClipPPOLoss), eager": lambda: time_rlexp("false", False, k, n),
-        "rlexp today (ClipPPOLoss), loss compiled": lambda: time_rlexp("true", False, k, n),
-        "rlexp fused step, eager": lambda: time_rlexp("false", True, k, n),
-        "rlexp fused step, compiled": lambda: time_rlexp("true", True, k, n),
+    k = args.updates
+    contenders = {  # all built (and compiled) first, then timed in turns: the load drifts
+        "plain torch, eager": plain_contender(False, args.steps),
+        "plain torch, one compiled step (floor)": plain_contender(True, args.steps),
+        "rlexp today (ClipPPOLoss), eager": rlexp_contender("false", False, k),
+        "rlexp today (ClipPPOLoss), loss compiled": rlexp_contender("true", False, k),
+        "rlexp fused step, eager": rlexp_contender("false", True, k),
+        "rlexp fused step, compiled": rlexp_contender("true", True, k),
     }
-    results = {name: fn() for name, fn in rows.items()}
+    results: dict[str, list[float]] = {name: [] for name in contenders}
+    for _ in range(args.repeats):
+        for name, run in contenders.items():
+            results[name].append(run())
     floor = statistics.median(results["plain torch, one compiled step (floor)"])
     print(f"| minibatch step (64x64 tanh, obs {OBS}, act {ACT}, mb {MB}) | us / step | x floor |")
     print("|---|---:|---:|")
