@@ -307,6 +307,7 @@ def test_the_gradient_each_rank_steps_with_is_the_mean_of_the_ranks_gradients(tm
         pol = make_policy(PolicyConfig(), 5, 2, Bounded(-1.0, 1.0, shape=(2,)))
         pol.load_state_dict(saved["initial"])
         algo = make_algorithm(AlgorithmConfig(**_GRAD_CFG), pol, 1)
+        algo.use_fused_step = False  # the ranks' path (distributed): optimizer.step is spied on
         stepped, step = [], algo.optimizer.step
 
         def record(*args, _stepped=stepped, _step=step, _algo=algo, **kwargs):

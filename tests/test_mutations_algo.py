@@ -300,6 +300,9 @@ def _learning_rates(name: str, anneal: bool) -> tuple[list[float], list[float]]:
         )  # fmt: skip
         batches = [_grpo_rollout(pol, envs=4, steps=4) for _ in range(4)]
     algo = make_algorithm(cfg, pol, total_iterations=4)
+    # optimizer.step is spied on: PPO's today's path (the fused step calls Adam's kernel itself;
+    # its learning rates: tests/test_fast_update.py)
+    algo.use_fused_step = False
     stepped, step = [], algo.optimizer.step
 
     def record(*args, **kwargs):
@@ -447,6 +450,8 @@ def test_a_critic_coeff_schedule_is_the_coefficient_of_the_next_updates_critic_l
             mse = (critic(minibatch["observation"]) - minibatch["value_target"]).pow(2).mean()
         seen.append((trainer.global_step, float(out["loss_critic"].detach() / mse)))
 
+    # ClipPPOLoss is spied on: today's path (the fused step's critic_coeff: test_fast_update.py)
+    trainer.algorithm.use_fused_step = False
     handle = trainer.algorithm.loss.register_forward_hook(spy)
     try:
         trainer.train(config.trainer.total_frames)

@@ -7,9 +7,12 @@ minibatch step from the KL between the behaviour and the current policy (Gaussia
 
 Speed (docs/performance.md): the loss can run through ``torch.compile`` (``algorithm.compile``), Adam
 is the fused kernel where torch has one, and the per-minibatch statistics stay tensors until the end
-of the update. None of it changes the maths: ``tests/test_ppo_math.py`` checks a whole update
-against a plain-torch PPO. The guarded optimiser step (gradient sync, NaN guard, clipping) and Adam
-are shared with GRPO (``base.py``).
+of the update. The minibatch step is ``fused_step.py`` (ClipPPOLoss's maths on plain tensors,
+backward, clipping and Adam; compiled with the loss's decision) wherever it covers the run, today's
+path (ClipPPOLoss, then ``guarded_step``) otherwise, chosen once at the first update and logged.
+None of it changes the maths: ``tests/test_ppo_math.py`` checks a whole update against a plain-torch
+PPO, ``tests/test_fast_update.py`` the fused step against ClipPPOLoss. The guarded optimiser step
+(gradient sync, NaN guard, clipping) and Adam are shared with GRPO (``base.py``).
 """
 
 from __future__ import annotations
@@ -36,6 +39,8 @@ from rlexp.algorithms.base import (
     make_optimizer,
     parse_compile,
 )
+from rlexp.algorithms.fused_step import FusedPPOStep
+from rlexp.algorithms.fused_step import unsupported as fused_unsupported
 from rlexp.algorithms.normalize import ReduceSum, RewardNormalizer
 from rlexp.config.schema import AlgorithmConfig
 from rlexp.config.validate import ConfigError
@@ -111,6 +116,9 @@ def adaptive_learning_rate(lr: float, kl: float, desired_kl: float) -> float:
 class PPO(MutableHyperparameters):
     """One PPO learner: ``update(batch)`` runs GAE then the clipped-surrogate epochs on a rollout."""
 
+    #: Whether the first update may choose the fused minibatch step (fused_step.py) over today's.
+    use_fused_step: bool = True
+
     def __init__(
         self,
         cfg: AlgorithmConfig,
@@ -180,6 +188,9 @@ class PPO(MutableHyperparameters):
         self._loss_fn: Callable[[TensorDictBase], TensorDictBase] = self.loss
         self._compile_decided = False
         self.compiled = False  # whether the loss runs through torch.compile
+        # The fused minibatch step (fused_step.py), chosen with the compile decision at the first
+        # update where it covers this run's settings; None: today's path (ClipPPOLoss).
+        self.fused: FusedPPOStep | None = None
         self._shuffle = torch.Generator()  # minibatch order (CPU: randperm indexes a CPU batch)
         self.iteration = 0
         self.reset_each_rollout = False  # GAE bootstraps across rollouts: episodes run on
@@ -263,9 +274,48 @@ class PPO(MutableHyperparameters):
             self._decide_compile(
                 updates=self.total_iterations * self.cfg.num_epochs * (n // mb), mb=mb
             )
+            self._decide_fused()
         # Minibatch order from a generator of its own, seeded from the global RNG once per update:
         # whatever the loss draws (TorchRL's compiled entropy draws a sample) cannot change it.
         self._shuffle.manual_seed(int(torch.randint(2**62, (1,)).item()))
+        if self.fused is not None:
+            rows, keys = self.fused.epochs(flat, self.cfg, mb, self._shuffle), list(STAT_KEYS)
+        else:
+            rows, keys = self._epochs(flat, mb, adaptive)
+        self.iteration += 1
+        if not rows:  # fewer samples than one minibatch: nothing was computed, nothing to log
+            return {"loss/learning_rate": lr}
+        # Only what the loss computed is logged: a missing statistic is absent, never 0.
+        metrics = dict(zip(keys, torch.stack(rows).mean(0).tolist(), strict=True))
+        out = {
+            "loss/policy": metrics["loss_objective"],
+            "loss/value": metrics["loss_critic"],
+            "loss/entropy": metrics["entropy"],  # the policy's mean entropy (TorchRL's "entropy")
+            "loss/grad_norm": metrics["grad_norm"],
+            **{
+                name: metrics[key]
+                for name, key in (
+                    ("loss/clip_fraction", "clip_fraction"),
+                    ("loss/approx_kl", "kl_approx"),
+                )
+                if key in metrics
+            },
+            # adaptive: the rate the last step took and the next update starts from (as rsl_rl logs)
+            "loss/learning_rate": self.cfg.lr if adaptive else lr,
+            **self.policy.metrics(),  # loss/log_std for a Gaussian policy
+        }
+        if self.cfg.entropy_coeff != 0.0:  # the entropy term of the loss: -entropy_coeff * entropy
+            out["loss/entropy_term"] = metrics["loss_entropy"]
+        if self.reward_normalizer is not None:
+            out["loss/reward_std"] = self.reward_normalizer.std()
+        return out
+
+    def _epochs(
+        self, flat: TensorDictBase, mb: int, adaptive: bool
+    ) -> tuple[list[torch.Tensor], list[str]]:
+        """Today's minibatch step: TorchRL's ClipPPOLoss on TensorDict slices, then
+        ``guarded_step``; per minibatch a row of the statistics named by the returned keys."""
+        n = flat.shape[0]
         rows: list[torch.Tensor] = []  # per minibatch: the STAT_KEYS this loss has, one tensor
         keys: list[str] = []
         loss_keys: list[str] = []
@@ -302,33 +352,7 @@ class PPO(MutableHyperparameters):
                 rows.append(
                     torch.stack([grad_norm if k == "grad_norm" else out[k] for k in keys]).detach()
                 )
-        self.iteration += 1
-        if not rows:  # fewer samples than one minibatch: nothing was computed, nothing to log
-            return {"loss/learning_rate": lr}
-        # Only what the loss computed is logged: a missing statistic is absent, never 0.
-        metrics = dict(zip(keys, torch.stack(rows).mean(0).tolist(), strict=True))
-        out = {
-            "loss/policy": metrics["loss_objective"],
-            "loss/value": metrics["loss_critic"],
-            "loss/entropy": metrics["entropy"],  # the policy's mean entropy (TorchRL's "entropy")
-            "loss/grad_norm": metrics["grad_norm"],
-            **{
-                name: metrics[key]
-                for name, key in (
-                    ("loss/clip_fraction", "clip_fraction"),
-                    ("loss/approx_kl", "kl_approx"),
-                )
-                if key in metrics
-            },
-            # adaptive: the rate the last step took and the next update starts from (as rsl_rl logs)
-            "loss/learning_rate": self.cfg.lr if adaptive else lr,
-            **self.policy.metrics(),  # loss/log_std for a Gaussian policy
-        }
-        if self.cfg.entropy_coeff != 0.0:  # the entropy term of the loss: -entropy_coeff * entropy
-            out["loss/entropy_term"] = metrics["loss_entropy"]
-        if self.reward_normalizer is not None:
-            out["loss/reward_std"] = self.reward_normalizer.std()
-        return out
+        return rows, keys
 
     def _set_lr(self, lr: float) -> None:
         for group in self.optimizer.param_groups:
@@ -347,6 +371,17 @@ class PPO(MutableHyperparameters):
             self.grad_sync([kl])
         self.cfg.lr = adaptive_learning_rate(self.cfg.lr, float(kl), self.cfg.desired_kl)
         self._set_lr(self.cfg.lr)
+
+    def _decide_fused(self) -> None:
+        """The minibatch step for this run (once): fused (compiled as the loss would be) or today's."""
+        if not self.use_fused_step:
+            return
+        problem = fused_unsupported(self)
+        if problem is not None:
+            log.info("[ppo] minibatch step: TorchRL's ClipPPOLoss (not fused: %s)", problem)
+            return
+        self.fused = FusedPPOStep(self, compiled=self.compiled)
+        log.info("[ppo] minibatch step: fused (%s)", "compiled" if self.compiled else "eager")
 
     def _decide_compile(self, updates: int, mb: int) -> None:
         """Turn ``torch.compile`` of the loss on or off for this run (once, at the first update)."""
