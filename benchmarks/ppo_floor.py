@@ -23,6 +23,8 @@ import torch
 from torch import nn
 
 OBS, ACT, HIDDEN, MB, SAMPLES, EPOCHS = 17, 6, 64, 64, 2048, 10
+#: The first call's (plain) or first update's (rlexp) seconds, compiling included, per contender.
+WARMUP_S: dict = {}
 
 
 def _mlp(out: int) -> nn.Sequential:
@@ -76,7 +78,10 @@ def plain_step_fn(compiled: bool):
 def plain_contender(compiled: bool, steps: int):
     """A callable timing ``steps`` plain-torch steps (microseconds per step); warmed up."""
     call = plain_step_fn(compiled)
-    for _ in range(50):
+    t0 = time.perf_counter()
+    call()  # compiles where compiled
+    WARMUP_S[compiled] = time.perf_counter() - t0
+    for _ in range(49):
         call()
 
     def run() -> float:
@@ -127,7 +132,9 @@ def rlexp_setup(compile_choice: str, fused: bool):
 def rlexp_contender(compile_choice: str, fused: bool, updates: int):
     """A callable timing ``updates`` rlexp updates (microseconds per minibatch step); warmed up."""
     algo, batch = rlexp_setup(compile_choice, fused)
+    t0 = time.perf_counter()
     algo.update(copy.deepcopy(batch))  # warm-up: compiles where compile is on
+    WARMUP_S[(compile_choice, fused)] = time.perf_counter() - t0
 
     def run() -> float:
         t0 = time.perf_counter()
@@ -147,6 +154,14 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     k = args.updates
+    warmups = {  # the WARMUP_S key of each contender
+        "plain torch, eager": False,
+        "plain torch, one compiled step (floor)": True,
+        "rlexp today (ClipPPOLoss), eager": ("false", False),
+        "rlexp today (ClipPPOLoss), loss compiled": ("true", False),
+        "rlexp fused step, eager": ("false", True),
+        "rlexp fused step, compiled": ("true", True),
+    }
     contenders = {  # all built (and compiled) first, then timed in turns: the load drifts
         "plain torch, eager": plain_contender(False, args.steps),
         "plain torch, one compiled step (floor)": plain_contender(True, args.steps),
@@ -160,11 +175,14 @@ def main() -> None:
         for name, run in contenders.items():
             results[name].append(run())
     floor = statistics.median(results["plain torch, one compiled step (floor)"])
-    print(f"| minibatch step (64x64 tanh, obs {OBS}, act {ACT}, mb {MB}) | us / step | x floor |")
-    print("|---|---:|---:|")
+    print(
+        f"| minibatch step (64x64 tanh, obs {OBS}, act {ACT}, mb {MB}) | us / step | x floor "
+        "| first call / update, s (compiling) |"
+    )
+    print("|---|---:|---:|---:|")
     for name, values in results.items():
         med = statistics.median(values)
-        print(f"| {name} | {med:.0f} | {med / floor:.2f} |")
+        print(f"| {name} | {med:.0f} | {med / floor:.2f} | {WARMUP_S[warmups[name]]:.1f} |")
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from torchrl.data import Bounded
 
 from conftest import PLAIN_PPO, compose
 from rlexp.algorithms import make_algorithm
+from rlexp.algorithms.fused_step import STEP_STATS, FusedPPOStep
 from rlexp.config.schema import ActorOnlyConfig, AlgorithmConfig, GRPOConfig, PolicyConfig
 from rlexp.policies.actor_critic import make_policy
 
@@ -281,9 +282,10 @@ def test_ppo_update_learns_from_the_scaled_and_clipped_rewards(normalize, clip):
         assert "loss/reward_std" in metrics
 
 
-def _learning_rates(name: str, anneal: bool) -> tuple[list[float], list[float]]:
+def _learning_rates(name: str, anneal: bool, fused: bool = True) -> tuple[list[float], list[float]]:
     """Four updates of a PPO or GRPO with lr 2e-3 over a run of 4 iterations: the learning rate
-    each optimiser step took, and the one each update logged."""
+    each optimiser step took, and the one each update logged (PPO: the fused minibatch step or
+    TorchRL's ClipPPOLoss path, ``fused``)."""
     torch.manual_seed(0)
     if name == "ppo":
         pol = make_policy(PolicyConfig(), OBS, ACT, Bounded(-1.0, 1.0, shape=(ACT,)))
@@ -300,21 +302,17 @@ def _learning_rates(name: str, anneal: bool) -> tuple[list[float], list[float]]:
         )  # fmt: skip
         batches = [_grpo_rollout(pol, envs=4, steps=4) for _ in range(4)]
     algo = make_algorithm(cfg, pol, total_iterations=4)
-    # optimizer.step is spied on: PPO's today's path (the fused step calls Adam's kernel itself;
-    # its learning rates: tests/test_fast_update.py)
-    algo.use_fused_step = False
-    stepped, step = [], algo.optimizer.step
-
-    def record(*args, **kwargs):
-        stepped.append(algo.optimizer.param_groups[0]["lr"])
-        return step(*args, **kwargs)
-
-    algo.optimizer.step = record
+    algo.use_fused_step = fused
+    stepped: list[float] = []
+    # A step pre-hook: optimizer.step() runs it, and so does the fused step before its Adam
+    algo.optimizer.register_step_pre_hook(
+        lambda opt, args, kwargs: stepped.append(opt.param_groups[0]["lr"])
+    )
     logged = [algo.update(batch)["loss/learning_rate"] for batch in batches]
     return stepped, logged
 
 
-@pytest.mark.parametrize("name", ["ppo", "grpo"])
+@pytest.mark.parametrize("name", ["ppo", "grpo", "ppo_clipppoloss"])
 @pytest.mark.parametrize("anneal", [True, False])
 def test_anneal_lr_decays_linearly_to_zero_over_the_run(name, anneal):
     """anneal_lr with 4 iterations and lr 2e-3: the steps of update k use 2e-3 * (1 - k / 4)
@@ -322,7 +320,8 @@ def test_anneal_lr_decays_linearly_to_zero_over_the_run(name, anneal):
 
     Catches: anneal_lr ignored (PPO or GRPO), forced on, or annealing from the second update."""
     want = [2e-3, 1.5e-3, 1e-3, 5e-4] if anneal else [2e-3] * 4
-    stepped, logged = _learning_rates(name, anneal)
+    stepped, logged = _learning_rates(name.split("_")[0], anneal, fused=name == "ppo")
+    assert len(stepped) == 4  # one minibatch per update
     assert stepped == pytest.approx(want, rel=1e-12)
     assert logged == pytest.approx(want, rel=1e-12)
 
@@ -428,36 +427,55 @@ def _trainer(tmp_path: Path, overrides: list[str]):
     return objects.trainer(MetricLogger([]), {}, {}), config
 
 
-def test_a_critic_coeff_schedule_is_the_coefficient_of_the_next_updates_critic_loss(tmp_path):
+@pytest.mark.parametrize("fused", [True, False], ids=["fused", "clipppoloss"])
+def test_a_critic_coeff_schedule_is_the_coefficient_of_the_next_updates_critic_loss(
+    tmp_path, monkeypatch, fused
+):
     """A schedule hook of critic_coeff from 2.0 to 0.25 over 768 steps: in every minibatch of the
     update after step s, loss_critic = (2.0 - 1.75 s / 768) x mean((V(s) - value_target)^2), V
-    evaluated in plain torch on the minibatch.
+    evaluated in plain torch on the minibatch; on the fused minibatch step and on TorchRL's
+    ClipPPOLoss path.
 
-    Catches: a hook's set("critic_coeff") never reaching ClipPPOLoss (issue #35); hook decisions
+    Catches: a hook's set("critic_coeff") never reaching the loss (issue #35); hook decisions
     applied after the update instead of before it."""
     trainer, config = _trainer(
         tmp_path,
         ["trainer.total_frames=768", "algorithm.critic_coeff=0.7", "+hooks.vf.func=schedule",
          "+hooks.vf.params.name=critic_coeff", "+hooks.vf.params.start=2.0",
-         "+hooks.vf.params.end=0.25"],
+         "+hooks.vf.params.end=0.25", "algorithm.compile=false"],
     )  # fmt: skip
     critic = trainer.policy.critic_net
     seen: list[tuple[int, float]] = []  # (global step, loss_critic / MSE) per minibatch
 
-    def spy(module, args, out):
-        minibatch = args[0]
+    def record(obs, value_target, loss_critic):
         with torch.no_grad():
-            mse = (critic(minibatch["observation"]) - minibatch["value_target"]).pow(2).mean()
-        seen.append((trainer.global_step, float(out["loss_critic"].detach() / mse)))
+            mse = (critic(obs) - value_target).pow(2).mean()
+        seen.append((trainer.global_step, float(loss_critic.detach() / mse)))
 
-    # ClipPPOLoss is spied on: today's path (the fused step's critic_coeff: test_fast_update.py)
-    trainer.algorithm.use_fused_step = False
-    handle = trainer.algorithm.loss.register_forward_hook(spy)
+    trainer.algorithm.use_fused_step = fused
+    handle = None
+    if fused:  # the fused step's loss: (total, stats), stats[1] = loss_critic
+        fused_loss = FusedPPOStep.loss
+
+        def spy_fused(self, obs, action, old_lp, adv, value_target, *rest):
+            total, stats = fused_loss(self, obs, action, old_lp, adv, value_target, *rest)
+            record(obs, value_target, stats[STEP_STATS.index("loss_critic")])
+            return total, stats
+
+        monkeypatch.setattr(FusedPPOStep, "loss", spy_fused)
+    else:
+        handle = trainer.algorithm.loss.register_forward_hook(
+            lambda module, args, out: record(
+                args[0]["observation"], args[0]["value_target"], out["loss_critic"]
+            )
+        )
     try:
         trainer.train(config.trainer.total_frames)
     finally:
-        handle.remove()
+        if handle is not None:
+            handle.remove()
         trainer.close()
+    assert (trainer.algorithm.fused is not None) == fused
     steps = [256, 512, 768]
     assert [s for s, _ in seen] == [s for s in steps for _ in range(4)]  # 2 epochs x 2 minibatches
     expected = [2.0 - 1.75 * s / 768 for s in steps for _ in range(4)]

@@ -54,6 +54,7 @@ __all__ = [
     "COMPILE_CHOICES",
     "COMPILE_SAVING_PER_SAMPLE_S",
     "COMPILE_SAVING_PER_UPDATE_S",
+    "FUSED_COMPILE_SAVING_PER_UPDATE_S",
     "LOSS_KEYS",
     "PPO",
     "STAT_KEYS",
@@ -78,6 +79,10 @@ AUTO_COMPILE_MIN_SAVING_S = 60.0
 #: 64 samples, 64x64 tanh) plus ~2 us per sample (72 vs 90 ms at 8192 samples, 256x256 relu).
 COMPILE_SAVING_PER_UPDATE_S = 1.0e-3
 COMPILE_SAVING_PER_SAMPLE_S = 2.0e-6
+#: The same for the fused minibatch step (fused_step.py), whose eager step has less Python to save:
+#: 0.37 ms per update at 64 samples (1.30 vs 0.92 ms, benchmarks/ppo_floor.py); compiling it takes
+#: 20-25 s on a cold inductor cache (the 60 s threshold leaves it paid back).
+FUSED_COMPILE_SAVING_PER_UPDATE_S = 0.35e-3
 #: rsl_rl's adaptive schedule (``algorithm.desired_kl``): the factor and the learning rate's bounds.
 ADAPTIVE_LR_FACTOR = 1.5
 ADAPTIVE_LR_MIN = 1e-5
@@ -388,7 +393,9 @@ class PPO(MutableHyperparameters):
         self._compile_decided = True
         if self.compile == "false":
             return
-        saving = updates * (COMPILE_SAVING_PER_UPDATE_S + COMPILE_SAVING_PER_SAMPLE_S * mb)
+        fused = self.use_fused_step and fused_unsupported(self) is None  # _decide_fused's choice
+        per_update = FUSED_COMPILE_SAVING_PER_UPDATE_S if fused else COMPILE_SAVING_PER_UPDATE_S
+        saving = updates * (per_update + COMPILE_SAVING_PER_SAMPLE_S * mb)
         if self.compile == "auto" and saving < AUTO_COMPILE_MIN_SAVING_S:
             log.info(
                 "[ppo] algorithm.compile=auto: eager loss (%d minibatch updates in this run, "

@@ -26,6 +26,7 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
 from rlexp.config.schema import BasePolicyConfig, EnvConfig, MLPConfig
 from rlexp.policies.heads import CategoricalActorNet, GaussianActorNet, MultiCategorical, Sampler
+from rlexp.policies.numpy_sampler import numpy_sampler
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
@@ -138,6 +139,9 @@ class SamplingPolicy(TensorDictModuleBase):
     log-density as the distribution TorchRL's loss uses (tested).
     """
 
+    #: Whether ``sampler`` may run in numpy where that applies (``numpy_sampler``).
+    use_numpy: bool = True
+
     def __init__(
         self, actor_net: GaussianActorNet | CategoricalActorNet, deterministic: bool = False
     ) -> None:
@@ -157,7 +161,12 @@ class SamplingPolicy(TensorDictModuleBase):
         a new one after the parameters change shape or identity (every rollout, in practice).
         """
         layers = [_as_function(m) for m in self.actor_net.mlp]
-        return self.actor_net.sampler(self.deterministic, layers)
+        sampler = self.actor_net.sampler(self.deterministic, layers)
+        if self.deterministic or not self.use_numpy:
+            # deterministic (evaluation): torch, so evaluation and an exported policy act alike
+            return sampler
+        # collecting with a CPU policy on a few envs: the same maths in numpy (numpy_sampler.py)
+        return numpy_sampler(self.actor_net, sampler) or sampler
 
     def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The ``out_keys``' tensors for a batch of observations."""
