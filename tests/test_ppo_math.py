@@ -106,8 +106,9 @@ def test_observation_normalizer_matches_numpy_over_batches():
 
 
 @pytest.mark.parametrize("env_name", ["hopper", "push_cube"])
-def test_fast_collector_gives_the_same_batches_as_torchrl_loop(env_name):
-    """The lean rollout loop is an optimisation only: same values as TorchRL's generic Collector."""
+def test_fast_collector_gives_the_same_batches_as_torchrl_loop(env_name, monkeypatch):
+    """The lean rollout loop is an optimisation only: same values as TorchRL's generic Collector
+    (Hopper: the all-numpy loop, numpy sampler and ``step_arrays``; PushCube: the tensor loop)."""
     from torchrl.collectors import Collector
 
     from conftest import compose
@@ -138,7 +139,15 @@ def test_fast_collector_gives_the_same_batches_as_torchrl_loop(env_name):
         col.shutdown()
         return out
 
+    array_rollouts = []
+    array_rollout = RolloutCollector._array_rollout
+    monkeypatch.setattr(
+        RolloutCollector,
+        "_array_rollout",
+        lambda *a: array_rollouts.append(1) or array_rollout(*a),
+    )
     slow, fast = batches(Collector), batches(RolloutCollector)
+    assert len(array_rollouts) == (3 if env_name == "hopper" else 0)
     assert any(b["next", "done"].any() for b in slow)
     for s, f in zip(slow, fast, strict=True):
         assert f.batch_size == s.batch_size

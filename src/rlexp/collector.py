@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
@@ -91,6 +92,8 @@ class RolloutCollector(Collector):
         step = getattr(env, "step_tensors", None) or env.step_action
         steps = self.frames_per_batch  # per env
         obs = self._obs if self._obs is not None else self._carrier.get("observation")
+        if _all_numpy(env, sample, obs, to_env):
+            return self._array_rollout(sample, steps, obs)
         keys = ("observation", *self._sampler.out_keys)  # the head's parameters, action, log-prob
         root: dict[str, list[torch.Tensor]] = {k: [] for k in keys}
         observations, outputs = root["observation"], [root[k] for k in keys[1:]]
@@ -118,3 +121,62 @@ class RolloutCollector(Collector):
         if to_env is not None:  # the env's side of the rollout, once, to where the update runs
             batch["next"] = batch["next"].to(to_policy)
         return TensorDict(batch, batch_size=size, device=to_policy)
+
+    def _array_rollout(self, sample, steps: int, obs: torch.Tensor) -> TensorDictBase:
+        """The lean loop with no torch operation per step but the noise's draw: the numpy
+        sampler's arrays and the env's ``step_arrays``, stacked into tensors once at the end (the
+        same values as the tensor loop above)."""
+        env = self.env
+        arrays, clip, step = sample.arrays, env.clip_array, env.step_arrays
+        count, autoreset = env.count_step, env.autoreset_array
+        x = obs.numpy()
+        columns: tuple[list[np.ndarray], ...] = tuple([] for _ in range(8))
+        observations, locs, actions, log_probs, next_obs, rewards, terms, truncs = columns
+        for _ in range(steps):
+            loc, action, log_prob = arrays(x)
+            o, r, term, trunc = step(clip(action))
+            count(o)
+            observations.append(x)
+            locs.append(loc)
+            actions.append(action)
+            log_probs.append(log_prob)
+            next_obs.append(o)
+            rewards.append(r)
+            terms.append(term)
+            truncs.append(trunc)
+            x = autoreset(o)
+        self._obs = torch.from_numpy(x)
+        stacked = [torch.from_numpy(np.stack(c, axis=1)) for c in columns]  # [num_envs, T, ...]
+        size = [*env.batch_size, steps]
+        terminated, truncated = stacked[6], stacked[7]
+        nxt = {
+            "observation": stacked[4],
+            "reward": stacked[5],
+            "done": terminated | truncated,
+            "terminated": terminated,
+            "truncated": truncated,
+        }
+        loc = stacked[1]
+        batch = {
+            "observation": stacked[0],
+            "loc": loc,
+            "scale": sample.scale.expand(loc.shape).clone(),
+            "action": stacked[2],
+            "action_log_prob": stacked[3],
+            "next": TensorDict._new_unsafe(nxt, batch_size=size, device=env.device),
+        }
+        return TensorDict(batch, batch_size=size, device=env.device)
+
+
+def _all_numpy(env: EnvBase, sample, obs: torch.Tensor, to_env) -> bool:
+    """The all-numpy loop applies: an env with ``step_arrays`` (Gymnasium in process), the numpy
+    sampler (policies/numpy_sampler.py) for this many rows, everything on the CPU."""
+    return (
+        to_env is None
+        and hasattr(env, "step_arrays")
+        and hasattr(sample, "arrays")
+        and obs.device.type == "cpu"
+        and obs.dtype == torch.float32
+        and obs.dim() == 2
+        and obs.shape[0] <= sample.max_rows
+    )

@@ -102,7 +102,10 @@ class GymShapedEnv(EnvBase):
     def clipped_actions(self, action: torch.Tensor) -> np.ndarray:
         """The policy's actions [n, A] as numpy: Box actions float64, clipped to the box;
         categorical ones the int64 indices."""
-        raw = action.detach().cpu().numpy()
+        return self.clip_array(action.detach().cpu().numpy())
+
+    def clip_array(self, raw: np.ndarray) -> np.ndarray:
+        """``clipped_actions`` of actions already in numpy (a new array: ``raw`` is left as it is)."""
         if self._low is None:
             return raw
         raw = raw.astype(np.float64)
@@ -120,8 +123,7 @@ class GymShapedEnv(EnvBase):
         """``step_tensors``' dict from the step's float32 observations [n, D], float32 rewards
         [n, 1] and bool flags [n, 1] (taken as they are: the tensors share their memory); counts
         the step."""
-        self._live.steps += 1
-        self._live.obs_now = obs
+        self.count_step(obs)
         return {
             "observation": torch.from_numpy(obs),
             "reward": torch.from_numpy(reward),
@@ -129,6 +131,11 @@ class GymShapedEnv(EnvBase):
             "terminated": torch.from_numpy(terminated),
             "truncated": torch.from_numpy(truncated),
         }
+
+    def count_step(self, obs: np.ndarray) -> None:
+        """Count a step whose observations are ``obs`` (float32 [n, D], not copied)."""
+        self._live.steps += 1
+        self._live.obs_now = obs
 
     def vector_output(
         self, obs: np.ndarray, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray
@@ -160,10 +167,17 @@ class GymShapedEnv(EnvBase):
         hands those resets out. What rlexp's collector uses instead of a masked ``reset()``."""
         obs = next_td.get("observation")
         if self._pending_reset.any():
-            obs = obs.clone()
+            obs = torch.from_numpy(self.autoreset_array(obs.numpy()))
+        return obs
+
+    def autoreset_array(self, obs: np.ndarray) -> np.ndarray:
+        """``autoreset_observation`` of a step's observations in numpy (``step_arrays``'): a new
+        array where copies finished, ``obs`` itself otherwise."""
+        if self._pending_reset.any():
+            obs = obs.copy()
             idx = np.flatnonzero(self._pending_reset)
-            obs[idx] = torch.from_numpy(self._reset_obs[idx])
-            self._live.obs_now = obs.numpy()
+            obs[idx] = self._reset_obs[idx]
+            self._live.obs_now = obs
             self._pending_reset[:] = False
         return obs
 

@@ -91,23 +91,36 @@ def numpy_sampler(actor_net: nn.Module, fallback: Sampler) -> Sampler | None:
     scale = scale_t.numpy()
     log_norm = (log_scale + _LOG_SQRT_2PI).sum().numpy()  # float32, as the torch sampler's
 
-    def sample(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        if obs.dim() != 2 or obs.shape[0] > max_rows or obs.dtype != torch.float32:
-            return fallback(obs)
-        x = obs.detach().numpy()
+    def arrays(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(loc, action, log-probability) for observations [rows, D], float32 numpy."""
         if normalise:
             x = x * scale_obs + shift
-            np.clip(x, -clip, clip, out=x)
+            np.minimum(np.maximum(x, -clip, out=x), clip, out=x)
         for layer in layers:
             if isinstance(layer, tuple):
                 x = x @ layer[0] + layer[1]
             else:
                 x = layer(x)
-        loc = torch.from_numpy(x)
-        scales = scale_t.expand(loc.shape)
-        noise = torch.randn_like(loc).numpy()  # torch's generator: the torch sampler's draw
-        action = x + scale * noise
-        log_prob = (noise * noise).sum(-1) * np.float32(-0.5) - log_norm
-        return loc, scales, torch.from_numpy(action), torch.from_numpy(log_prob)
+        noise = torch.randn(
+            x.shape, dtype=torch.float32
+        ).numpy()  # torch's generator: the torch sampler's draw
+        log_prob = np.add.reduce(noise * noise, axis=-1) * np.float32(-0.5) - log_norm
+        return x, x + scale * noise, log_prob
 
+    def sample(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        if obs.dim() != 2 or obs.shape[0] > max_rows or obs.dtype != torch.float32:
+            return fallback(obs)
+        loc, action, log_prob = arrays(obs.detach().numpy())
+        loc_t = torch.from_numpy(loc)
+        return (
+            loc_t,
+            scale_t.expand(loc_t.shape),
+            torch.from_numpy(action),
+            torch.from_numpy(log_prob),
+        )
+
+    # The collector's all-numpy loop (collector.py) calls these directly
+    sample.arrays = arrays  # type: ignore[attr-defined]
+    sample.max_rows = max_rows  # type: ignore[attr-defined]
+    sample.scale = scale_t  # type: ignore[attr-defined]
     return sample
