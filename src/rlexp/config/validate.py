@@ -330,6 +330,8 @@ def _check_hooks(config: RootConfig) -> None:
             check_hook(hook.func, hook.params, where)
         except (ValueError, KeyError, TypeError) as exc:
             raise ConfigError(str(exc.args[0] if exc.args else exc)) from None
+        if hook.func == "pbt":
+            _check_pbt_names(hook.params, where, mutable, a.name)
         if hook.func != "schedule":
             continue
         target = hook.params.get("name")
@@ -350,6 +352,20 @@ def _check_hooks(config: RootConfig) -> None:
             raise ConfigError(
                 f"{where} schedules lr while algorithm.anneal_lr=true: that anneals the learning "
                 "rate twice; use one of them"
+            )
+
+
+def _check_pbt_names(params: Any, where: str, mutable: list[str], algorithm: str) -> None:
+    """PBT tunes mutable hyperparameters only (``hooks.<name>.params.hyperparameters``)."""
+    from rlexp.pbt.config import PBTConfig
+
+    for name in PBTConfig.from_params(dict(params), where).hyperparameters:
+        if name not in mutable:
+            close = difflib.get_close_matches(name, mutable, n=1)
+            raise ConfigError(
+                f"{where}.params.hyperparameters.{name} is not a mutable hyperparameter of "
+                f"algorithm={algorithm}; choose from {mutable}"
+                + (f"; did you mean {close[0]!r}?" if close else "")
             )
 
 
