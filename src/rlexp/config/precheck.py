@@ -262,9 +262,18 @@ def check_pbt(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
     try:
         for name, params in pbt_hooks(hooks):  # the same for every member: checked once, here
             PBTConfig.from_params(params, f"hooks.{name}")
+            _check_pbt_names(params, f"hooks.{name}", cfg.algorithm)
         check_pbt_sweep(launcher, len(plan.jobs) if plan.jobs is not None else None, hooks)
     except (ValueError, TypeError) as exc:
         raise ConfigError(str(exc)) from None
+
+
+def _check_pbt_names(params: Any, where: str, algorithm: Any) -> None:
+    from rlexp.config.rules import MUTABLE_HYPERPARAMETERS
+    from rlexp.config.validate import check_pbt_names as check
+
+    mutable = list(MUTABLE_HYPERPARAMETERS.get(str(algorithm.name), ()))
+    check(params, where, mutable, str(algorithm.name))
 
 
 def _run_dir(cfg: Any) -> Path | None:

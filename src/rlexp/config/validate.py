@@ -331,7 +331,7 @@ def _check_hooks(config: RootConfig) -> None:
         except (ValueError, KeyError, TypeError) as exc:
             raise ConfigError(str(exc.args[0] if exc.args else exc)) from None
         if hook.func == "pbt":
-            _check_pbt_names(hook.params, where, mutable, a.name)
+            check_pbt_names(hook.params, where, mutable, a.name)
         if hook.func != "schedule":
             continue
         target = hook.params.get("name")
@@ -355,7 +355,7 @@ def _check_hooks(config: RootConfig) -> None:
             )
 
 
-def _check_pbt_names(params: Any, where: str, mutable: list[str], algorithm: str) -> None:
+def check_pbt_names(params: Any, where: str, mutable: list[str], algorithm: str) -> None:
     """PBT tunes mutable hyperparameters only (``hooks.<name>.params.hyperparameters``)."""
     from rlexp.pbt.config import PBTConfig
 

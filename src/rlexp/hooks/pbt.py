@@ -29,13 +29,14 @@ from rlexp.pbt.config import PARAMS, PBTConfig
 log = logging.getLogger(__name__)
 
 
-@register_hook("pbt", points=("train_start", "checkpoint"), params=PARAMS)
+@register_hook("pbt", points=("train_start", "log", "eval_end", "checkpoint"), params=PARAMS)
 class PopulationBasedTraining:
     """One member's side of PBT (params: ``rlexp.pbt.config.PBTConfig``)."""
 
     def __init__(self, **params: Any) -> None:
         self.cfg = PBTConfig.from_params(params)
         self.last_ready = 0  # env step of the last ready point handled
+        self.score: float | None = None  # the latest value of the score (checkpointed with it)
         self.lineage: list[dict[str, Any]] = []  # start, exploit records (pbt/lineage.jsonl)
 
     @staticmethod
@@ -45,7 +46,11 @@ class PopulationBasedTraining:
     def __call__(self, state: HookState, control: HookControl) -> None:
         if state.rank != 0:  # rank 0 decides; its decisions reach every rank
             return
-        if state.point == "train_start":
+        if state.point in ("log", "eval_end") and (state.point == "eval_end") == (
+            self.cfg.score.startswith("eval/")
+        ):
+            self.score = _score(state, self.cfg.score)
+        elif state.point == "train_start":
             self._start(state, control)
         elif state.point == "checkpoint" and self._due(state.global_step, state.total_steps):
             self._ready(state, control, state.checkpoint)
@@ -88,7 +93,7 @@ class PopulationBasedTraining:
         if checkpoint is None:
             return
         member, generation = run_dir.name, step // cfg.ready_every
-        score = _score(state, cfg.score)
+        score = self.score
         own = {name: float(state.hyperparameters[name]) for name in cfg.hyperparameters}
         me = pop.Ready(member, step, generation, score, pop.ready_name(step),
                        dict(state.hyperparameters), time.time())  # fmt: skip
@@ -174,10 +179,15 @@ class PopulationBasedTraining:
         atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in self.lineage))
 
     def state_dict(self) -> dict[str, Any]:
-        return {"last_ready": self.last_ready, "lineage": json.dumps(self.lineage)}
+        return {
+            "last_ready": self.last_ready,
+            "score": self.score,
+            "lineage": json.dumps(self.lineage),
+        }
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         self.last_ready = int(sd["last_ready"])
+        self.score = None if sd.get("score") is None else float(sd["score"])
         self.lineage = list(json.loads(sd["lineage"]))
 
 
