@@ -332,7 +332,7 @@ def _check_hooks(config: RootConfig) -> None:
             raise ConfigError(str(exc.args[0] if exc.args else exc)) from None
         if hook.func == "pbt":
             check_pbt_names(hook.params, where, mutable, a.name)
-        if hook.func != "schedule":
+        if hook.func not in ("schedule", "piecewise"):
             continue
         target = hook.params.get("name")
         if target not in mutable:
@@ -348,7 +348,7 @@ def _check_hooks(config: RootConfig) -> None:
                 "learning rate; use one: drop the hook or set algorithm.desired_kl=null "
                 "(docs/ppo.md)"
             )
-        if target == "lr" and a.anneal_lr:
+        if target == "lr" and a.anneal_lr and hook.func == "schedule":  # piecewise: a PBT replay
             raise ConfigError(
                 f"{where} schedules lr while algorithm.anneal_lr=true: that anneals the learning "
                 "rate twice; use one of them"
