@@ -17,9 +17,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
+import yaml
 
-from conftest import REPO, TINY, compose, run_train
+from conftest import REPO, TINY, compose, rlexp_cli, run_train
 
 #: A population of 2 on InvertedPendulum: 16 iterations of 256 steps, a ready point every 1024.
 #: keep_last=3 (not the default): the sources live in pbt/, out of checkpoints/' pruning.
@@ -304,6 +306,49 @@ def test_async_population_keeps_sources_past_pruning_and_reports(tmp_path):
         assert lineage(sweep / job)[0] == {
             "event": "start", "step": 0, "member": job, "hyperparameters": CONFIG_HPS,
         }  # fmt: skip
+    # rlexp report: the best member (highest final score), its lineage and schedule, the figure
+    code, md, err = rlexp_cli("report", sweep, "--no-plot")
+    assert code == 0, err
+    best = max(("0", "1"), key=lambda j: (ready(sweep / j)[-1]["score"], j))
+    assert "## Population Based Training" in md and "2 members, " in md
+    assert f"Best member: **{best}** " in md
+    current = {}
+    for job in ("0", "1"):  # what each member's lineage last set
+        recs = lineage(sweep / job)
+        current[job] = recs[-1].get("new", recs[-1].get("hyperparameters"))
+    code, out, _ = rlexp_cli("runs", sweep)
+    assert code == 0 and "PBT members' current hyperparameters:" in out
+    for job in ("0", "1"):
+        shown = ", ".join(f"{k}={v:.4g}" for k, v in current[job].items())
+        assert f"{job}: {shown}" in out
+    # rlexp pbt export: the member's own schedule, each value from the step it was set
+    target = tmp_path / "conf" / "hooks" / "replay.yaml"
+    assert rlexp_cli("pbt", "export", sweep, "--member", "1", "-o", target)[0] == 0
+    exported = yaml.safe_load(target.read_text())
+    for name in CONFIG_HPS:
+        points = [[0, CONFIG_HPS[name]]]
+        for rec in lineage(sweep / "1")[1:]:
+            if rec["new"][name] != points[-1][1]:
+                points.append([rec["step"], rec["new"][name]])
+        assert exported[f"pbt_{name}"] == {"func": "piecewise",
+                                           "params": {"name": name, "points": points}}  # fmt: skip
+    assert rlexp_cli("pbt", "export", sweep, "--member", "9")[0] == 2
+
+
+def test_piecewise_replays_a_schedule_by_env_step():
+    from rlexp.hooks.base import HookControl, HookState, check_hook
+    from rlexp.hooks.builtin import Piecewise
+
+    hook = Piecewise("clip_epsilon", [[0, 0.25], [1000, 0.1], [3000, 0.3]])
+    for step, current, expect in ((0, 0.2, 0.25), (999, 0.25, None), (1000, 0.25, 0.1),
+                                  (2999, 0.1, None), (5000, 0.1, 0.3)):  # fmt: skip
+        control = HookControl({"clip_epsilon": current})
+        state = HookState("rollout_end", step, 0, 8000, Path("."),
+                          hyperparameters={"clip_epsilon": current})  # fmt: skip
+        hook(state, control)
+        assert control.decisions.set == ({} if expect is None else {"clip_epsilon": expect})
+    with pytest.raises(ValueError, match=r"hooks.r.params.points\[1\]\[0\]=0 must be above"):
+        check_hook("piecewise", {"name": "lr", "points": [[5, 1e-4], [0, 2e-4]]}, "hooks.r")
 
 
 def test_config_errors_are_one_line_with_exit_2(tmp_path):
