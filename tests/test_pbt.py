@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from test_slurm import cluster  # noqa: F401 (the fixture: a cluster that answers)
 
 from conftest import REPO, TINY, compose, rlexp_cli, run_train
 
@@ -443,3 +444,21 @@ def subprocess_run(python: str, args: list[str], cwd: Path):
     env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
     return subprocess.run([python, str(REPO / "train.py"), *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=400)  # fmt: skip
+
+
+@pytest.mark.slurm
+def test_sync_population_on_the_slurm_cluster(cluster, tmp_path, children):  # noqa: F811
+    """The members as SLURM array tasks, side by side on the test cluster: each generation has
+    both members' ready points, and the decisions are the joblib launcher's (same seeds)."""
+    from test_slurm import SLURM, finish, sweep
+
+    args = [*POP, "hooks.pbt.params.mode=sync", "trainer.total_frames=3072"]
+    slurm = tmp_path / "slurm"
+    out = finish(sweep(children, [*SLURM, *args, f"hydra.sweep.dir={slurm}"], tmp_path), 600)
+    assert "Submitit 'slurm' sweep output dir" in out
+    local, _ = _sweep(tmp_path, "local", args[len(POP) :])  # the joblib launcher's history
+    for job in ("0", "1"):
+        status = json.loads((slurm / job / "status.json").read_text())
+        assert (status["state"], status["global_step"]) == ("finished", 3072)
+        assert [r["step"] for r in ready(slurm / job)] == [1024, 2048]
+        assert lineage(slurm / job) == lineage(local / job)
