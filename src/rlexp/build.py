@@ -3,6 +3,7 @@ and then the Trainer. Building writes nothing; the Trainer is made once the run 
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,6 +76,7 @@ class Built:
         from rlexp.eval_worker import EvalSetup, EvalWorker
         from rlexp.hooks import HookManager
         from rlexp.launch import distributed
+        from rlexp.pbt.exploit import load_training_state
         from rlexp.trainer import Trainer
 
         c = self.config
@@ -100,7 +102,11 @@ class Built:
             dist=distributed.info(),
             eval_seed=self.config.seed + EVAL_SEED_OFFSET,
             console=self.config.logger.console,
-            hooks=HookManager(self.config.hooks, self.algorithm.hyperparameters()),
+            hooks=HookManager(
+                self.config.hooks,
+                self.algorithm.hyperparameters(),
+                loader=functools.partial(load_training_state, self.policy),  # PBT's exploit
+            ),
             eval_worker=worker,
         )
 

@@ -286,6 +286,11 @@ def _main(argv: list[str]) -> None:
         help="also write an mp4 of eval env 0's episodes (default: beside the file, <name>.mp4)",
     )
     _add_export_parser(sub)
+    pbt = sub.add_parser("pbt", help="Population Based Training: export a member's schedule")
+    pbt.add_argument("action", choices=["export"], help="export: a hooks config (docs/pbt.md)")
+    pbt.add_argument("sweep_dir", help="the PBT sweep's dir (multirun/<date>/<time>)")
+    pbt.add_argument("--member", default=None, help="the member (job dir name); default: the best")
+    pbt.add_argument("-o", "--output", type=Path, default=None, help="write here (default: print)")
     rep = sub.add_parser(
         "report", help="a sweep's per-configuration statistics: report.md, report.csv, curves.png"
     )
@@ -343,6 +348,9 @@ def _main(argv: list[str]) -> None:
             print(f"rlexp report: {exc}", file=sys.stderr)
             sys.exit(2)
         return
+    if args.command == "pbt":
+        _pbt_export(args)
+        return
     if args.command in ("eval", "export"):
         from rlexp import _speedups
 
@@ -376,6 +384,32 @@ def _check_gl() -> None:
     problem = gl_problem(rendering=False)
     if problem is not None:
         raise EntryError(f"{problem}; {GL_FIX}")
+
+
+def _pbt_export(args: argparse.Namespace) -> None:
+    """``rlexp pbt export``: a member's schedule as a hooks config; one line and exit 2 if none."""
+    from rlexp.pbt.lineage import best_member, export_schedule, read_population
+
+    sweep = Path(args.sweep_dir)
+    members = read_population(sweep) if sweep.is_dir() else []
+    chosen = (
+        best_member(members)
+        if args.member is None
+        else next((m for m in members if m.name == args.member), None)
+    )
+    if chosen is None:
+        names = ", ".join(m.name for m in members) or "none"
+        print(f"rlexp pbt export: no member {args.member or '(best)'} in {sweep} (members with "
+              f"pbt/lineage.jsonl: {names})", file=sys.stderr)  # fmt: skip
+        sys.exit(2)
+    text = export_schedule(chosen)
+    if args.output is None:
+        print(text, end="")
+        return
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(text)
+    log.info("wrote member %s's schedule to %s (python train.py hooks=%s)", chosen.name,
+             args.output, args.output.stem)  # fmt: skip
 
 
 def _add_export_parser(sub: Any) -> None:

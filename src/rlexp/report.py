@@ -28,6 +28,7 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
+from rlexp.pbt.lineage import pbt_markdown, plot_schedules
 from rlexp.reporting.anchors import ANCHORS, SOURCES, Anchor, Source, anchors_for
 from rlexp.reporting.jobs import (
     DEFAULT_METRIC,
@@ -203,6 +204,9 @@ def report(
     trials = optuna_markdown(sweep_dir)  # an Optuna sweep: its study's trials
     if trials:
         md += "\n".join(trials) + "\n"
+    pbt = pbt_markdown(sweep_dir, metric)  # a PBT sweep: best member, schedules, lineage
+    if pbt:
+        md += "\n".join(pbt)
     outputs = {"report.md": lambda p: p.write_text(md)}
     outputs["report.csv"] = lambda p: p.write_text(to_csv(stats))
     if results:
@@ -212,6 +216,8 @@ def report(
         outputs["curves.png"] = lambda p: plot_curves(stats, p, metric, line)
         if results:
             outputs["results.png"] = lambda p: plot_results(per_env, p)
+        if pbt:
+            outputs["pbt_schedules.png"] = lambda p: plot_schedules(sweep_dir, p, metric)
     _write(sweep_dir, outputs)
     if results_plot is not None:
         _write(

@@ -73,6 +73,7 @@ class Run:
     git: str | None = None
     overrides: list[str] = field(default_factory=list)
     resume: str | None = None  # the command that continues a died run
+    hyperparameters: dict[str, float] = field(default_factory=dict)  # a PBT member's current ones
     problems: list[str] = field(default_factory=list)  # files left out: "name: why" (warn_problems)
 
     @cached_property
@@ -245,6 +246,10 @@ def read_run(
     run.algorithm = beat.get("algorithm") or _name(run.config.get("algorithm.name"))
     run.total = _int(beat.get("total")) or _budget(run.config)
     _evals(run, status, beat, metric)
+    if (run_dir / "pbt" / "lineage.jsonl").is_file():  # a PBT member: what its lineage last set
+        from rlexp.pbt.lineage import read_member
+
+        run.hyperparameters = read_member(run_dir, metric).current()
     _wall(run, status, beat, parse_time(run.start), now)
     if shown == "died":
         from rlexp.launch.relaunch import resume_command as command  # cwd, entry, ranks, quoting
@@ -427,6 +432,14 @@ def print_runs(runs: list[Run]) -> None:
             print(f"\n{r.status}: {_rel(r.path)}: {r.note}")
         if r.resume:
             print(f"  resume: {r.resume}")
+    members = [r for r in runs if r.hyperparameters]
+    if members:
+        print("\nPBT members' current hyperparameters:")
+        for r in members:
+            print(
+                f"  {_rel(r.path)}: "
+                + ", ".join(f"{k}={v:.4g}" for k, v in r.hyperparameters.items())
+            )
 
 
 def main(

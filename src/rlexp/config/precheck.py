@@ -169,6 +169,8 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
         run_dir = _run_dir(cfg)
         planned = planned_dir(cfg, args.multirun)  # where it will write (rlexp.writable)
         sweeper = OmegaConf.to_container(cfg.hydra.sweeper, resolve=False)
+        if args.multirun:
+            check_pbt(cfg, loader, args.overrides)
         with open_dict(cfg):
             del cfg["hydra"]
         if args.multirun:
@@ -179,6 +181,11 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
             check_planned_dir(planned)  # before Hydra creates the sweep dir
             return None
         config = to_root_config(cfg)
+        if any(h.func == "pbt" for h in config.hooks.values()):
+            raise ConfigError(
+                "hooks.pbt: Population Based Training runs a population as a sweep: add -m "
+                "(python train.py -m +sweep=pbt ..., docs/pbt.md)"
+            )
     except (HydraException, OmegaConfBaseException) as exc:
         raise ConfigError(_variant_key_message(exc) or _first_line(exc)) from None
     finally:
@@ -223,6 +230,50 @@ def check_sweeper(sweeper: Any, overrides: Sequence[str]) -> None:
         check_spec(sweeper, task)
     except ValueError as exc:  # StudyConfigError, SearchSpaceError: one line naming the key
         raise ConfigError(str(exc)) from None
+
+
+def check_pbt(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
+    """A PBT sweep runs its members side by side, as many as its population
+    (``rlexp.pbt.config.check_pbt_sweep``); ``cfg``: composed with its ``hydra`` node,
+    ``overrides``: the command line's (sweeps unexpanded)."""
+    import re
+
+    from omegaconf import OmegaConf
+
+    from rlexp.pbt.config import PBTConfig, check_pbt_sweep, pbt_hooks
+
+    hooks = OmegaConf.to_container(cfg.hooks, resolve=True) if "hooks" in cfg else {}
+    if not pbt_hooks(hooks):
+        return
+    from rlexp.reporting.plan import plan_from_config
+
+    launcher = {
+        key: OmegaConf.select(cfg, f"hydra.launcher.{key}", default=None)
+        for key in ("_target_", "n_jobs", "array_parallelism")
+    }
+    launcher = {k: v for k, v in launcher.items() if v is not None}
+    task = [o for o in overrides if not re.match(r"[+~]*hydra[./]", o)]
+    sweep = {
+        "sweep": OmegaConf.to_container(cfg.hydra.sweep, resolve=False),
+        "sweeper": OmegaConf.to_container(cfg.hydra.sweeper, resolve=False),
+        "overrides": {"task": task},
+    }
+    plan = plan_from_config(OmegaConf.create({"hydra": sweep}), loader)
+    try:
+        for name, params in pbt_hooks(hooks):  # the same for every member: checked once, here
+            PBTConfig.from_params(params, f"hooks.{name}")
+            _check_pbt_names(params, f"hooks.{name}", cfg.algorithm)
+        check_pbt_sweep(launcher, len(plan.jobs) if plan.jobs is not None else None, hooks)
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _check_pbt_names(params: Any, where: str, algorithm: Any) -> None:
+    from rlexp.config.rules import MUTABLE_HYPERPARAMETERS
+    from rlexp.config.validate import check_pbt_names as check
+
+    mutable = list(MUTABLE_HYPERPARAMETERS.get(str(algorithm.name), ()))
+    check(params, where, mutable, str(algorithm.name))
 
 
 def _run_dir(cfg: Any) -> Path | None:

@@ -330,7 +330,9 @@ def _check_hooks(config: RootConfig) -> None:
             check_hook(hook.func, hook.params, where)
         except (ValueError, KeyError, TypeError) as exc:
             raise ConfigError(str(exc.args[0] if exc.args else exc)) from None
-        if hook.func != "schedule":
+        if hook.func == "pbt":
+            check_pbt_names(hook.params, where, mutable, a.name)
+        if hook.func not in ("schedule", "piecewise"):
             continue
         target = hook.params.get("name")
         if target not in mutable:
@@ -346,10 +348,24 @@ def _check_hooks(config: RootConfig) -> None:
                 "learning rate; use one: drop the hook or set algorithm.desired_kl=null "
                 "(docs/ppo.md)"
             )
-        if target == "lr" and a.anneal_lr:
+        if target == "lr" and a.anneal_lr and hook.func == "schedule":  # piecewise: a PBT replay
             raise ConfigError(
                 f"{where} schedules lr while algorithm.anneal_lr=true: that anneals the learning "
                 "rate twice; use one of them"
+            )
+
+
+def check_pbt_names(params: Any, where: str, mutable: list[str], algorithm: str) -> None:
+    """PBT tunes mutable hyperparameters only (``hooks.<name>.params.hyperparameters``)."""
+    from rlexp.pbt.config import PBTConfig
+
+    for name in PBTConfig.from_params(dict(params), where).hyperparameters:
+        if name not in mutable:
+            close = difflib.get_close_matches(name, mutable, n=1)
+            raise ConfigError(
+                f"{where}.params.hyperparameters.{name} is not a mutable hyperparameter of "
+                f"algorithm={algorithm}; choose from {mutable}"
+                + (f"; did you mean {close[0]!r}?" if close else "")
             )
 
 

@@ -1,7 +1,10 @@
 """Trainer hooks: user code at fixed points of the training loop (see ``rlexp.hooks.base``).
 Importing the package registers the built-in hooks (``rlexp.hooks.builtin``)."""
 
-from rlexp.hooks import builtin  # noqa: F401,E402  (registers stop_at, schedule, ...)
+from rlexp.hooks import (
+    builtin,  # noqa: F401,E402  (registers stop_at, schedule, ...)
+    pbt,  # noqa: F401,E402  (registers pbt: Population Based Training)
+)
 from rlexp.hooks.base import (
     END_STATUSES,
     HOOK_FUNCS,

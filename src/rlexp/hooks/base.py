@@ -104,9 +104,10 @@ class Decisions:
 
     stop: str | None = None  # the reason of the first stop request
     set: dict[str, float] = field(default_factory=dict)  # hyperparameter -> value (last wins)
+    load: str | None = None  # a checkpoint whose training state replaces this run's (PBT's exploit)
 
     def empty(self) -> bool:
-        return self.stop is None and not self.set
+        return self.stop is None and not self.set and self.load is None
 
 
 class HookControl:
@@ -140,6 +141,12 @@ class HookControl:
         if value != value or value in (float("inf"), float("-inf")):
             raise ValueError(f"{self.where}: {name}={value} must be a finite number")
         self.decisions.set[name] = value
+
+    def load_state(self, checkpoint: Path) -> None:
+        """Replace this run's weights, optimiser and normaliser state with ``checkpoint``'s at the
+        next safe point, before the hyperparameters set with it (PBT's exploit, rlexp.pbt); the
+        run keeps its own step counters, envs and RNG."""
+        self.decisions.load = str(checkpoint)
 
 
 def resolve_hook_func(name: str, where: str) -> Callable[..., Any]:
@@ -196,10 +203,14 @@ class HookManager:
     """Calls the configured hooks at each point, in config order, and collects their decisions."""
 
     def __init__(
-        self, hooks: Mapping[str, Any], mutable: Mapping[str, float] = MappingProxyType({})
+        self,
+        hooks: Mapping[str, Any],
+        mutable: Mapping[str, float] = MappingProxyType({}),
+        loader: Callable[[Path, Any], None] | None = None,
     ):
         self.hooks: list[tuple[str, tuple[str, ...], Callable[..., Any]]] = []
         self.control = HookControl(mutable)
+        self.loader = loader  # applies ``load_state`` decisions: (checkpoint, algorithm)
         for name, cfg in hooks.items():
             where = f"hooks.{name}"
             func, params = check_hook(cfg.func, cfg.params, where)
@@ -239,6 +250,8 @@ class HookManager:
         decisions, self.control.decisions = self.control.decisions, Decisions()
         if gather is not None:
             decisions = gather(decisions)[0]
+        if decisions.load is not None and self.loader is not None:
+            self.loader(Path(decisions.load), algorithm)
         for name, value in decisions.set.items():
             algorithm.set_hyperparameter(name, value)
         return decisions

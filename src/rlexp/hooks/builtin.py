@@ -1,4 +1,4 @@
-"""The built-in hooks: ``stop_at``, ``stop_on_plateau``, ``schedule`` and ``median_stop``.
+"""The built-in hooks: ``stop_at``, ``stop_on_plateau``, ``schedule``, ``median_stop`` and ``piecewise``.
 
 Each is a class registered by name; its parameters are checked before the run dir is written, and
 its state (counters, the best value so far, a schedule's start value) is checkpointed.
@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from rlexp import safe_read
-from rlexp.config.native_task import Flag, Number, Text
+from rlexp.config.native_task import Flag, Number, ParamRule, Text
 from rlexp.hooks.base import HookControl, HookState, register_hook
 
 _METRIC = Text()
@@ -299,3 +299,43 @@ class MedianStop(_MetricHook):
             return None
         before = [(s, v) for s, v in points if s <= step and math.isfinite(v)]
         return max(before)[1] if before else None
+
+
+class _Points(ParamRule):
+    """``[[step, value], ...]``: steps whole, >= 0 and increasing, values finite."""
+
+    text = "a list of [env step, value] pairs, steps increasing from 0 or later"
+
+    def check(self, value: Any, where: str, env: Any = None) -> None:
+        if not isinstance(value, list) or not value:
+            raise TypeError(f"{where}={value!r} must be {self.text}")
+        last = -1
+        for i, pair in enumerate(value):
+            if not isinstance(pair, list) or len(pair) != 2:
+                raise TypeError(f"{where}[{i}]={pair!r} must be [env step, value]")
+            Number(ge=0, integer=True).check(pair[0], f"{where}[{i}][0]")
+            Number().check(pair[1], f"{where}[{i}][1]")
+            if int(pair[0]) <= last:
+                raise ValueError(f"{where}[{i}][0]={pair[0]} must be above the step before it")
+            last = int(pair[0])
+
+
+@register_hook(
+    "piecewise",
+    points=("train_start", "rollout_end"),
+    params={"name": Text(), "points": _Points()},
+    required=("name", "points"),
+)
+class Piecewise:
+    """A mutable hyperparameter held at ``value`` from each ``[step, value]`` of ``points`` on (before
+    the first step: its configured value), set before every update: a PBT member's schedule,
+    replayed (``rlexp pbt export``, docs/pbt.md)."""
+
+    def __init__(self, name: str, points: list[list[float]]) -> None:
+        self.name = name
+        self.points = [(int(s), float(v)) for s, v in points]
+
+    def __call__(self, state: HookState, control: HookControl) -> None:
+        due = [v for s, v in self.points if s <= state.global_step]
+        if due and state.hyperparameters.get(self.name) != due[-1]:
+            control.set(self.name, due[-1])

@@ -134,6 +134,21 @@ def _joblib_with_stop_handling(config: DictConfig) -> None:
             config.hydra.launcher._target_ = RLEXP_JOBLIB
 
 
+def _pbt_side_by_side(config: DictConfig) -> None:
+    """A PBT population (rlexp.pbt) runs all its members at once: the launcher's parallelism is
+    raised to the population's size where it is lower (logged)."""
+    from rlexp.pbt.config import population_size, widen_launcher
+
+    hooks = OmegaConf.select(config, "hooks", default=None)
+    size = population_size(OmegaConf.to_container(hooks, resolve=True) if hooks else None)
+    if size is None:
+        return
+    with open_dict(config), read_write(config):
+        changed = widen_launcher(config.hydra.launcher, size)
+    if changed:
+        log.info("PBT population of %d: %s (members run side by side)", size, ", ".join(changed))
+
+
 PLUGIN_JOBLIB = "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"
 RLEXP_JOBLIB = "hydra_plugins.rlexp_launcher.joblib_launcher.RlexpJoblibLauncher"
 
@@ -146,6 +161,7 @@ class SweepSummary(Callback):
         sweeper does not): ``rlexp report`` reads from it how many jobs the sweep was to run."""
         sweep_dir = Path(str(config.hydra.sweep.dir))
         _joblib_with_stop_handling(config)
+        _pbt_side_by_side(config)
         try:
             claim_sweep_dir(sweep_dir, config)
         except SweepDirTaken as exc:

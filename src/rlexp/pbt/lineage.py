@@ -1,0 +1,175 @@
+"""Reading a PBT population after (or while) it runs: each member's hyperparameter schedule, the
+best member and its lineage (whose weights it carries, back to step 0), the ``rlexp report``
+section and figure, and the export of a member's schedule as a ``hooks`` config that replays it
+without a population (``python train.py hooks=<name>``: the ``piecewise`` hook)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rlexp import safe_read
+from rlexp.pbt.population import PBT_DIR, read_lineage, read_ready
+
+
+@dataclass
+class Member:
+    """One member's files, read once."""
+
+    name: str
+    path: Path
+    lineage: list[dict[str, Any]]
+    final: float | None  # its final eval (status.json) or, without one, its last ready score
+    step: int  # the last step it reported
+
+    def schedule(self) -> dict[str, list[tuple[int, float]]]:
+        """Each tuned hyperparameter as (step, value from that step on), from its lineage."""
+        out: dict[str, list[tuple[int, float]]] = {}
+        for rec in self.lineage:
+            values = rec.get("hyperparameters") if rec.get("event") == "start" else rec.get("new")
+            for name, value in (values or {}).items():
+                points = out.setdefault(str(name), [])
+                if not points or points[-1][1] != float(value):
+                    points.append((int(rec["step"]), float(value)))
+        return out
+
+    def current(self) -> dict[str, float]:
+        """The hyperparameters it trains with now (as its lineage last set them)."""
+        return {name: points[-1][1] for name, points in self.schedule().items()}
+
+
+def is_member(run_dir: Path) -> bool:
+    return (run_dir / PBT_DIR / "lineage.jsonl").is_file()
+
+
+def read_member(run_dir: Path, metric: str = "eval/episode_return") -> Member:
+    lineage = read_lineage(run_dir)
+    ready = read_ready(run_dir)
+    final = None
+    try:
+        status = safe_read.load_json(run_dir / "status.json") or {}
+        value = (status.get("final_eval") or {}).get(metric)
+        final = float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
+    except (safe_read.Unreadable, AttributeError):
+        status = {}
+    if final is None and ready and ready[-1].score is not None:
+        final = ready[-1].score
+    step = max([int(status.get("global_step") or 0)] + [r.step for r in ready])
+    return Member(run_dir.name, run_dir, lineage, final, step)
+
+
+def read_population(sweep_dir: Path, metric: str = "eval/episode_return") -> list[Member]:
+    """The sweep's PBT members (job dirs with a lineage), by name."""
+    dirs = sorted(p for p in Path(sweep_dir).iterdir() if p.is_dir() and is_member(p))
+    return [read_member(d, metric) for d in dirs]
+
+
+def best_member(members: list[Member]) -> Member | None:
+    scored = [m for m in members if m.final is not None]
+    return max(scored, key=lambda m: (m.final, m.name)) if scored else None
+
+
+def ancestry(members: list[Member], best: Member) -> list[str]:
+    """Whose weights ``best`` carries, newest first: 'member m steps a-b' spans back to step 0."""
+    by_name = {m.name: m for m in members}
+    spans, member, end = [], best, best.step
+    for _ in range(10_000):  # a lineage is finite; a damaged one must not loop
+        exploits = [r for r in member.lineage if r.get("event") == "exploit" and r["step"] <= end]
+        if not exploits:
+            spans.append(f"member {member.name} steps 0-{end}")
+            break
+        last = exploits[-1]
+        spans.append(
+            f"member {member.name} steps {last['step']}-{end} (copied member {last['source']} at "
+            f"its step {last['source_step']}, score {last['score']:.4g} < {last['source_score']:.4g})"
+        )
+        source = by_name.get(str(last["source"]))
+        if source is None:
+            spans.append(f"member {last['source']} (its files are gone)")
+            break
+        member, end = source, int(last["source_step"])
+    return spans
+
+
+def pbt_markdown(sweep_dir: Path, metric: str = "eval/episode_return") -> list[str]:
+    """The report's PBT section ([] for a sweep without PBT members)."""
+    members = read_population(sweep_dir, metric)
+    if not members:
+        return []
+    best = best_member(members)
+    lines = ["", "## Population Based Training", ""]
+    exploits = sum(1 for m in members for r in m.lineage if r.get("event") == "exploit")
+    lines.append(f"{len(members)} members, {exploits} exploits in all (pbt/lineage.jsonl).")
+    lines += ["", "| member | final score | step | exploits | current hyperparameters |",
+              "|---|---|---|---|---|"]  # fmt: skip
+    for m in members:
+        n = sum(1 for r in m.lineage if r.get("event") == "exploit")
+        final = "-" if m.final is None else f"{m.final:.4g}"
+        hps = ", ".join(f"{k}={v:.4g}" for k, v in m.current().items())
+        lines.append(f"| {m.name} | {final} | {m.step} | {n} | {hps} |")
+    if best is not None:
+        lines += ["", f"Best member: **{best.name}** ({metric} {best.final:.4g}). Its weights come "
+                  "from (newest first):", ""]  # fmt: skip
+        lines += [f"- {span}" for span in ancestry(members, best)]
+        lines += ["", "Its hyperparameter schedule (value from that step on):", ""]
+        for name, points in best.schedule().items():
+            lines.append(f"- {name}: " + ", ".join(f"{s}: {v:.4g}" for s, v in points))
+        lines += ["", f"Replay it without a population: `rlexp pbt export {sweep_dir} --member "
+                  f"{best.name} -o conf/hooks/pbt_best.yaml`, then `python train.py hooks=pbt_best`."]  # fmt: skip
+    return lines + [""]
+
+
+def plot_schedules(sweep_dir: Path, path: Path, metric: str = "eval/episode_return") -> bool:
+    """``pbt_schedules.png``: each tuned hyperparameter over env steps, one line per member, the
+    best one bold; False (nothing written) for a sweep without PBT members."""
+    members = read_population(sweep_dir, metric)
+    if not members:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    best = best_member(members)
+    names = sorted({n for m in members for n in m.schedule()})
+    fig, axes = plt.subplots(
+        len(names), 1, figsize=(8, 2.6 * len(names)), sharex=True, squeeze=False
+    )
+    for ax, name in zip(axes[:, 0], names, strict=True):
+        for m in members:
+            points = m.schedule().get(name)
+            if not points:
+                continue
+            steps = [s for s, _ in points] + [m.step]
+            values = [v for _, v in points] + [points[-1][1]]
+            bold = best is not None and m.name == best.name
+            ax.step(steps, values, where="post", linewidth=2.5 if bold else 1,
+                    label=f"member {m.name}" + (" (best)" if bold else ""))  # fmt: skip
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize="small")
+    axes[0, 0].set_title("PBT hyperparameter schedules (pbt/lineage.jsonl)")
+    axes[-1, 0].set_xlabel("env steps")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
+def export_schedule(member: Member, prefix: str = "pbt") -> str:
+    """A ``conf/hooks/<name>.yaml`` that replays ``member``'s schedule: one ``piecewise`` hook per
+    tuned hyperparameter (values set before each update, by env step). The weights the member
+    copied are not part of it: the schedule alone, on one run."""
+    lines = [
+        f"# The hyperparameter schedule of PBT member {member.name} ({member.path}), exported by",
+        "# `rlexp pbt export`: python train.py hooks=<this file's name> (docs/pbt.md). It replays",
+        "# the values over env steps on one run; the weights the member copied are not replayed.",
+        "# The run's other settings (algorithm.anneal_lr, ...) should be the population's.",
+    ]
+    for name, points in member.schedule().items():
+        pts = ", ".join(f"[{s}, {v!r}]" for s, v in points)
+        lines += [f"{prefix}_{name}:", "  func: piecewise", "  params:", f"    name: {name}",
+                  f"    points: [{pts}]"]  # fmt: skip
+    return "\n".join(lines) + "\n"
