@@ -65,6 +65,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT / "src"))
+sys.path.insert(0, str(HERE))
+from phase_floors import floor_table, measure_floors, phase_sums  # noqa: E402
 
 #: The time-to-result anchors of #15: CleanRL's ppo_continuous_action.py at 1M env steps, the mean
 #: return of the last 100 training episodes, mean of 3 seeds on the v4 tasks (CleanRL's
@@ -110,6 +112,11 @@ class Contender:
 
 
 # -- configuration -------------------------------------------------------------------------------------
+def gym_id(config) -> str:
+    """The Gymnasium id of the row's env (``env.name`` of a Gymnasium task)."""
+    return config.env.name
+
+
 def compose(overrides: list[str]):
     """rlexp's typed config, composed from conf/ exactly as ``python train.py`` does."""
     from hydra import compose as hydra_compose
@@ -263,6 +270,8 @@ def run_once(c: Contender, run_dir: Path, anchor: float | None) -> dict:
         tail = log.read_text().strip().splitlines()[-15:]
         raise RuntimeError(f"{c.label} exited {proc.returncode}:\n" + "\n".join(tail))
     out = read_rlexp(run_dir, anchor) if c.kind == "rlexp" else read_sb3(run_dir)
+    if c.kind == "rlexp":
+        out.update(phase_sums(run_dir))
     hit = out.pop("anchor_time")
     out["anchor_s"] = hit - launch if hit is not None else None
     out["wall"] = wall
@@ -318,6 +327,7 @@ def report(
     config,
     machine: str,
     target: float | None,
+    floors: dict | None = None,
 ) -> str:
     anchor = args.anchor
     anchor_col = f"reaches {anchor:,.0f} at s (step)" if anchor is not None else "time to result"
@@ -398,6 +408,9 @@ def report(
                 f"{f'{sb3_hit:,.0f} s' if sb3_hit is not None else 'not reached'}"
                 f"{f'; SB3 s / rlexp s: {ratio}' if ratio else ''}.",
             ]
+    if floors is not None:
+        mine = [c.label for c in contenders if c.kind == "rlexp"]
+        lines += ["", floor_table(floors, runs, mine, config)]
     lines += [
         "",
         f"Commands (`{RUN_DIR}`: a fresh directory per run; `python` is the venv's):",
@@ -500,6 +513,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "results.md")
     parser.add_argument("--keep-runs", type=Path, help="keep the run dirs under this directory")
     parser.add_argument("--dry-run", action="store_true", help="print the commands and stop")
+    parser.add_argument(
+        "--no-floors",
+        action="store_true",
+        help="skip the floors (benchmarks/floors.py, measured first in this invocation)",
+    )
     args = parser.parse_args()
     row = ROWS[args.row]
     args.steps = args.steps or row.steps
@@ -524,6 +542,10 @@ def main() -> None:
     work = args.keep_runs or Path(tempfile.mkdtemp(prefix="rlexp_e2e_"))
     work.mkdir(parents=True, exist_ok=True)
     runs: dict[str, list[dict]] = {c.label: [] for c in contenders}
+    floors = None
+    if not args.no_floors:  # the floors of this row, in this invocation, before the runs
+        floors = measure_floors(gym_id(config), max(config.policy.actor.hidden_sizes))
+        print(f"floors: {floors}", flush=True)
     try:
         for r in range(args.rounds):
             for i, c in enumerate(contenders):
@@ -540,7 +562,7 @@ def main() -> None:
         if args.keep_runs is None:
             shutil.rmtree(work, ignore_errors=True)
     target = row.target if args.steps == row.steps else None
-    text = report(contenders, runs, args, heading, config, machine, target)
+    text = report(contenders, runs, args, heading, config, machine, target, floors)
     print("\n" + text)
     write_section(args.out, key, text)
     print(f"written to {args.out}")
