@@ -16,6 +16,27 @@ if TYPE_CHECKING:
 
 COMPILE_CHOICES = ("auto", "true", "false")
 
+#: ``algorithm.compile=auto`` compiles when the run's estimated saving is at least this many seconds.
+AUTO_COMPILE_MIN_SAVING_S = 60.0
+#: Estimated saving of a compiled over an eager minibatch update (loss forward + backward), measured
+#: on a 2-core CPU (docs/performance.md): ~1 ms of Python and dispatch per update (1.25 vs 2.3 ms at
+#: 64 samples, 64x64 tanh) plus ~2 us per sample (72 vs 90 ms at 8192 samples, 256x256 relu).
+COMPILE_SAVING_PER_UPDATE_S = 1.0e-3
+COMPILE_SAVING_PER_SAMPLE_S = 2.0e-6
+#: The same for the fused minibatch step (fused_step.py), whose eager step has less Python to save:
+#: 0.37 ms per update at 64 samples (1.30 vs 0.92 ms, benchmarks/ppo_floor.py); compiling it takes
+#: 20-25 s on a cold inductor cache (the 60 s threshold leaves it paid back).
+FUSED_COMPILE_SAVING_PER_UPDATE_S = 0.35e-3
+
+
+def compile_saving_s(updates: int, mb: int, fused: bool) -> float:
+    """``algorithm.compile=auto``'s estimate of what compiling saves over a run of ``updates``
+    minibatch steps of ``mb`` samples (``fused``: the fused step's, else the loss's alone); it
+    compiles when this is at least AUTO_COMPILE_MIN_SAVING_S."""
+    per_update = FUSED_COMPILE_SAVING_PER_UPDATE_S if fused else COMPILE_SAVING_PER_UPDATE_S
+    return updates * (per_update + COMPILE_SAVING_PER_SAMPLE_S * mb)
+
+
 #: The distributed gradient average: all-reduces (mean) a list of tensors in place.
 GradSync = Callable[[list[torch.Tensor]], None]
 

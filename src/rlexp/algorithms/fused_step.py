@@ -1,21 +1,22 @@
-"""PPO's minibatch step as one function of plain tensors: the actor and critic forward, the clipped
-loss (TorchRL's ``ClipPPOLoss`` as ``ppo.py`` configures it, written out), backward, the gradient
+"""The minibatch step as one function of plain tensors: the loss's forward, backward, the gradient
 norm, clipping and fused Adam; run through ``torch.compile`` when ``algorithm.compile`` says so,
-eager otherwise.
+eager otherwise. ``FusedStep`` is that machinery; ``FusedPPOStep`` gives it PPO's loss (TorchRL's
+``ClipPPOLoss`` as ``ppo.py`` configures it, written out), ``fused_grpo.FusedGRPOStep`` GRPO's.
 
 Why: per minibatch, today's path builds TensorDicts (the slice, the loss's clone and output), runs
 TorchRL's loss (compiled or not) and then an eager optimiser step; at 64 samples that Python and
 dispatch work costs more than the arithmetic (issue #32). Here the minibatches are slices of plain
 tensors gathered once per epoch, and the hyperparameters hooks may change (``lr``,
-``clip_epsilon``, ``entropy_coeff``, ``max_grad_norm``, ``critic_coeff``) enter as 0-dim tensors, so a
-change never recompiles.
+``clip_epsilon``, ``entropy_coeff``, ``max_grad_norm``, ``critic_coeff``, GRPO's ``kl_coeff``) enter
+as 0-dim tensors, so a change never recompiles.
 
 What stays as it was: the optimiser (its state is ``torch.optim.Adam``'s, stepped by the same
 ``_fused_adam_`` kernel, so checkpoints do not change), the minibatch order, the statistics, and the
 NaN guard, checked between the backward and the step as ``guarded_step`` does. What it does not
 cover falls back to today's path (``unsupported``): distributed gradient averaging, rsl_rl's
 adaptive learning rate (``desired_kl``), a non-fused Adam. ``tests/test_fast_update.py`` checks it
-against ``ClipPPOLoss`` for losses, gradients and updated parameters.
+against ``ClipPPOLoss`` for losses, gradients and updated parameters, and
+``tests/test_fast_update_grpo.py`` against GRPO's TensorDict path.
 """
 
 from __future__ import annotations
@@ -61,10 +62,11 @@ _DISTANCE = {"l1": F.l1_loss, "l2": F.mse_loss, "smooth_l1": F.smooth_l1_loss}
 
 
 def unsupported(algo) -> str | None:
-    """Why the fused step cannot stand in for ``algo``'s (a ``PPO``) today, or None when it can."""
+    """Why the fused step cannot stand in for ``algo``'s (a ``PPO`` or ``GRPO``) today, or None
+    when it can."""
     if algo.grad_sync is not None:
         return "distributed gradient averaging runs between backward and the optimiser step"
-    if algo.cfg.desired_kl is not None:
+    if getattr(algo.cfg, "desired_kl", None) is not None:
         return "algorithm.desired_kl changes the learning rate before every minibatch"
     if not all(g.get("fused") for g in algo.optimizer.param_groups):
         return "Adam is not the fused kernel on this device"
@@ -88,26 +90,36 @@ def _step_hooks(optimizer: torch.optim.Optimizer) -> tuple[list[Callable], list[
     return pre, post
 
 
-class FusedPPOStep:
-    """PPO's minibatch steps over plain tensors: ``epochs`` runs an update's, one statistics row
-    (STEP_STATS) per minibatch."""
+class FusedStep:
+    """The machinery of a fused minibatch step over plain tensors (forward and backward, gradient
+    norm, NaN guard, clipping, Adam on ``torch.optim.Adam``'s state, compiling); a subclass gives
+    the loss and says what it reads and returns: ``epochs`` runs an update's steps, one statistics
+    row (``stat_keys``) per minibatch."""
+
+    #: the algorithm's name in log lines and NaN-guard messages
+    name: str = ""
+    #: the flattened rollout's entries a minibatch step reads, in ``loss``'s arguments' order
+    minibatch_keys: tuple[str, ...] = ()
+    #: the mutable hyperparameters ``loss`` reads from ``hyper`` (0-dim float32 each, built by
+    #: ``hyper_values``); the last is ``max_grad_norm``, which the clipping reads
+    hyper_keys: tuple[str, ...] = ()
+    #: the order of a step's statistics row (``grad_norm`` among them; the others ``loss``'s, in
+    #: the same order)
+    stat_keys: tuple[str, ...] = ()
 
     def __init__(self, algo, compiled: bool) -> None:
-        """``algo``: the ``PPO`` whose policy, optimiser and settings the step uses."""
+        """``algo``: the learner whose policy, optimiser and settings the step uses."""
         self.policy = algo.policy
         self.params: list[torch.nn.Parameter] = algo.params
         self.param_names: list[str] = algo.param_names
         self.optimizer: torch.optim.Adam = algo.optimizer
         self.nan_guard: bool = algo.nan_guard
-        cfg = algo.cfg
-        self.loss_critic_type: str = cfg.loss_critic_type
-        self.normalize_advantage: bool = cfg.normalize_advantage
-        self.clip_value: float | None = cfg.clip_value
         group = self.optimizer.param_groups[0]
         self.adam = (*group["betas"], group["eps"])
         self.gaussian = isinstance(self.policy.actor_net, GaussianActorNet)
         self.compiled = compiled
         self.compile_choice: str = algo.compile
+        self._grad_norm_at = self.stat_keys.index("grad_norm")
         self._first = compiled  # the first compiled call compiles (``_first_step``)
         self._state: tuple[list[torch.Tensor], ...] | None = None  # Adam's, per update
         self._grads: Callable = self._loss_and_grads
@@ -116,69 +128,50 @@ class FusedPPOStep:
             self._grads = torch.compile(self._loss_and_grads, dynamic=False)
             self._apply = torch.compile(self._clip_and_adam, dynamic=False)
 
-    # -- the loss: ClipPPOLoss.forward for rlexp's settings, the same operations in the same order
+    def loss(self, *minibatch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(total loss, the statistics but ``grad_norm`` in ``stat_keys`` order) of one minibatch;
+        its arguments: the ``minibatch_keys`` tensors, then ``hyper``."""
+        raise NotImplementedError
+
+    def hyper_values(self, cfg) -> list[float]:
+        """The values of ``hyper_keys`` for an update (read from the learner's config)."""
+        return [float(getattr(cfg, k)) for k in self.hyper_keys]
+
+    def loss_terms(self, stats: torch.Tensor, hyper: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The loss terms the total had, named for the NaN guard's message."""
+        raise NotImplementedError
+
+    def minibatch_data(self, flat: TensorDictBase) -> list[torch.Tensor]:
+        """The ``minibatch_keys`` tensors of the flattened rollout, one row per sample."""
+        return [flat.get(k) for k in self.minibatch_keys]
+
+    # -- the policy's distribution: TorchRL's IndependentNormal (torch's Normal, summed over the
+    # action dims) or rlexp's MultiCategorical, the same operations in the same order
+    def _dist(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | MultiCategorical:
+        """(loc, scale) of the Gaussian head, or the categorical head's distribution, on ``obs``."""
+        if self.gaussian:
+            return self.policy.actor_net(obs)
+        return MultiCategorical(self.policy.actor_net(obs), self.policy.actor_net.nvec)
+
+    def _log_prob(self, dist, action: torch.Tensor) -> torch.Tensor:
+        if self.gaussian:
+            loc, scale = dist
+            var = scale**2  # Normal.log_prob's order (autograd sums the gradients in it)
+            log_scale = scale.log()
+            log_prob = -((action - loc) ** 2) / (2 * var) - log_scale - _HALF_LOG_2PI
+            return log_prob.sum(-1)
+        return dist.log_prob(action)
+
+    def _entropy(self, dist) -> torch.Tensor:
+        if self.gaussian:  # a log of its own, as Normal.entropy's (gradients sum in its order)
+            return (0.5 + 0.5 * math.log(2 * math.pi) + dist[1].log()).sum(-1)
+        return dist.entropy()
+
     def _log_prob_entropy(
         self, obs: torch.Tensor, action: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        if self.gaussian:  # IndependentNormal: torch's Normal, summed over the action dims
-            loc, scale = self.policy.actor_net(obs)
-            log_scale = scale.log()
-            var = scale**2
-            log_prob = -((action - loc) ** 2) / (2 * var) - log_scale - _HALF_LOG_2PI
-            entropy = 0.5 + 0.5 * math.log(2 * math.pi) + log_scale
-            return log_prob.sum(-1), entropy.sum(-1)
-        dist = MultiCategorical(self.policy.actor_net(obs), self.policy.actor_net.nvec)
-        return dist.log_prob(action), dist.entropy()
-
-    def loss(
-        self,
-        obs: torch.Tensor,
-        action: torch.Tensor,
-        old_log_prob: torch.Tensor,
-        advantage: torch.Tensor,
-        value_target: torch.Tensor,
-        old_value: torch.Tensor,
-        hyper: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(total loss, the statistics but ``grad_norm`` in STEP_STATS order) of one minibatch."""
-        clip_epsilon, entropy_coeff, critic_coeff = hyper[0], hyper[1], hyper[2]
-        if self.normalize_advantage and advantage.numel() > 1:  # torchrl _standardize
-            advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(
-                torch.finfo(torch.float).resolution
-            )
-        log_prob, entropy = self._log_prob_entropy(obs, action)
-        log_weight = (log_prob - old_log_prob).unsqueeze(-1)
-        kl_approx = (old_log_prob - log_prob).unsqueeze(-1)
-        gain1 = log_weight.exp() * advantage
-        log_weight_clip = log_weight.clamp((-clip_epsilon).log1p(), clip_epsilon.log1p())
-        clip_fraction = (log_weight_clip != log_weight).to(log_weight.dtype).mean()
-        gain2 = log_weight_clip.exp() * advantage
-        gain = torch.stack([gain1, gain2], -1).min(dim=-1).values
-        loss_objective = (-gain).mean()
-        entropy = entropy.unsqueeze(-1)
-        loss_entropy = (-entropy_coeff * entropy).mean()
-        value = self.policy.critic_net(obs)
-        distance = _DISTANCE[self.loss_critic_type]
-        loss_value = distance(value_target, value, reduction="none")
-        if self.clip_value:  # torchrl _clip_value_loss: the more pessimistic of the two
-            clipped = (value - old_value).clamp(-self.clip_value, self.clip_value)
-            clipped_loss = distance(value_target, old_value + clipped, reduction="none")
-            loss_value = torch.maximum(loss_value, clipped_loss)
-        loss_critic = (critic_coeff * loss_value).mean()
-        # ppo.update's rule: the entropy term joins the total only while entropy_coeff != 0
-        total = loss_objective + loss_critic
-        total = total + torch.where(entropy_coeff != 0, loss_entropy, 0.0)
-        stats = torch.stack(
-            [
-                loss_objective,
-                loss_critic,
-                loss_entropy,
-                entropy.mean(),
-                clip_fraction,
-                kl_approx.mean(),
-            ]
-        ).detach()
-        return total, stats
+        dist = self._dist(obs)
+        return self._log_prob(dist, action), self._entropy(dist)
 
     def _loss_and_grads(self, *minibatch: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Forward, backward and the gradient norm (before clipping)."""
@@ -197,11 +190,12 @@ class FusedPPOStep:
         lr: torch.Tensor | float,
         state: tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]],
     ) -> None:
-        """clip_grads_with_norm_ (max_grad_norm <= 0: off), then Adam on ``torch.optim.Adam``'s
+        """clip_grads_with_norm_ (max_grad_norm, ``hyper``'s last entry, <= 0: off), then Adam on ``torch.optim.Adam``'s
         state (``state``: its step counts, first and second moments)."""
-        max_grad_norm = hyper[3]
+        max_grad_norm = hyper[-1]
         grads = [p.grad for p in self.params]
-        coef = (max_grad_norm / (grad_norm + 1e-6)).clamp(max=1.0)
+        # clip_grads_with_norm_ to the bit: its float / tensor is reciprocal() * float in torch
+        coef = ((grad_norm + 1e-6).reciprocal() * max_grad_norm).clamp(max=1.0)
         torch._foreach_mul_(grads, torch.where(max_grad_norm > 0, coef, 1.0))
         steps, exp_avgs, exp_avg_sqs = state
         beta1, beta2, eps = self.adam  # constants: read once, so no guard watches param_groups
@@ -257,12 +251,10 @@ class FusedPPOStep:
         lr: torch.Tensor | float,
         where: str,
     ) -> torch.Tensor:
-        """One guarded minibatch step; its statistics in STEP_STATS order."""
+        """One guarded minibatch step; its statistics in ``stat_keys`` order."""
         total, stats, grad_norm = self._grads(*minibatch, hyper)
         if self.nan_guard and not torch.isfinite(grad_norm + total).all():
-            terms = dict(zip(STEP_STATS[:3], stats[:3], strict=True))
-            if float(hyper[1]) == 0.0:  # as ppo.update: a switched-off term is not a culprit
-                del terms["loss_entropy"]
+            terms = self.loss_terms(stats, hyper)
             what = what_was_non_finite(terms, total, self.params, self.param_names, False)
             raise NonFiniteError(f"non-finite {what} in {where}")
         if self._state is None:  # Adam's state appears at its first step, as torch.optim.Adam's
@@ -273,18 +265,18 @@ class FusedPPOStep:
         self._apply(grad_norm, hyper, lr, self._state)
         for hook in post:
             hook(self.optimizer, (), {})
-        return torch.cat([stats[:4], grad_norm.reshape(1), stats[4:]])
+        at = self._grad_norm_at
+        return torch.cat([stats[:at], grad_norm.reshape(1), stats[at:]])
 
     def epochs(
         self, flat: TensorDictBase, cfg, mb: int, generator: torch.Generator
     ) -> list[torch.Tensor]:
         """``cfg.num_epochs`` passes of shuffled minibatches over the flattened rollout (the order
-        ppo.update draws from ``generator``); one statistics row per minibatch."""
+        the learner's TensorDict path draws from ``generator``); one statistics row per minibatch."""
         n = flat.shape[0]
-        data = [flat.get(k) for k in MINIBATCH_KEYS]
-        data[2] = data[2].reshape(n)  # action_log_prob: one per sample
+        data = self.minibatch_data(flat)
         device = data[0].device
-        hyper = torch.tensor([float(getattr(cfg, k)) for k in HYPER_KEYS], device=device)
+        hyper = torch.tensor(self.hyper_values(cfg), device=device)
         lr: torch.Tensor | float = float(self.optimizer.param_groups[0]["lr"])
         if self.compiled:  # a tensor: a new rate (annealing, hooks) must not recompile
             lr = torch.tensor(lr, dtype=torch.float64, device=device)
@@ -296,7 +288,7 @@ class FusedPPOStep:
             perm = torch.randperm(n, generator=generator)
             shuffled = [t[perm] for t in data]
             for start in range(0, n - mb + 1, mb):
-                where = f"PPO update (epoch {epoch}, minibatch {start // mb})"
+                where = f"{self.name.upper()} update (epoch {epoch}, minibatch {start // mb})"
                 batch = [t[start : start + mb] for t in shuffled]
                 step = self._first_step if self._first else self.step
                 rows.append(step(batch, hyper, lr, where))
@@ -317,7 +309,9 @@ class FusedPPOStep:
         except Exception as exc:
             if self.compile_choice == "true":
                 raise
-            log.warning("[ppo] torch.compile failed, eager fused step from here on: %s", exc)
+            log.warning(
+                "[%s] torch.compile failed, eager fused step from here on: %s", self.name, exc
+            )
             self._grads, self._apply, self.compiled = (
                 self._loss_and_grads,
                 self._clip_and_adam,
@@ -327,6 +321,86 @@ class FusedPPOStep:
         finally:
             set_rng_state(rng)  # the step itself draws nothing: only compiling did
         log.info(
-            "[ppo] loss compiled in %.1f s (the fused minibatch step)", time.perf_counter() - t0
+            "[%s] loss compiled in %.1f s (the fused minibatch step)",
+            self.name,
+            time.perf_counter() - t0,
         )
         return out
+
+
+class FusedPPOStep(FusedStep):
+    """PPO's minibatch steps: ClipPPOLoss's maths for rlexp's settings on plain tensors."""
+
+    name = "ppo"
+    minibatch_keys = MINIBATCH_KEYS
+    hyper_keys = HYPER_KEYS
+    stat_keys = STEP_STATS
+
+    def __init__(self, algo, compiled: bool) -> None:
+        """``algo``: the ``PPO`` whose policy, optimiser and settings the step uses."""
+        cfg = algo.cfg
+        self.loss_critic_type: str = cfg.loss_critic_type
+        self.normalize_advantage: bool = cfg.normalize_advantage
+        self.clip_value: float | None = cfg.clip_value
+        super().__init__(algo, compiled)
+
+    def minibatch_data(self, flat: TensorDictBase) -> list[torch.Tensor]:
+        data = super().minibatch_data(flat)
+        data[2] = data[2].reshape(flat.shape[0])  # action_log_prob: one per sample
+        return data
+
+    def loss_terms(self, stats: torch.Tensor, hyper: torch.Tensor) -> dict[str, torch.Tensor]:
+        terms = dict(zip(STEP_STATS[:3], stats[:3], strict=True))
+        if float(hyper[1]) == 0.0:  # as ppo.update: a switched-off term is not a culprit
+            del terms["loss_entropy"]
+        return terms
+
+    def loss(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        old_log_prob: torch.Tensor,
+        advantage: torch.Tensor,
+        value_target: torch.Tensor,
+        old_value: torch.Tensor,
+        hyper: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(total loss, the statistics but ``grad_norm`` in STEP_STATS order) of one minibatch."""
+        clip_epsilon, entropy_coeff, critic_coeff = hyper[0], hyper[1], hyper[2]
+        if self.normalize_advantage and advantage.numel() > 1:  # torchrl _standardize
+            advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(
+                torch.finfo(torch.float).resolution
+            )
+        log_prob, entropy = self._log_prob_entropy(obs, action)
+        log_weight = (log_prob - old_log_prob).unsqueeze(-1)
+        kl_approx = (old_log_prob - log_prob).unsqueeze(-1)
+        gain1 = log_weight.exp() * advantage
+        log_weight_clip = log_weight.clamp((-clip_epsilon).log1p(), clip_epsilon.log1p())
+        clip_fraction = (log_weight_clip != log_weight).to(log_weight.dtype).mean()
+        gain2 = log_weight_clip.exp() * advantage
+        gain = torch.stack([gain1, gain2], -1).min(dim=-1).values
+        loss_objective = (-gain).mean()
+        entropy = entropy.unsqueeze(-1)
+        loss_entropy = (-entropy_coeff * entropy).mean()
+        value = self.policy.critic_net(obs)
+        distance = _DISTANCE[self.loss_critic_type]
+        loss_value = distance(value_target, value, reduction="none")
+        if self.clip_value:  # torchrl _clip_value_loss: the more pessimistic of the two
+            clipped = (value - old_value).clamp(-self.clip_value, self.clip_value)
+            clipped_loss = distance(value_target, old_value + clipped, reduction="none")
+            loss_value = torch.maximum(loss_value, clipped_loss)
+        loss_critic = (critic_coeff * loss_value).mean()
+        # ppo.update's rule: the entropy term joins the total only while entropy_coeff != 0
+        total = loss_objective + loss_critic
+        total = total + torch.where(entropy_coeff != 0, loss_entropy, 0.0)
+        stats = torch.stack(
+            [
+                loss_objective,
+                loss_critic,
+                loss_entropy,
+                entropy.mean(),
+                clip_fraction,
+                kl_approx.mean(),
+            ]
+        ).detach()
+        return total, stats

@@ -23,6 +23,12 @@ still alive. So the advantage and loss are written here in plain torch; the dist
 TorchRL's (``policy.actor.get_dist``: the ``IndependentNormal`` PPO's loss uses) and the KL term is
 TorchRL's ``k3_kl_token_estimate``. The optimiser step (gradient sync, NaN guard, clipping, fused
 Adam) is PPO's, from ``base.py``. ``tests/test_grpo_math.py`` checks it against a plain-torch GRPO.
+
+The minibatch step is ``fused_grpo.py`` (this loss's maths on plain tensors, backward, clipping and
+Adam on PPO's fused machinery) wherever it covers the run, eager unless ``algorithm.compile`` says
+(auto: PPO's saving rule; true: refused at build time where the fused step cannot cover the run);
+the TensorDict path below otherwise (distributed gradient averaging, a non-fused Adam), chosen once
+at the first update and logged. ``tests/test_fast_update_grpo.py`` checks the two equal.
 """
 
 from __future__ import annotations
@@ -37,22 +43,23 @@ from tensordict import TensorDictBase
 from torchrl.objectives.llm import k3_kl_token_estimate
 
 from rlexp.algorithms.base import (
+    AUTO_COMPILE_MIN_SAVING_S,
     GradSync,
     MutableHyperparameters,
+    compile_saving_s,
     guarded_step,
     make_optimizer,
     parse_compile,
 )
+from rlexp.algorithms.fused_grpo import LOSS_KEYS, STAT_KEYS, FusedGRPOStep
+from rlexp.algorithms.fused_step import unsupported as fused_unsupported
 from rlexp.config.schema import GRPOConfig
 from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import Policy
 
 log = logging.getLogger(__name__)
 
-#: the loss terms, as named in NaN-guard messages
-LOSS_KEYS = ("loss_objective", "loss_entropy", "loss_kl")
-#: per-minibatch statistics, averaged over the update
-STAT_KEYS = (*LOSS_KEYS, "entropy", "kl_ref", "approx_kl", "clip_fraction", "grad_norm")
+__all__ = ["GRPO", "LOSS_KEYS", "STAT_KEYS", "group_advantages"]
 
 
 def group_advantages(
@@ -104,6 +111,9 @@ class GRPO(MutableHyperparameters):
     """One GRPO learner: ``update(batch)`` computes group advantages, then the clipped-surrogate
     epochs with the KL penalty to the initial policy on a rollout [num_envs, T]."""
 
+    #: Whether the first update may choose the fused minibatch step (fused_grpo.py) over today's.
+    use_fused_step: bool = True
+
     def __init__(
         self,
         cfg: GRPOConfig,
@@ -116,11 +126,6 @@ class GRPO(MutableHyperparameters):
             raise ValueError(f"algorithm.name={cfg.name!r}; GRPO is 'grpo'")
         if cfg.group_size < 1:
             raise ValueError(f"algorithm.group_size={cfg.group_size}; must be >= 1")
-        if parse_compile(cfg.compile) == "true":
-            raise ConfigError(
-                "algorithm.compile=true, but GRPO's loss runs eager (no torch.compile for it); "
-                "use algorithm.compile=auto or false"
-            )
         self.cfg = dataclasses.replace(cfg)  # its own copy: hooks may change its values
         self.policy = policy
         self.total_iterations = max(1, total_iterations)
@@ -138,6 +143,14 @@ class GRPO(MutableHyperparameters):
         self.param_names = [n for n, _ in named]  # for NaN-guard messages
         self.params = [p for _, p in named]
         self.optimizer = make_optimizer(self.params, cfg)
+        self.compile = parse_compile(cfg.compile)
+        if self.compile == "true":  # only the fused step compiles: fail at build time, naming why
+            self._check_compile_true()
+        self.compiled = False  # whether the minibatch step runs through torch.compile
+        # The fused minibatch step, chosen at the first update where it covers the run; None: the
+        # TensorDict path (GRPO.loss, then guarded_step).
+        self.fused: FusedGRPOStep | None = None
+        self._step_decided = False
         self._shuffle = torch.Generator()  # minibatch order (CPU: randperm indexes a CPU batch)
         self.iteration = 0
 
@@ -204,9 +217,51 @@ class GRPO(MutableHyperparameters):
         flat, mask = self.prepare(batch)
         n = flat.shape[0]
         mb = min(self.cfg.mini_batch_size, n)
+        if not self._step_decided:
+            self._decide_step(
+                updates=self.total_iterations * self.cfg.num_epochs * (n // mb), mb=mb
+            )
         # Minibatch order from a generator of its own, seeded from the global RNG once per update
         # (as PPO): nothing the loss draws can change it.
         self._shuffle.manual_seed(int(torch.randint(2**62, (1,)).item()))
+        if self.fused is not None:
+            # The fused step's rows hold every STAT_KEYS: keep the loss's own, as the TensorDict
+            # path's rows do (the same columns, so the same means to the bit).
+            keys = [k for k in STAT_KEYS if self._in_loss(k)]
+            columns = [STAT_KEYS.index(k) for k in keys]
+            stats = torch.stack(self.fused.epochs(flat, self.cfg, mb, self._shuffle))[:, columns]
+        else:
+            rows, keys = self._epochs(flat, mb)
+            stats = torch.stack(rows)
+        self.iteration += 1
+        # Only what was computed is logged: a term the loss does not have is absent, never 0.
+        means = dict(zip(keys, stats.mean(0).tolist(), strict=True))
+        metrics = {
+            "loss/policy": means["loss_objective"],
+            "loss/entropy": means["entropy"],  # the policy's mean entropy
+            "loss/grad_norm": means["grad_norm"],
+            "loss/clip_fraction": means["clip_fraction"],
+            "loss/approx_kl": means["approx_kl"],
+            "loss/learning_rate": lr,
+            **self.policy.metrics(),  # loss/log_std for a Gaussian policy
+            "grpo/mask_fraction": float(mask.mean()),
+        }
+        if "loss_entropy" in means:  # the entropy term of the loss: -entropy_coeff * entropy
+            metrics["loss/entropy_term"] = means["loss_entropy"]
+        if self.reference is not None:
+            metrics["loss/kl_ref"] = means["kl_ref"]
+        return metrics
+
+    def _in_loss(self, key: str) -> bool:
+        """Whether ``loss`` computes the statistic ``key`` with today's settings."""
+        if key == "loss_entropy":
+            return self.cfg.entropy_coeff != 0.0
+        return key not in ("loss_kl", "kl_ref") or self.reference is not None
+
+    def _epochs(self, flat: TensorDictBase, mb: int) -> tuple[list[torch.Tensor], list[str]]:
+        """The TensorDict path: ``loss`` on TensorDict slices, then ``guarded_step``; per minibatch
+        a row of the statistics named by the returned keys."""
+        n = flat.shape[0]
         rows: list[torch.Tensor] = []  # per minibatch: the STAT_KEYS present, one tensor
         keys: list[str] = []
         for epoch in range(self.cfg.num_epochs):
@@ -233,24 +288,52 @@ class GRPO(MutableHyperparameters):
                 )
                 keys = keys or [k for k in STAT_KEYS if k in out]
                 rows.append(torch.stack([out[k].detach() for k in keys]))
-        self.iteration += 1
-        # Only what was computed is logged: a term the loss does not have is absent, never 0.
-        means = dict(zip(keys, torch.stack(rows).mean(0).tolist(), strict=True))
-        metrics = {
-            "loss/policy": means["loss_objective"],
-            "loss/entropy": means["entropy"],  # the policy's mean entropy
-            "loss/grad_norm": means["grad_norm"],
-            "loss/clip_fraction": means["clip_fraction"],
-            "loss/approx_kl": means["approx_kl"],
-            "loss/learning_rate": lr,
-            **self.policy.metrics(),  # loss/log_std for a Gaussian policy
-            "grpo/mask_fraction": float(mask.mean()),
-        }
-        if "loss_entropy" in means:  # the entropy term of the loss: -entropy_coeff * entropy
-            metrics["loss/entropy_term"] = means["loss_entropy"]
-        if self.reference is not None:
-            metrics["loss/kl_ref"] = means["kl_ref"]
-        return metrics
+        return rows, keys
+
+    def _check_compile_true(self) -> None:
+        """``algorithm.compile=true``: a ``ConfigError`` where the fused step cannot cover the run
+        or torch.compile cannot run (GRPO's TensorDict path has no compiled form)."""
+        from rlexp.algorithms.ppo import compile_unavailable
+
+        problem = fused_unsupported(self) or compile_unavailable(
+            self.params[0].device if self.params else None
+        )
+        if problem is not None:
+            raise ConfigError(
+                f"algorithm.compile=true, but GRPO compiles only its fused minibatch step, which "
+                f"cannot run here: {problem}; use algorithm.compile=auto or false"
+            )
+
+    def _decide_step(self, updates: int, mb: int) -> None:
+        """The minibatch step for this run (once, at the first update): fused, compiled where
+        ``algorithm.compile`` says (auto: PPO's saving rule), or the TensorDict path."""
+        self._step_decided = True
+        problem = fused_unsupported(self) if self.use_fused_step else "switched off"
+        if problem is not None:
+            log.info("[grpo] minibatch step: GRPO.loss on TensorDicts (not fused: %s)", problem)
+            return
+        compiled = self.compile == "true"
+        if self.compile == "auto":
+            saving = compile_saving_s(updates, mb, fused=True)
+            compiled = saving >= AUTO_COMPILE_MIN_SAVING_S
+            log.info(
+                "[grpo] algorithm.compile=auto: %s (%d minibatch updates, estimated saving %.0f s, "
+                "threshold %.0f s)",
+                "torch.compile of the fused step" if compiled else "eager",
+                updates,
+                saving,
+                AUTO_COMPILE_MIN_SAVING_S,
+            )
+        if compiled and self.compile == "auto":
+            from rlexp.algorithms.ppo import compile_unavailable
+
+            problem = compile_unavailable(self.params[0].device if self.params else None)
+            if problem is not None:
+                log.warning("[grpo] algorithm.compile=auto: eager step (%s)", problem)
+                compiled = False
+        self.fused = FusedGRPOStep(self, compiled=compiled)
+        self.compiled = compiled
+        log.info("[grpo] minibatch step: fused (%s)", "compiled" if compiled else "eager")
 
     def state_dict(self) -> dict[str, Any]:
         """Optimiser, iteration and, with ``kl_coeff > 0``, the frozen reference policy."""

@@ -31,10 +31,15 @@ from torchrl.objectives.value import GAE
 
 from rlexp.algorithms import make_algorithm
 from rlexp.algorithms.base import (
+    AUTO_COMPILE_MIN_SAVING_S,
     COMPILE_CHOICES,
+    COMPILE_SAVING_PER_SAMPLE_S,
+    COMPILE_SAVING_PER_UPDATE_S,
+    FUSED_COMPILE_SAVING_PER_UPDATE_S,
     GradSync,
     MutableHyperparameters,
     NonFiniteError,
+    compile_saving_s,
     guarded_step,
     make_optimizer,
     parse_compile,
@@ -47,8 +52,8 @@ from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import POLICIES, ActorCritic
 from rlexp.policies.heads import gaussian_kl
 
-# NonFiniteError, make_optimizer, parse_compile, COMPILE_CHOICES (rlexp.algorithms.base) and
-# make_algorithm (rlexp.algorithms) are importable from here too, as they were before GRPO.
+# NonFiniteError, make_optimizer, parse_compile, COMPILE_CHOICES, the compile=auto constants
+# (rlexp.algorithms.base) and make_algorithm (rlexp.algorithms) are importable from here too.
 __all__ = [
     "AUTO_COMPILE_MIN_SAVING_S",
     "COMPILE_CHOICES",
@@ -72,17 +77,6 @@ log = logging.getLogger(__name__)
 
 LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy")
 STAT_KEYS = (*LOSS_KEYS, "entropy", "grad_norm", "clip_fraction", "kl_approx")
-#: ``algorithm.compile=auto`` compiles when the run's estimated saving is at least this many seconds.
-AUTO_COMPILE_MIN_SAVING_S = 60.0
-#: Estimated saving of a compiled over an eager minibatch update (loss forward + backward), measured
-#: on a 2-core CPU (docs/performance.md): ~1 ms of Python and dispatch per update (1.25 vs 2.3 ms at
-#: 64 samples, 64x64 tanh) plus ~2 us per sample (72 vs 90 ms at 8192 samples, 256x256 relu).
-COMPILE_SAVING_PER_UPDATE_S = 1.0e-3
-COMPILE_SAVING_PER_SAMPLE_S = 2.0e-6
-#: The same for the fused minibatch step (fused_step.py), whose eager step has less Python to save:
-#: 0.37 ms per update at 64 samples (1.30 vs 0.92 ms, benchmarks/ppo_floor.py); compiling it takes
-#: 20-25 s on a cold inductor cache (the 60 s threshold leaves it paid back).
-FUSED_COMPILE_SAVING_PER_UPDATE_S = 0.35e-3
 #: rsl_rl's adaptive schedule (``algorithm.desired_kl``): the factor and the learning rate's bounds.
 ADAPTIVE_LR_FACTOR = 1.5
 ADAPTIVE_LR_MIN = 1e-5
@@ -394,8 +388,7 @@ class PPO(MutableHyperparameters):
         if self.compile == "false":
             return
         fused = self.use_fused_step and fused_unsupported(self) is None  # _decide_fused's choice
-        per_update = FUSED_COMPILE_SAVING_PER_UPDATE_S if fused else COMPILE_SAVING_PER_UPDATE_S
-        saving = updates * (per_update + COMPILE_SAVING_PER_SAMPLE_S * mb)
+        saving = compile_saving_s(updates, mb, fused)
         if self.compile == "auto" and saving < AUTO_COMPILE_MIN_SAVING_S:
             log.info(
                 "[ppo] algorithm.compile=auto: eager loss (%d minibatch updates in this run, "

@@ -212,11 +212,6 @@ def validate(config: RootConfig) -> None:
             "are blocks of consecutive envs (envs 0..group_size-1 are group 0); set env.num_envs "
             f"to a multiple of {a.group_size} (e.g. env.num_envs={a.group_size * 4})"
         )
-    if isinstance(a, GRPOConfig) and str(a.compile).strip().lower() == "true":
-        raise ConfigError(
-            "algorithm.compile=true: GRPO's loss runs eager (torch.compile is PPO's); use "
-            "algorithm.compile=auto or false"
-        )
     if str(t.eval_async).strip().lower() == "true" and config.events.eval:
         raise ConfigError(
             f"trainer.eval_async=true: events.eval ({', '.join(config.events.eval)}) run in the "
