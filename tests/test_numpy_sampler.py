@@ -88,3 +88,40 @@ def test_too_many_rows_categorical_heads_and_evaluation_stay_torch(monkeypatch):
     wide = pol.double()
     (n_64, _), (t_64, _) = _draw(wide, few.double(), True), _draw(wide, few.double(), False)
     assert all(torch.equal(a, b) for a, b in zip(n_64, t_64, strict=True))
+
+
+def test_a_rollouts_noise_is_one_block_drawn_from_torch_at_its_start():
+    """RolloutCollector (Hopper x2, 24 steps per env, twice): each rollout's noise, read back as
+    (action - loc) / scale, is ``torch.randn(24, 2, 3)`` drawn from torch's generator as it stood at
+    the rollout's start; a restart drops a block's leftovers.
+
+    Catches: blocks out of step with rollouts (a resumed run would draw other noise), noise from
+    another generator, env and step axes swapped."""
+    from conftest import compose
+    from rlexp.collector import RolloutCollector
+    from rlexp.config.validate import to_root_config
+    from rlexp.envs.factory import make_env
+    from rlexp.policies.numpy_sampler import NoiseStream
+
+    env = make_env(to_root_config(compose(["env=hopper"])).env, 2, seed=4)
+    pol = make_policy(PolicyConfig(init_log_std=-0.4), 11, 3, env.action_spec)
+    col = RolloutCollector(env, pol.sampling_policy(), frames_per_batch=48, total_frames=-1)
+    try:
+        for seed in (5, 6):
+            torch.manual_seed(seed)
+            want = torch.randn(24, 2, 3).transpose(0, 1)
+            torch.manual_seed(seed)
+            batch = col.rollout()
+            got = (batch["action"] - batch["loc"]) / batch["scale"]
+            torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-4)
+    finally:
+        col.shutdown()
+
+    stream = NoiseStream(3)
+    torch.manual_seed(0)
+    first = stream.take((2,))
+    stream.restart()
+    second = stream.take((2,))
+    torch.manual_seed(0)
+    blocks = torch.randn(2, 3, 2).numpy()
+    assert (first == blocks[0, 0]).all() and (second == blocks[1, 0]).all()

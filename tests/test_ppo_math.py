@@ -126,14 +126,18 @@ def test_fast_collector_gives_the_same_batches_as_torchrl_loop(env_name, monkeyp
             env.action_spec.shape[-1],
             env.action_spec,
         )
+        sampling = pol.sampling_policy()
         col = cls(
             env,
-            pol.sampling_policy(),
+            sampling,
             frames_per_batch=4 * 150,
             total_frames=-1,
             trust_policy=True,
             track_traj_ids=False,
         )
+        # as RolloutCollector sets it: the numpy sampler's noise drawn a rollout (150 steps) at a
+        # time; TorchRL's loop then takes the same draws step by step
+        sampling.set_noise_block(150)
         it = iter(col)
         out = [next(it) for _ in range(3)]  # 450 steps per env: episodes end and reset on the way
         col.shutdown()

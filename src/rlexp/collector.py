@@ -58,6 +58,8 @@ class RolloutCollector(Collector):
                       "storing_device": policy_device, **kwargs}  # fmt: skip
         super().__init__(env, policy, **kwargs)
         self._sampler = policy
+        if isinstance(policy, SamplingPolicy):  # the numpy sampler's noise, a rollout at a time
+            policy.set_noise_block(self.frames_per_batch)
         self._fast = supports_fast_rollout(env, policy)
         self._obs: torch.Tensor | None = None  # the observation to act on next (fast path)
 
@@ -83,6 +85,8 @@ class RolloutCollector(Collector):
 
     @torch.no_grad()
     def rollout(self) -> TensorDictBase:
+        if isinstance(self._sampler, SamplingPolicy) and self._sampler.noise is not None:
+            self._sampler.noise.restart()  # a rollout's noise block starts with it
         if not self._fast:
             return super().rollout()
         env, sample = self.env, self._sampler.sampler()  # constants of this rollout computed once

@@ -26,7 +26,7 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
 from rlexp.config.schema import BasePolicyConfig, EnvConfig, MLPConfig
 from rlexp.policies.heads import CategoricalActorNet, GaussianActorNet, MultiCategorical, Sampler
-from rlexp.policies.numpy_sampler import numpy_sampler
+from rlexp.policies.numpy_sampler import NoiseStream, numpy_sampler
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
@@ -141,6 +141,9 @@ class SamplingPolicy(TensorDictModuleBase):
 
     #: Whether ``sampler`` may run in numpy where that applies (``numpy_sampler``).
     use_numpy: bool = True
+    #: Where the numpy sampler's noise comes from: None, ``torch.randn`` per call; a
+    #: ``NoiseStream`` (``set_noise_block``), blocks of calls from torch's generator.
+    noise: NoiseStream | None = None
 
     def __init__(
         self, actor_net: GaussianActorNet | CategoricalActorNet, deterministic: bool = False
@@ -166,7 +169,12 @@ class SamplingPolicy(TensorDictModuleBase):
             # deterministic (evaluation): torch, so evaluation and an exported policy act alike
             return sampler
         # collecting with a CPU policy on a few envs: the same maths in numpy (numpy_sampler.py)
-        return numpy_sampler(self.actor_net, sampler) or sampler
+        return numpy_sampler(self.actor_net, sampler, self.noise) or sampler
+
+    def set_noise_block(self, steps: int) -> None:
+        """Draw the numpy sampler's noise ``steps`` calls at a time (a rollout's steps per env:
+        ``NoiseStream``); both collection loops (rlexp's and TorchRL's) then take the same draws."""
+        self.noise = NoiseStream(steps)
 
     def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The ``out_keys``' tensors for a batch of observations."""
