@@ -58,6 +58,10 @@ STEP_STATS = (
 #: (float32, as ClipPPOLoss's buffers); ``lr`` rides apart (float64: Adam's own is a Python float).
 HYPER_KEYS = ("clip_epsilon", "entropy_coeff", "critic_coeff", "max_grad_norm")
 _HALF_LOG_2PI = math.log(math.sqrt(2 * math.pi))  # torch.distributions.Normal's constant
+#: Inductor options of the compiled step: no ``assert_size_stride`` on every input of every call
+#: (~130 per minibatch step here, ~70 us of 900: the step's inputs are the same tensors, with the
+#: same shapes, for the whole run, and dynamo's guards still check them).
+_INDUCTOR = {"size_asserts": False}
 _DISTANCE = {"l1": F.l1_loss, "l2": F.mse_loss, "smooth_l1": F.smooth_l1_loss}
 
 
@@ -125,8 +129,8 @@ class FusedStep:
         self._grads: Callable = self._loss_and_grads
         self._apply: Callable = self._clip_and_adam
         if compiled:
-            self._grads = torch.compile(self._loss_and_grads, dynamic=False)
-            self._apply = torch.compile(self._clip_and_adam, dynamic=False)
+            self._grads = torch.compile(self._loss_and_grads, dynamic=False, options=_INDUCTOR)
+            self._apply = torch.compile(self._clip_and_adam, dynamic=False, options=_INDUCTOR)
 
     def loss(self, *minibatch: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(total loss, the statistics but ``grad_norm`` in ``stat_keys`` order) of one minibatch;
