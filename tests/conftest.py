@@ -250,6 +250,18 @@ SHORT = [
 
 
 @pytest.fixture
+def one_torch_thread() -> Iterator[None]:
+    """Tiny tensors: one torch thread (OpenMP threads waiting on a loaded machine cost 100x the
+    work); the previous count restored after the test."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture
 def tiny_overrides() -> list[str]:
     return list(TINY)
 

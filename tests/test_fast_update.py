@@ -40,13 +40,7 @@ SETTINGS = dict(
 HEADS = {"gaussian": None, "categorical": (3,), "multi_categorical": (2, 4)}
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: one thread (OpenMP threads waiting on a loaded machine cost 100x the work)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # conftest.py: tiny tensors
 
 
 def _policy(nvec):
