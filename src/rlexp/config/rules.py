@@ -243,7 +243,9 @@ FIELD_RULES: dict[str, Rule] = {
     "hooks": Rule(
         lambda v: isinstance(v, dict),
         "hooks whose func is registered (or allowlisted): stop_at, stop_on_plateau, schedule, "
-        "median_stop or your own; params as docs/hooks.md says",
+        "median_stop, piecewise, pbt or your own; params as docs/hooks.md (pbt: docs/pbt.md) "
+        "says; a pbt hook only in a sweep (`-m`) of exactly `population_size` jobs on a parallel "
+        "launcher",
     ),
     # logger
     "logger.tensorboard.enabled": FLAG,

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from rlexp import safe_read
-from rlexp.fsutil import temp_path
+from rlexp.fsutil import atomic_write
 from rlexp.pbt.config import PBTConfig, log_uniform
 
 log = logging.getLogger(__name__)
@@ -80,16 +80,18 @@ def publish(run_dir: Path, checkpoint: Path, rec: Ready, keep: int) -> None:
 def link(src: Path, dest: Path) -> None:
     """``dest`` becomes ``src``'s bytes in one rename: a hard link (no copy, and the bytes live as
     long as either name does), or a copy where the filesystem has no hard links."""
-    tmp = temp_path(dest)
-    tmp.unlink(missing_ok=True)
-    try:
-        os.link(src, tmp)
-    except FileNotFoundError:
-        raise
-    except OSError:  # EXDEV, EPERM (some network filesystems): copy the open file
-        with open(src, "rb") as fin, open(tmp, "wb") as fout:
-            shutil.copyfileobj(fin, fout)
-    os.replace(tmp, dest)
+
+    def write(tmp: Path) -> None:  # atomic_write's temporary file, replaced by the link
+        tmp.unlink()
+        try:
+            os.link(src, tmp)
+        except FileNotFoundError:
+            raise
+        except OSError:  # EXDEV, EPERM (some network filesystems): copy the open file
+            with open(src, "rb") as fin, open(tmp, "wb") as fout:
+                shutil.copyfileobj(fin, fout)
+
+    atomic_write(dest, write, fsync=False)  # the checkpoint's bytes were synced when it was saved
 
 
 def read_ready(member_dir: Path) -> list[Ready]:
