@@ -15,6 +15,7 @@ from torchrl.data import Bounded
 from torchrl.data import MultiCategorical as MultiCategoricalSpec
 
 from conftest import PLAIN_PPO, needs_compiler
+from fused_parity import assert_same, update_both
 from rlexp.algorithms.base import NonFiniteError
 from rlexp.algorithms.fused_step import MINIBATCH_KEYS, STEP_STATS, FusedPPOStep
 from rlexp.algorithms.ppo import LOSS_KEYS, make_algorithm
@@ -94,30 +95,6 @@ def _pair(nvec, compile_choice="false", **overrides):
     return fused, ref
 
 
-def _update_both(fused, ref, batch, seed):
-    torch.manual_seed(seed)
-    got = fused.update(batch.clone())
-    torch.manual_seed(seed)
-    expected = ref.update(batch.clone())
-    return got, expected
-
-
-def _assert_same(fused, ref, got, expected, tol):
-    assert fused.fused is not None and ref.fused is None
-    assert got.keys() == expected.keys()
-    for key in expected:
-        assert got[key] == pytest.approx(expected[key], rel=tol, abs=tol), key
-    named = dict(ref.policy.named_parameters())
-    for name, p in fused.policy.named_parameters():
-        torch.testing.assert_close(p, named[name], rtol=tol, atol=tol, msg=name)
-        # the last minibatch's gradients, clipped: what the step applied
-        torch.testing.assert_close(p.grad, named[name].grad, rtol=10 * tol, atol=tol, msg=name)
-    ours, theirs = fused.optimizer.state_dict()["state"], ref.optimizer.state_dict()["state"]
-    for i in theirs:
-        for key in ("step", "exp_avg", "exp_avg_sq"):
-            torch.testing.assert_close(ours[i][key], theirs[i][key], rtol=tol, atol=tol)
-
-
 @pytest.mark.parametrize("head", list(HEADS))
 @pytest.mark.parametrize(
     "overrides",
@@ -132,8 +109,8 @@ def test_eager_fused_updates_equal_clipppoloss_updates(head, overrides):
     batch = _rollout(fused.policy)
     moved = copy.deepcopy(fused.policy)
     for seed in (11, 12):
-        got, expected = _update_both(fused, ref, batch, seed)
-        _assert_same(fused, ref, got, expected, tol=1e-6)
+        got, expected = update_both(fused, ref, batch, seed)
+        assert_same(fused, ref, got, expected, tol=1e-6)
     assert 0.0 < got["loss/clip_fraction"] < 1.0, "the comparison must see clipped and unclipped"
     for p, p0 in zip(fused.policy.parameters(), moved.parameters(), strict=True):
         assert (p - p0).abs().max() > 1e-4, "a parameter did not move: the test would be vacuous"
@@ -172,8 +149,8 @@ def test_hook_changes_take_effect_as_in_the_reference():
         for name, value in change.items():
             fused.set_hyperparameter(name, value)
             ref.set_hyperparameter(name, value)
-        got, expected = _update_both(fused, ref, batch, seed)
-        _assert_same(fused, ref, got, expected, tol=1e-6)
+        got, expected = update_both(fused, ref, batch, seed)
+        assert_same(fused, ref, got, expected, tol=1e-6)
     assert "loss/entropy_term" not in got
 
 
@@ -185,16 +162,16 @@ def test_compiled_fused_updates_match_and_a_hook_change_does_not_recompile(head)
     fused, ref = _pair(HEADS[head], compile_choice="true", anneal_lr=True)
     assert not ref.compiled
     batch = _rollout(fused.policy)
-    got, expected = _update_both(fused, ref, batch, seed=5)
+    got, expected = update_both(fused, ref, batch, seed=5)
     assert fused.fused.compiled
-    _assert_same(fused, ref, got, expected, tol=2e-5)
+    assert_same(fused, ref, got, expected, tol=2e-5)
     graphs = counters["stats"]["unique_graphs"]
     for name, value in {"clip_epsilon": 0.25, "entropy_coeff": 0.0, "critic_coeff": 1.3,
                         "max_grad_norm": 0.11, "lr": 5e-3}.items():  # fmt: skip
         fused.set_hyperparameter(name, value)
         ref.set_hyperparameter(name, value)
-    got, expected = _update_both(fused, ref, batch, seed=6)  # the annealed lr moved too
-    _assert_same(fused, ref, got, expected, tol=2e-5)
+    got, expected = update_both(fused, ref, batch, seed=6)  # the annealed lr moved too
+    assert_same(fused, ref, got, expected, tol=2e-5)
     assert counters["stats"]["unique_graphs"] == graphs, "a hyperparameter change recompiled"
 
 

@@ -17,6 +17,7 @@ from torchrl.data import Bounded
 from torchrl.data import MultiCategorical as MultiCategoricalSpec
 
 from conftest import needs_compiler
+from fused_parity import assert_same, update_both
 from rlexp.algorithms import make_algorithm
 from rlexp.algorithms.base import NonFiniteError
 from rlexp.config.schema import ActorOnlyConfig, GRPOConfig
@@ -96,32 +97,6 @@ def _pair(nvec, compile_choice="false", **overrides):
     return fused, ref
 
 
-def _update_both(fused, ref, batch, seed):
-    torch.manual_seed(seed)
-    got = fused.update(batch.clone())
-    torch.manual_seed(seed)
-    expected = ref.update(batch.clone())
-    return got, expected
-
-
-def _assert_same(fused, ref, got, expected, tol):
-    """Statistics, parameters, the last step's (clipped) gradients and Adam's state, within
-    ``tol`` (0: bit-equal)."""
-    assert fused.fused is not None and ref.fused is None
-    assert got.keys() == expected.keys()
-    for key in expected:
-        assert got[key] == pytest.approx(expected[key], rel=tol, abs=tol), key
-    named = dict(ref.policy.named_parameters())
-    for name, p in fused.policy.named_parameters():
-        torch.testing.assert_close(p, named[name], rtol=tol, atol=tol, msg=name)
-        torch.testing.assert_close(p.grad, named[name].grad, rtol=10 * tol, atol=tol, msg=name)
-    ours, theirs = fused.optimizer.state_dict()["state"], ref.optimizer.state_dict()["state"]
-    assert ours.keys() == theirs.keys()
-    for i in theirs:
-        for key in ("step", "exp_avg", "exp_avg_sq"):
-            torch.testing.assert_close(ours[i][key], theirs[i][key], rtol=tol, atol=tol)
-
-
 @pytest.mark.parametrize("head", list(HEADS))
 @pytest.mark.parametrize(
     "overrides",
@@ -137,8 +112,8 @@ def test_eager_fused_grpo_updates_equal_todays_updates(head, overrides):
     batch = _rollout(fused.policy)
     moved = copy.deepcopy(fused.policy)
     for seed in (11, 12):
-        got, expected = _update_both(fused, ref, batch, seed)
-        _assert_same(fused, ref, got, expected, tol=0)  # bit-equal: same ops, same order
+        got, expected = update_both(fused, ref, batch, seed)
+        assert_same(fused, ref, got, expected, tol=0)  # bit-equal: same ops, same order
     assert 0.0 < got["loss/clip_fraction"] < 1.0, "the comparison must see clipped and unclipped"
     assert ("loss/kl_ref" in got) == (fused.cfg.kl_coeff > 0)
     assert ("loss/entropy_term" in got) == (fused.cfg.entropy_coeff != 0)
@@ -162,8 +137,8 @@ def test_hook_changes_take_effect_as_on_todays_path():
         for name, value in change.items():
             fused.set_hyperparameter(name, value)
             ref.set_hyperparameter(name, value)
-        got, expected = _update_both(fused, ref, batch, seed)
-        _assert_same(fused, ref, got, expected, tol=0)  # bit-equal: same ops, same order
+        got, expected = update_both(fused, ref, batch, seed)
+        assert_same(fused, ref, got, expected, tol=0)  # bit-equal: same ops, same order
         assert ("loss/entropy_term" in got) == (change.get("entropy_coeff", 1.0) != 0)
         assert got["loss/learning_rate"] == fused.cfg.lr
 
@@ -175,16 +150,16 @@ def test_compiled_fused_grpo_updates_match_and_a_hook_change_does_not_recompile(
 
     fused, ref = _pair(HEADS[head], compile_choice="true", anneal_lr=True)
     batch = _rollout(fused.policy)
-    got, expected = _update_both(fused, ref, batch, seed=5)
+    got, expected = update_both(fused, ref, batch, seed=5)
     assert fused.fused.compiled
-    _assert_same(fused, ref, got, expected, tol=2e-5)
+    assert_same(fused, ref, got, expected, tol=2e-5)
     graphs = counters["stats"]["unique_graphs"]
     for name, value in {"clip_epsilon": 0.25, "entropy_coeff": 0.0, "kl_coeff": 0.9,
                         "max_grad_norm": 0.11, "lr": 5e-3}.items():  # fmt: skip
         fused.set_hyperparameter(name, value)
         ref.set_hyperparameter(name, value)
-    got, expected = _update_both(fused, ref, batch, seed=6)  # the annealed lr moved too
-    _assert_same(fused, ref, got, expected, tol=2e-5)
+    got, expected = update_both(fused, ref, batch, seed=6)  # the annealed lr moved too
+    assert_same(fused, ref, got, expected, tol=2e-5)
     assert counters["stats"]["unique_graphs"] == graphs, "a hyperparameter change recompiled"
 
 
