@@ -533,3 +533,33 @@ def test_a_video_cut_short_by_a_really_full_disk_is_not_logged_as_written(tmp_pa
         assert "no moov box" in recorder.failed  # ffmpeg's trailer never made it to the disk
     finally:
         subprocess.run(["umount", str(disk)], check=True)
+
+
+def test_a_ctrl_c_that_surfaces_as_a_librarys_error_still_ends_as_a_ctrl_c():
+    """A KeyboardInterrupt raised inside a library whose ``finally`` then fails (OmegaConf's
+    ``_invalidate_flags_cache`` on a half-built node, seen once at 0.5 s into start-up) reaches
+    the entry point as a config error; ``reraise_if_interrupted`` turns it back into the Ctrl-C
+    (exit 130), and leaves a config error that no Ctrl-C caused alone.
+
+    Catches: a Ctrl-C at start-up ending as 'config error: ...' with exit 2."""
+    from rlexp.config.validate import ConfigError
+    from rlexp.launch.outside_run import reraise_if_interrupted
+
+    def library():
+        try:
+            raise KeyboardInterrupt
+        finally:
+            None._invalidate_flags_cache()  # type: ignore[attr-defined]
+
+    try:
+        try:
+            library()
+        except AttributeError as exc:
+            raise ConfigError(str(exc)) from None
+    except ConfigError as exc:
+        with pytest.raises(KeyboardInterrupt):
+            reraise_if_interrupted(exc)
+    try:
+        raise ConfigError("trainer.total_frames=-1: must be >= 1")
+    except ConfigError as exc:
+        reraise_if_interrupted(exc)  # nothing raised

@@ -377,6 +377,7 @@ def _task(cfg: DictConfig) -> float | None:
             jobs = launcher_jobs(hc.launcher.get("n_jobs"), available_cpus())
         metrics: dict[str, Any] = train(config, run_dir, sweep_group, jobs)
     except ConfigError as exc:
+        outside_run.reraise_if_interrupted(exc)
         return _failed(run_dir, f"config error: {exc}", EXIT_CONFIG, multirun, exc)
     except RunEnded as exc:
         if exc.exit_code >= EXIT_SIGNAL_BASE:  # a signal: stop the whole sweep too
@@ -471,6 +472,7 @@ def main() -> None:
         rest = with_user_config_dir(rest)  # a conf/ in the working directory
         _PRECHECKED["config"] = precheck(rest, CONF_DIR)
     except ConfigError as exc:
+        outside_run.reraise_if_interrupted(exc)  # a Ctrl-C inside a library: exit 130
         print(f"config error: {hint(str(exc))}", file=sys.stderr)
         sys.exit(EXIT_CONFIG)
     sys.argv = [sys.argv[0], *rest]

@@ -126,3 +126,17 @@ def job_started(label: str) -> None:
         label,
     )
     sys.exit(EXIT_SIGNAL_BASE + signum)
+
+
+def reraise_if_interrupted(exc: BaseException) -> None:
+    """Raise ``KeyboardInterrupt`` if ``exc`` came out of one: a Ctrl-C at start-up that landed
+    inside a library's ``finally`` (OmegaConf's, seen at 0.5 s) surfaces as that library's error,
+    e.g. an ``AttributeError`` of a half-built object wrapped in a config error; it must still end
+    as a Ctrl-C does (one line, exit 130), not as a config error."""
+    seen: set[int] = set()
+    link: BaseException | None = exc
+    while link is not None and id(link) not in seen:
+        if isinstance(link, KeyboardInterrupt):
+            raise KeyboardInterrupt from None
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
