@@ -34,3 +34,20 @@ def assert_same(fused, ref, got, expected, tol):
     for i in theirs:
         for key in ("step", "exp_avg", "exp_avg_sq"):
             torch.testing.assert_close(ours[i][key], theirs[i][key], rtol=tol, atol=tol)
+
+
+def assert_compiled_parity_without_recompiling(fused, ref, batch, changes: dict[str, float]):
+    """A compiled fused update matches the reference within 2e-5; after ``changes`` of mutable
+    hyperparameters on both, the next update matches too, and nothing recompiled."""
+    from torch._dynamo.utils import counters
+
+    got, expected = update_both(fused, ref, batch, seed=5)
+    assert fused.fused.compiled
+    assert_same(fused, ref, got, expected, tol=2e-5)
+    graphs = counters["stats"]["unique_graphs"]
+    for name, value in changes.items():
+        fused.set_hyperparameter(name, value)
+        ref.set_hyperparameter(name, value)
+    got, expected = update_both(fused, ref, batch, seed=6)  # the annealed lr moved too
+    assert_same(fused, ref, got, expected, tol=2e-5)
+    assert counters["stats"]["unique_graphs"] == graphs, "a hyperparameter change recompiled"
