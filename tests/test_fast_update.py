@@ -157,7 +157,6 @@ def test_hook_changes_take_effect_as_in_the_reference():
 @needs_compiler
 @pytest.mark.parametrize("head", ["gaussian", "multi_categorical"])
 def test_compiled_fused_updates_match_and_a_hook_change_does_not_recompile(head):
-
     fused, ref = _pair(HEADS[head], compile_choice="true", anneal_lr=True)
     assert not ref.compiled
     batch = _rollout(fused.policy)

@@ -146,7 +146,6 @@ def test_hook_changes_take_effect_as_on_todays_path():
 @needs_compiler
 @pytest.mark.parametrize("head", ["gaussian", "multi_discrete"])
 def test_compiled_fused_grpo_updates_match_and_a_hook_change_does_not_recompile(head):
-
     fused, ref = _pair(HEADS[head], compile_choice="true", anneal_lr=True)
     batch = _rollout(fused.policy)
     assert_compiled_parity_without_recompiling(
