@@ -59,7 +59,7 @@ def test_two_ranks_average_gradients_share_one_run_dir_and_load_single_process(t
     assert ckpt["global_step"] == 512  # 256 per rank, counted over both ranks
 
     # Both ranks ended with the same parameters, and that is what rank 0 saved.
-    from rlexp.trainer import parameter_digest
+    from rlexp.loop import parameter_digest
 
     digests = []
     for name in ("train.log", "train_rank1.log"):

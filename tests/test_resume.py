@@ -84,7 +84,13 @@ def _same(a, b) -> bool:
 
 
 def _assert_resume_is_exact(
-    tmp_path: Path, env: str, frames: int, batch: int, extra: list[str], eval_every: int = 0
+    tmp_path: Path,
+    env: str,
+    frames: int,
+    batch: int,
+    extra: list[str],
+    eval_every: int = 0,
+    sig: int = signal.SIGKILL,
 ) -> None:
     whole, broken = tmp_path / "whole", tmp_path / "broken"
     run_train(_cmd(env, whole, frames, batch, extra, eval_every), cwd=tmp_path, timeout=600)
@@ -93,6 +99,7 @@ def _assert_resume_is_exact(
         tmp_path,
         broken / "checkpoints",
         frames,
+        sig=sig,
     )
     proc = run_train(_cmd(env, broken, frames, batch, extra, eval_every), cwd=tmp_path, timeout=600)
     assert "[resume] continuing from" in proc.stdout + proc.stderr
@@ -164,6 +171,29 @@ def test_sigkill_and_resume_is_bit_identical_with_evaluation_and_an_event(tmp_pa
     the continuation still matches the uninterrupted run bit for bit, best.pt included."""
     extra = [*EVAL_EXTRA, "events=noise", "~events.train.observation_noise"]
     _assert_resume_is_exact(tmp_path, "push_cube", 512, 256, extra, eval_every=256)
+
+
+@pytest.mark.parametrize(
+    ("env", "extra", "sig"),
+    [
+        pytest.param("hopper", [], signal.SIGKILL, id="gymnasium-sigkill"),
+        pytest.param("push_cube", EVAL_EXTRA, signal.SIGINT, id="native-ctrl-c"),
+    ],
+)
+def test_resume_with_a_rollout_in_flight_is_bit_identical_with_overlap(tmp_path, env, extra, sig):
+    """algorithm.overlap=true: a checkpoint mid-run holds the rollout collected ahead (in the child
+    while the update ran) and the envs as it left them; the resumed run learns from it first and
+    ends where the uninterrupted one does, bit for bit (evaluation included)."""
+    extra = ["algorithm.overlap=true", "trainer.keep_last=0", *extra]
+    _assert_resume_is_exact(tmp_path, env, 512, 256, extra, eval_every=256, sig=sig)
+    (mid_path,) = [p for p in step_checkpoints(tmp_path / "whole" / "checkpoints")
+                   if p.name.endswith("_step_000000512.pt")]  # fmt: skip
+    mid = load_checkpoint(mid_path)
+    pending = mid["pending_rollout"]
+    assert pending is not None, "the mid-run checkpoint holds no rollout collected ahead"
+    assert pending["batch_size"][0] * pending["batch_size"][1] == 256
+    final = load_checkpoint(latest_checkpoint(tmp_path / "whole" / "checkpoints"))
+    assert final["pending_rollout"] is None, "the last rollout collected more than the run asked"
 
 
 # Found by the test above with other events (were strict xfails): a step event's observation noise

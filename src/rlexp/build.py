@@ -108,6 +108,7 @@ class Built:
                 loader=functools.partial(load_training_state, self.policy),  # PBT's exploit
             ),
             eval_worker=worker,
+            overlap=getattr(c.algorithm, "overlap", False),
         )
 
 
@@ -140,6 +141,14 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
         "env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, env.action_spec.shape[-1]
     )
     device = training_device(device, env, config)
+    if getattr(config.algorithm, "overlap", False) and (dist.enabled or device != "cpu"):
+        from rlexp.config.validate import ConfigError
+
+        raise ConfigError(
+            "algorithm.overlap=true forks a collection process beside one training process on "
+            f"the CPU (here: {'--distributed, ' if dist.enabled else ''}device {device!r}); set "
+            "algorithm.overlap=false" + ("" if device == "cpu" else " or trainer.device=cpu")
+        )
     policy = policy_for_env(config.policy, e, env).to(device)
     if dist.enabled:  # same initial parameters everywhere
         distributed.broadcast_([*policy.parameters(), *policy.buffers()])

@@ -1,6 +1,6 @@
 """Small helpers of the training loop: one torch thread while envs step, crossing a multiple of a
-step count, the base env under transforms, a digest of a module's parameters, the NaN guard's
-check of a rollout, and the training envs put back from a checkpoint."""
+step count, the base env under transforms, a digest of a module's parameters (ranks in sync), the
+NaN guard's check of a rollout, and the training envs put back from a checkpoint."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
 from rlexp.algorithms.base import NonFiniteError
-from rlexp.launch.distributed import DistInfo, all_reduce_sum
+from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
 
 log = logging.getLogger(__name__)
 
@@ -109,3 +109,19 @@ def restart_returns(algorithm: object) -> None:
     normalizer = getattr(algorithm, "reward_normalizer", None)
     if normalizer is not None:
         normalizer.returns = None  # zeros at the next rollout
+
+
+def stop_requested_elsewhere(policy: torch.nn.Module, stop_reason: str | None) -> bool:
+    """Distributed: a signal may reach one rank only; True where another rank was asked to stop."""
+    device = next(policy.parameters()).device  # nccl reduces GPU tensors only
+    requested = torch.tensor([float(stop_reason is not None)], device=device)
+    return all_reduce_sum(requested).item() > 0 and stop_reason is None
+
+
+def check_ranks_in_sync(policy: torch.nn.Module, world_size: int) -> None:
+    """Distributed: every rank must hold the same parameters (gradients were averaged)."""
+    digest = parameter_digest(policy)
+    digests = all_gather_object(digest)
+    if len(set(digests)) != 1:
+        raise RuntimeError(f"ranks diverged: parameter digests {digests}")
+    log.info("[dist] parameters identical on all %d ranks (sha256 %s)", world_size, digest)

@@ -15,7 +15,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, TransformedEnv
 
-from rlexp import loop
+from rlexp import loop, overlap
 from rlexp.algorithms.base import Algorithm, NonFiniteError
 from rlexp.checkpoint import (
     checkpoint_path,
@@ -35,7 +35,7 @@ from rlexp.events.transform import EventTransform
 from rlexp.hooks import HookManager, HookState
 from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
 from rlexp.logging import MetricLogger
-from rlexp.loop import check_rollout_finite, crossed, one_torch_thread, parameter_digest
+from rlexp.loop import check_rollout_finite, crossed, one_torch_thread
 from rlexp.policies.actor_critic import Policy
 from rlexp.progress import Progress
 
@@ -68,6 +68,7 @@ class Trainer:
         console: bool = True,
         hooks: HookManager | None = None,
         eval_worker: EvalWorker | None = None,
+        overlap: bool = False,
     ) -> None:
         self.cfg = cfg
         self.console = console  # logger.console: the [train] / [eval] summary lines
@@ -110,6 +111,8 @@ class Trainer:
         self.progress: Progress | None = None
         self.safe_point = True  # False from the start of a rollout until its update is applied
         self.eval_worker = eval_worker  # eval_async: rounds run there beside training (None: here)
+        self.overlap = overlap  # algorithm.overlap: rollouts collected in a child during updates
+        self._resume_rollout: dict[str, Any] | None = None  # collected, not learned from, on resume
         self._resume_round: EvalRound | None = None  # in flight when the resumed run stopped
         # A step checkpoint holds its step's eval: written when the result is in (_eval_done), or
         # after waiting for it where hooks or events act on eval results or checkpoints.
@@ -140,7 +143,7 @@ class Trainer:
                     self._iteration()
             self._collect_eval()  # the last round's result, before the final checkpoint
             if self.dist.enabled:
-                self.check_ranks_in_sync()
+                loop.check_ranks_in_sync(self.policy, self.dist.world_size)
             self.save_checkpoint()
             status = "finished" if self.stopped_early is None else "stopped_early"
         except (StopRequested, KeyboardInterrupt):
@@ -156,6 +159,8 @@ class Trainer:
         batch = self.collect_rollout()
         self._hook("rollout_end", batch=batch)
         self._apply_hook_decisions()  # e.g. a schedule's value for this update, on every rank
+        if self.overlap and self.global_step < self.total_steps and self.stopped_early is None:
+            self.collector.start()  # the next rollout, collected while this one's update runs
         losses = self.update(batch)
         self.safe_point = True  # the update is complete: a checkpoint now is consistent
         self._last_losses = dict(losses)
@@ -168,27 +173,11 @@ class Trainer:
         if crossed(before, self.global_step, self.cfg.save_every):
             self._save_step_checkpoint()
         self._apply_hook_decisions()  # a hook's stop: the loop ends, the run saves and finishes
-        if self.dist.enabled:  # a signal may reach one rank only: all stop together
-            self._agree_on_stop()
+        if self.dist.enabled and loop.stop_requested_elsewhere(self.policy, self.stop_reason):
+            self.stop_reason = "stop requested on another rank"  # all ranks stop together
         if self.stop_reason is not None:  # a safe point: checkpoint, then let the caller decide
             self.save_checkpoint()
             raise StopRequested(self.stop_reason)
-
-    def _agree_on_stop(self) -> None:
-        device = next(self.policy.parameters()).device  # nccl reduces GPU tensors only
-        requested = torch.tensor([float(self.stop_reason is not None)], device=device)
-        if all_reduce_sum(requested).item() > 0 and self.stop_reason is None:
-            self.stop_reason = "stop requested on another rank"
-
-    def check_ranks_in_sync(self) -> None:
-        """Distributed: every rank must hold the same parameters (gradients were averaged)."""
-        digest = parameter_digest(self.policy)
-        digests = all_gather_object(digest)
-        if len(set(digests)) != 1:
-            raise RuntimeError(f"ranks diverged: parameter digests {digests}")
-        log.info(
-            "[dist] parameters identical on all %d ranks (sha256 %s)", self.dist.world_size, digest
-        )
 
     def collect_rollout(self) -> TensorDictBase:
         """One batch of ``frames_per_batch`` env steps through the TorchRL collector."""
@@ -197,7 +186,10 @@ class Trainer:
             if self.algorithm.reset_each_rollout:  # GRPO: every env starts a new episode
                 self.collector.reset()
                 self.episodes.drop_running()
-            batch = next(self._rollouts)
+            if self._resume_rollout is not None:  # collected before the stop: learned from first
+                batch, self._resume_rollout = overlap.unpack(self._resume_rollout), None
+            else:
+                batch = next(self._rollouts)
         self._timing["collect"] = time.perf_counter() - t0
         self.global_step += batch.numel() * self.dist.world_size  # every rank collected as much
         if self._event_transform is not None:
@@ -234,6 +226,8 @@ class Trainer:
         metrics["perf/collect_time"] = self._timing["collect"]
         metrics["perf/update_time"] = self._timing["update"]
         metrics["perf/eval_time"] = self._timing["eval"]
+        if self.overlap:  # the child's time on the rollout that was collected during this update
+            metrics["perf/collect_busy_time"] = self.collector.busy_s
         self._timing["eval"] = 0.0
         metrics.update(self.episodes.means())
         metrics.update({f"hparams/{k}": v for k, v in self._hparams_set.items()})
@@ -366,7 +360,8 @@ class Trainer:
                 "train": self.event_manager.state_dict(),
                 "eval": self.eval_event_manager.state_dict(),
             },
-            **loop.envs_state(self.env),  # "envs", "observation_layout"
+            **overlap.envs_state(self.collector, self.env),  # "envs", "observation_layout"
+            "pending_rollout": overlap.pending_rollout(self.collector, self._resume_rollout),
             "rng": rng_state(),
             "last_eval": dict(self.last_eval),
             "best_metric": self.best_metric,
@@ -394,6 +389,7 @@ class Trainer:
         if sd.get("eval_in_flight") is not None:
             self._resume_round = EvalRound.from_record(sd["eval_in_flight"])
         self._resume_rng = sd["rng"]
+        self._resume_rollout = sd.get("pending_rollout")
         if self.dist.is_main:  # with the env state it belongs to (rank 0's)
             self._resume_obs = sd.get("pending_observation")
         if self.env_resume is not None and self.env_resume.startswith("restarted"):
@@ -439,6 +435,9 @@ class Trainer:
             obs, self._resume_obs = self._resume_obs, None
             if obs is not None:  # resumed: act first on what the interrupted run would have
                 self.collector.set_next_observation(obs)
+            if self.overlap:  # envs and collector move to a child (rlexp/overlap.py)
+                timeout = self.cfg.stall_timeout_s
+                self.collector = overlap.OverlapCollector(self.collector, self.policy, timeout)
             self._rollouts = iter(self.collector)
 
     def _hook(self, point: str, **kw: Any) -> None:

@@ -32,6 +32,9 @@ ACTIVATIONS = ("elu", "gelu", "relu", "silu", "swish", "tanh")
 #: env of rsl_rl's VecEnv contract; torchrl: a TorchRL EnvBase factory; torchrl_gym: TorchRL's GymEnv
 #: (the reference path).
 BACKENDS = ("gymnasium", "gymnasium_async", "envpool", "native", "vecenv", "torchrl", "torchrl_gym")
+#: Backends whose envs are stepped in the training process, so that ``algorithm.overlap``'s forked
+#: collection process owns a full copy (envpool's threads, worker processes, GPUs do not fork).
+OVERLAP_BACKENDS = ("gymnasium", "native")
 #: Backends whose env is built by a callable the config names (``env.name=package.module:callable``).
 CALLABLE_BACKENDS = ("vecenv", "torchrl")
 #: The metrics an evaluation round logs: what ``trainer.best_metric`` may follow.
@@ -191,6 +194,10 @@ FIELD_RULES: dict[str, Rule] = {
     "algorithm.clip_rewards": optional(above(0.0), "no reward clipping; ppo only"),
     "algorithm.desired_kl": optional(
         above(0.0), "a fixed learning rate; ppo only, not with anneal_lr"
+    ),
+    "algorithm.overlap": Rule(
+        FLAG.check,
+        f"true or false; ppo only, env.backend one of {list(OVERLAP_BACKENDS)}, no events.train",
     ),
     "algorithm.kl_coeff": at_least(0.0, " (0: no reference policy); grpo only"),
     "algorithm.group_size": between(2, MAX_ENVS, ", a divisor of env.num_envs; grpo only"),

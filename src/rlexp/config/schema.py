@@ -176,6 +176,9 @@ class AlgorithmConfig(BaseAlgorithmConfig):
     # rsl_rl's adaptive learning rate: per minibatch, lr / 1.5 when the KL to the behaviour policy
     # is above 2 x desired_kl, lr x 1.5 below desired_kl / 2, within [1e-5, 1e-2] (None: off)
     desired_kl: float | None = None
+    # Collect the next rollout in a second process (a spare core) while the update runs; each
+    # rollout is then collected by the policy one update behind (docs/performance.md "Overlap")
+    overlap: bool = False
 
 
 PPOConfig = AlgorithmConfig

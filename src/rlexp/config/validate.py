@@ -20,6 +20,7 @@ from rlexp.config.rules import (
     FIELD_RULES,
     MAX_NAME,
     MUTABLE_HYPERPARAMETERS,
+    OVERLAP_BACKENDS,
     available_cpus,
     get,
     is_safe_name,
@@ -228,6 +229,18 @@ def validate(config: RootConfig) -> None:
         raise ConfigError(
             f"algorithm.desired_kl={desired_kl} and algorithm.anneal_lr=true both set the learning "
             "rate; use one: algorithm.anneal_lr=false or algorithm.desired_kl=null (docs/ppo.md)"
+        )
+    if getattr(a, "overlap", False) and e.backend not in OVERLAP_BACKENDS:
+        raise ConfigError(
+            f"algorithm.overlap=true steps the training envs in a collection process; "
+            f"env.backend={e.backend!r} cannot move there: use one of {list(OVERLAP_BACKENDS)}, "
+            "or algorithm.overlap=false"
+        )
+    if getattr(a, "overlap", False) and config.events.train:
+        raise ConfigError(
+            f"algorithm.overlap=true: events.train ({', '.join(config.events.train)}) act on the "
+            "training envs, which the collection process owns; remove them or set "
+            "algorithm.overlap=false"
         )
     if a.name == "ppo" and getattr(p, "critic", None) is None:
         raise ConfigError(

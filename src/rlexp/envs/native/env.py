@@ -111,6 +111,11 @@ class NativeEnv(EnvBase, SimState):
 
     # ------------------------------------------------------------------ setup
 
+    def after_fork(self) -> None:
+        """A forked child (``algorithm.overlap``) needs its own thread pool; the inherited one is
+        kept, never destroyed (it would wait for threads that stayed in the parent)."""
+        self._forked_pools, self._pool = [self._pool], rollout.Rollout(nthread=self.num_threads)
+
     def _setup_physics(self, num_threads: int | None) -> None:
         """The rollout thread pool and its buffers, the reset / restore flags, the render caches."""
         m, n = self.model, self.num_envs
