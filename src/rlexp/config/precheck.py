@@ -161,6 +161,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
         return None
     register_configs()
     GlobalHydra.instance().clear()
+    loader = None
     try:
         with initialize_hydra(conf_dir, args.config_dir):  # and the user's --config-dir after it
             loader = GlobalHydra.instance().config_loader()
@@ -187,7 +188,8 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
                 "(python train.py -m +sweep=pbt ..., docs/pbt.md)"
             )
     except (HydraException, OmegaConfBaseException) as exc:
-        raise ConfigError(_variant_key_message(exc) or _first_line(exc)) from None
+        message = missing_tuned_preset(exc, loader) or _variant_key_message(exc)
+        raise ConfigError(message or _first_line(exc)) from None
     finally:
         GlobalHydra.instance().clear()
     from rlexp.config.checks import check_buildable
@@ -284,6 +286,35 @@ def _run_dir(cfg: Any) -> Path | None:
         return Path(str(OmegaConf.select(cfg, "hydra.run.dir", throw_on_resolution_failure=True)))
     except Exception:
         return None
+
+
+#: The config group of the tuned per-task presets (conf/tuned/<env>.yaml, +experiment=tuned).
+TUNED_GROUP = "tuned"
+#: The env option of a --config-json run (``rlexp.launch.json_entry.ENV_NODE``; not imported: the
+#: entry imports rlexp.app, which imports this module).
+JSON_ENV_OPTION = "json_task"
+
+
+def missing_tuned_preset(exc: BaseException, loader: Any = None) -> str | None:
+    """``+experiment=tuned`` with an env that has no ``conf/tuned/<env>.yaml``: one line naming the
+    env and the tasks that have a preset, not Hydra's "Could not find 'tuned/<env>'" and its
+    search path."""
+    import re
+
+    found = re.search(rf"Could not find '{TUNED_GROUP}/([^']+)'", str(exc))
+    if found is None:
+        return None
+    env = found.group(1)
+    what = (
+        f"env={env}" if env != JSON_ENV_OPTION else "a --config-json run's env (from its JSON file)"
+    )
+    tasks: list[str] = []
+    if loader is not None:
+        tasks = [o for o in loader.get_group_options(TUNED_GROUP) if o != "none"]
+    return (
+        f"+experiment=tuned has no preset for {what} (no conf/{TUNED_GROUP}/{env}.yaml); the tasks "
+        f"with one: {tasks}: choose one of them with env=..., or leave out +experiment=tuned"
+    )
 
 
 def _variant_key_message(exc: BaseException) -> str | None:
