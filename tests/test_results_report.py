@@ -38,6 +38,7 @@ ENVS = {
     "swimmer": ("Swimmer-v5", "gymnasium"),
     "inverted_pendulum": ("InvertedPendulum-v5", "gymnasium"),
     "reacher": ("Reacher-v5", "gymnasium"),
+    "inverted_double_pendulum": ("InvertedDoublePendulum-v5", "gymnasium"),
     "cart_pole": ("cart_pole", "native"),
 }
 BATCH, BUDGET, EVAL_EVERY = 1000, 10_000, 5000
@@ -282,19 +283,23 @@ def test_anchors_only_for_tasks_a_source_has_a_number_for():
     swimmer = anchors_for("Swimmer-v5")  # rl-zoo's benchmark.md: ppo Swimmer-v3 281.561 9.671
     assert set(swimmer) == {"rl_zoo_ppo"} and swimmer["rl_zoo_ppo"].mean == 281.561
     assert anchors_for("Reacher-v5") == {} and anchors_for("push_cube") == {}
+    # CleanRL's benchmark file (the same PR #424 runs): InvertedPendulum-v4, Humanoid-v4
+    assert anchors_for("InvertedPendulum-v5")["cleanrl_ppo"].mean == 963.09
+    assert set(anchors_for("Humanoid-v5")) == {"cleanrl_ppo"}
     assert anchors_for("Hopper") == anchors_for("Hopper-v4") and anchors_for(None) == {}
 
 
 def test_a_sweep_over_envs_without_anchors_has_no_anchor_columns(tmp_path):
-    multirun_yaml(tmp_path, ["env=reacher,inverted_pendulum", "seed=0,1"])
-    for num, (env, seed) in enumerate([("reacher", 0), ("reacher", 1), ("inverted_pendulum", 0)]):
+    multirun_yaml(tmp_path, ["env=reacher,inverted_double_pendulum", "seed=0,1"])
+    jobs = [("reacher", 0), ("reacher", 1), ("inverted_double_pendulum", 0)]
+    for num, (env, seed) in enumerate(jobs):
         write_job(tmp_path, num, [f"env={env}", f"seed={seed}"], 50.0 + seed, 60.0)
     md = report(tmp_path, plot=False)
     assert "## Results per env" in md
     assert "CleanRL" not in md and "rl-zoo" not in md and "Anchors:" not in md
     assert "defaults" not in md
     assert row_of(md, "Reacher-v5")[1:4] == ["2", "50 [50, 51]", "50 ± 1"]
-    assert row_of(md, "InvertedPendulum-v5")[1:3] == ["1", "50 [n/a, n/a]"]
+    assert row_of(md, "InvertedDoublePendulum-v5")[1:3] == ["1", "50 [n/a, n/a]"]
 
 
 def test_eval_success_is_shown_only_for_tasks_that_define_it(tmp_path):

@@ -110,6 +110,8 @@ ANCHORS = (
     Anchor(CLEANRL.key, "Hopper-v4", 2382.86, 271.74),
     Anchor(CLEANRL.key, "Walker2d-v4", 2287.95, 571.78),
     Anchor(CLEANRL.key, "HalfCheetah-v4", 1442.64, 46.03),
+    Anchor(CLEANRL.key, "InvertedPendulum-v4", 963.09, 22.20),
+    Anchor(CLEANRL.key, "Humanoid-v4", 716.11, 49.08),
     Anchor(RL_ZOO.key, "Hopper-v3", 2410.435, 10.026),
     Anchor(RL_ZOO.key, "Walker2d-v3", 3478.798, 821.708),
     Anchor(RL_ZOO.key, "HalfCheetah-v3", 5819.099, 663.530),
