@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 from conftest import CONF_DIR, REPO, compose, run_train
 from rlexp.config.schema import RootConfig
-from rlexp.config.validate import to_dict, to_root_config
+from rlexp.config.validate import ConfigError, to_dict, to_root_config
 
 #: The Gymnasium MuJoCo tasks of conf/env/: each has a tuned preset.
 MUJOCO = [
@@ -358,3 +358,41 @@ def test_each_preset_sets_only_schema_keys_and_states_its_source():
         values = OmegaConf.create(text)
         for section in values:
             assert section in {f.name for f in dataclasses.fields(RootConfig)}
+
+
+def test_a_sweep_over_an_env_without_a_preset_is_refused_before_any_job(tmp_path):
+    """The first job (hopper) has a preset, the second (push_cube) none: one line, exit 2, no
+    sweep dir, rather than Hydra stopping the sweep when it composes the second job."""
+    sweep = tmp_path / "sweep"
+    proc = run_train(
+        ["-m", "+experiment=tuned", "env=hopper,push_cube", f"hydra.sweep.dir={sweep}"],
+        cwd=tmp_path,
+        check=False,
+        timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
+    err = proc.stderr.strip()
+    assert err.splitlines() == [err]
+    assert err.startswith("config error: job 1 (+experiment=tuned env=push_cube")
+    assert "+experiment=tuned has no preset for env=push_cube" in err
+    assert not sweep.exists()
+
+
+def test_the_suites_envs_pass_the_sweep_check():
+    from hydra.core.global_hydra import GlobalHydra
+
+    from rlexp.config.precheck import check_tuned_sweep
+    from rlexp.paths import initialize_hydra
+
+    GlobalHydra.instance().clear()
+    with initialize_hydra(CONF_DIR, None):
+        from hydra import compose as hydra_compose
+
+        loader = GlobalHydra.instance().config_loader()
+        cfg = hydra_compose(
+            config_name="config", overrides=["+sweep=tuned_1m"], return_hydra_config=True
+        )
+        check_tuned_sweep(cfg, loader, ["+sweep=tuned_1m"])  # all 9 have one: no error
+        with pytest.raises(ConfigError, match="job 5 .*no preset for env=push_cube"):
+            check_tuned_sweep(cfg, loader, ["+sweep=tuned_1m", "env=hopper,push_cube"])
+    GlobalHydra.instance().clear()

@@ -172,6 +172,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
         sweeper = OmegaConf.to_container(cfg.hydra.sweeper, resolve=False)
         if args.multirun:
             check_pbt(cfg, loader, args.overrides)
+            check_tuned_sweep(cfg, loader, args.overrides)
         with open_dict(cfg):
             del cfg["hydra"]
         if args.multirun:
@@ -302,9 +303,11 @@ def missing_tuned_preset(exc: BaseException, loader: Any = None) -> str | None:
     import re
 
     found = re.search(rf"Could not find '{TUNED_GROUP}/([^']+)'", str(exc))
-    if found is None:
-        return None
-    env = found.group(1)
+    return no_tuned_preset(found.group(1), loader) if found is not None else None
+
+
+def no_tuned_preset(env: str, loader: Any = None) -> str:
+    """The line for an env option without a tuned preset (``loader``: lists the ones there are)."""
     what = (
         f"env={env}" if env != JSON_ENV_OPTION else "a --config-json run's env (from its JSON file)"
     )
@@ -315,6 +318,38 @@ def missing_tuned_preset(exc: BaseException, loader: Any = None) -> str | None:
         f"+experiment=tuned has no preset for {what} (no conf/{TUNED_GROUP}/{env}.yaml); the tasks "
         f"with one: {tasks}: choose one of them with env=..., or leave out +experiment=tuned"
     )
+
+
+def check_tuned_sweep(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
+    """A sweep with the tuned presets (``+experiment=tuned``, ``+sweep=tuned_1m``) over envs: every
+    env it launches must have a preset, checked before any job starts (Hydra composes the jobs'
+    configs one batch at a time, so a later job's missing preset would stop the sweep midway, in
+    Hydra's words). ``cfg``: composed with its ``hydra`` node for the sweep's first job."""
+    import re
+
+    from omegaconf import OmegaConf
+
+    from rlexp.reporting.plan import plan_from_config
+
+    choices = OmegaConf.select(cfg, "hydra.runtime.choices", default={}) or {}
+    tuned = choices.get(TUNED_GROUP)
+    if tuned in (None, "none") or tuned != choices.get("env"):  # off, or one task's preset
+        return
+    task = [o for o in overrides if not re.match(r"[+~]*hydra[./]", o)]
+    sweep = {
+        "sweep": OmegaConf.to_container(cfg.hydra.sweep, resolve=False),
+        "sweeper": OmegaConf.to_container(cfg.hydra.sweeper, resolve=False),
+        "overrides": {"task": task},
+    }
+    plan = plan_from_config(OmegaConf.create({"hydra": sweep}), loader)
+    presets = set(loader.get_group_options(TUNED_GROUP))
+    for job in plan.jobs or []:
+        env = dict(o.lstrip("+").split("=", 1) for o in job.overrides or () if "=" in o).get("env")
+        if env is not None and env not in presets:
+            message = missing_tuned_preset(
+                ValueError(f"Could not find '{TUNED_GROUP}/{env}'"), loader
+            )
+            raise ConfigError(f"job {job.num} ({job.label}): {message}")
 
 
 def _variant_key_message(exc: BaseException) -> str | None:
