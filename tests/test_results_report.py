@@ -37,6 +37,8 @@ ENVS = {
     "ant": ("Ant-v5", "gymnasium"),
     "swimmer": ("Swimmer-v5", "gymnasium"),
     "inverted_pendulum": ("InvertedPendulum-v5", "gymnasium"),
+    "reacher": ("Reacher-v5", "gymnasium"),
+    "inverted_double_pendulum": ("InvertedDoublePendulum-v5", "gymnasium"),
     "cart_pole": ("cart_pole", "native"),
 }
 BATCH, BUDGET, EVAL_EVERY = 1000, 10_000, 5000
@@ -182,13 +184,17 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
         "train return: IQM [95% CI]",
         "train mean ± std",
         "CleanRL PPO (1)",
+        "rlexp defaults (3)",
         "eval return: IQM [95% CI]",
         "eval mean ± std",
         "rl-zoo PPO (2)",
+        "rlexp defaults (4)",
         "wall per job (median)",
         "env steps/s (median)",
         "steps to CleanRL mean (median, seeds)",
         "wall to CleanRL mean (median)",
+        "steps to rl-zoo eval mean (median, seeds)",
+        "wall to rl-zoo mean (median)",
     ]
 
     hopper = row_of(md, "Hopper-v5")
@@ -196,31 +202,46 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
     assert hopper[2] == iqm_cell(TRAIN["hopper"]) and hopper[2].startswith("3000 [")
     assert hopper[3] == "3000 ± 1581"  # std ddof 1
     assert hopper[4] == "2383 ± 272 (Hopper-v4)"  # CleanRL: last 100 training episodes
-    assert hopper[5] == iqm_cell(EVAL["hopper"]) and hopper[5].startswith("3100 [")
-    assert hopper[6] == "3100 ± 1581"
-    assert hopper[7] == "2410 ± 10 (Hopper-v3)"  # rl-zoo: deterministic evaluation
-    assert hopper[8] == "10m00s" and hopper[9] == f"{BUDGET / 600:.0f}"
+    assert hopper[5] == "2504 [2401, 2629] (Hopper-v5)"  # the defaults' train IQM, results.md
+    assert hopper[6] == iqm_cell(EVAL["hopper"]) and hopper[6].startswith("3100 [")
+    assert hopper[7] == "3100 ± 1581"
+    assert hopper[8] == "2410 ± 10 (Hopper-v3)"  # rl-zoo: deterministic evaluation
+    assert hopper[9] == "3303 [3090, 3376] (Hopper-v5)"  # the defaults' eval IQM
+    assert hopper[10] == "10m00s" and hopper[11] == f"{BUDGET / 600:.0f}"
     # Time to CleanRL's mean: 3 of 5 seeds, the median of 8000, 6000, 5000 steps and of 252.5,
     # 222.5, 212.5 s since the job's start (3m42s).
-    assert hopper[10:] == ["6k (3/5)", "3m42s"]
+    assert hopper[12:14] == ["6k (3/5)", "3m42s"]
+    # Time to rl-zoo's 2410.435 on the eval return (evals at 5000 and 10000 steps, rising to
+    # 1100 ... 5100): seed 4 at 5000 (2550), seeds 2 and 3 at 10000; seeds 0, 1 never. Their eval
+    # rows' times: 12.5 + 5 x 40 + 2.25 = 214.75, 12.5 + 10 x 30 + 2.25 = 314.75, 12.5 + 10 x 35
+    # + 2.25 = 364.75 s: the median 314.75 s (5m14s), of 10000 steps.
+    assert hopper[14:] == ["10k (3/5)", "5m14s"]
 
     ant = row_of(md, "Ant-v5")  # seed 4 failed: 4 of its 5 jobs are its seeds
     assert ant[1] == "4 of 5"
     assert ant[2] == iqm_cell(TRAIN["ant"][:4])
     assert ant[4] == ""  # CleanRL has no Ant number at 1M steps
-    assert ant[7] == "1327 ± 452 (Ant-v3)"
-    assert ant[8] == "9m35s"  # the median of 500, 550, 600, 650 s
-    assert ant[10:] == ["—", "—"]  # no CleanRL number: no time to it (rl-zoo's is an eval return)
+    assert ant[5] == "652 [455, 785] (Ant-v5)"
+    assert ant[8] == "1327 ± 452 (Ant-v3)"
+    assert ant[10] == "9m35s"  # the median of 500, 550, 600, 650 s
+    assert ant[12:14] == ["—", "—"]  # no CleanRL number: no time to it
+    # rl-zoo's 1327.158: seeds 2 (1600) and 3 (2600) at 10000 steps (at 5000: 800 and 1300),
+    # 314.75 and 364.75 s: the median 339.75 s
+    assert ant[14:] == ["10k (2/4)", "5m39s"]
 
-    swimmer = row_of(md, "Swimmer-v5")  # no anchor for it anywhere: empty cells
-    assert swimmer[4] == "" and swimmer[7] == "" and swimmer[10:] == ["—", "—"]
+    swimmer = row_of(md, "Swimmer-v5")  # rl-zoo's Swimmer-v3 only
+    assert swimmer[4] == "" and swimmer[5] == "" and swimmer[9] == ""
+    assert swimmer[8] == "282 ± 10 (Swimmer-v3)"
+    assert swimmer[12:] == ["—", "—", "not reached (0/5)", "—"]  # 180 < 281.561
     assert "**To CleanRL mean**: per seed, the first logged `train/episode_return` >= " in md
+    assert "**To rl-zoo mean**: the same with the deterministic eval return" in md
     assert swimmer[2] == iqm_cell(TRAIN["swimmer"])
 
     # What each anchor is and where it comes from, under the table.
     assert "1. **CleanRL PPO**: `ppo_continuous_action.py`, MuJoCo v4, 1M env steps, 3 seeds" in md
     assert "docs/benchmark/ppo_continuous_action.md" in md
     assert "2. **rl-zoo PPO**: " in md and "rl-baselines3-zoo/blob/master/benchmark.md" in md
+    assert "3. **rlexp defaults**: " in md and "4. **rlexp defaults**: " in md
     assert "success" not in md.lower()  # Gymnasium tasks: no success anywhere
 
     with open(env_sweep / "results.csv") as f:
@@ -242,27 +263,43 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
     assert float(h["cleanrl_ppo_wall_median_s"]) == 222.5
     time_to = ("reached", "steps_median", "wall_median_s", "wall_n")
     assert [table["Ant-v5"][f"cleanrl_ppo_{k}"] for k in time_to] == ["", "", "", ""]
+    assert [h[f"rl_zoo_ppo_{k}"] for k in time_to] == ["3", "10000", "314.75", "3"]
+    ant_zoo = [float(table["Ant-v5"][f"rl_zoo_ppo_{k}"]) for k in time_to]
+    assert ant_zoo == [2, 10000, 339.75, 2]
+    assert [table["Swimmer-v5"][f"rl_zoo_ppo_{k}"] for k in time_to] == ["0", "", "", "0"]
+    defaults = [h[f"rlexp_defaults_eval_{k}"] for k in ("env", "mean", "std", "ci_low", "ci_high")]
+    assert defaults == ["Hopper-v5", "3303", "", "3090", "3376"]
     assert not (env_sweep / "results.png").exists()  # plot=False
 
 
 def test_anchors_only_for_tasks_a_source_has_a_number_for():
-    assert set(anchors_for("Hopper-v5")) == {"cleanrl_ppo", "rl_zoo_ppo"}
+    defaults = {"rlexp_defaults_train", "rlexp_defaults_eval"}
+    assert set(anchors_for("Hopper-v5")) == {"cleanrl_ppo", "rl_zoo_ppo", *defaults}
     assert anchors_for("Walker2d-v5")["cleanrl_ppo"].mean == 2287.95
     assert anchors_for("HalfCheetah-v5")["cleanrl_ppo"].mean == 1442.64
-    assert set(anchors_for("Ant-v5")) == {"rl_zoo_ppo"}
-    assert anchors_for("Swimmer-v5") == {} and anchors_for("push_cube") == {}
+    assert set(anchors_for("Ant-v5")) == {"rl_zoo_ppo", *defaults}
+    assert anchors_for("HalfCheetah-v5")["rlexp_defaults_eval"].ci == (1769, 1883)
+    assert anchors_for("Walker2d-v5")["rlexp_defaults_train"].mean == 3555
+    swimmer = anchors_for("Swimmer-v5")  # rl-zoo's benchmark.md: ppo Swimmer-v3 281.561 9.671
+    assert set(swimmer) == {"rl_zoo_ppo"} and swimmer["rl_zoo_ppo"].mean == 281.561
+    assert anchors_for("Reacher-v5") == {} and anchors_for("push_cube") == {}
+    # CleanRL's benchmark file (the same PR #424 runs): InvertedPendulum-v4, Humanoid-v4
+    assert anchors_for("InvertedPendulum-v5")["cleanrl_ppo"].mean == 963.09
+    assert set(anchors_for("Humanoid-v5")) == {"cleanrl_ppo"}
     assert anchors_for("Hopper") == anchors_for("Hopper-v4") and anchors_for(None) == {}
 
 
 def test_a_sweep_over_envs_without_anchors_has_no_anchor_columns(tmp_path):
-    multirun_yaml(tmp_path, ["env=swimmer,inverted_pendulum", "seed=0,1"])
-    for num, (env, seed) in enumerate([("swimmer", 0), ("swimmer", 1), ("inverted_pendulum", 0)]):
+    multirun_yaml(tmp_path, ["env=reacher,inverted_double_pendulum", "seed=0,1"])
+    jobs = [("reacher", 0), ("reacher", 1), ("inverted_double_pendulum", 0)]
+    for num, (env, seed) in enumerate(jobs):
         write_job(tmp_path, num, [f"env={env}", f"seed={seed}"], 50.0 + seed, 60.0)
     md = report(tmp_path, plot=False)
     assert "## Results per env" in md
     assert "CleanRL" not in md and "rl-zoo" not in md and "Anchors:" not in md
-    assert row_of(md, "Swimmer-v5")[1:4] == ["2", "50 [50, 51]", "50 ± 1"]
-    assert row_of(md, "InvertedPendulum-v5")[1:3] == ["1", "50 [n/a, n/a]"]
+    assert "defaults" not in md
+    assert row_of(md, "Reacher-v5")[1:4] == ["2", "50 [50, 51]", "50 ± 1"]
+    assert row_of(md, "InvertedDoublePendulum-v5")[1:3] == ["1", "50 [n/a, n/a]"]
 
 
 def test_eval_success_is_shown_only_for_tasks_that_define_it(tmp_path):
@@ -351,7 +388,15 @@ def test_results_png_draws_each_envs_bands_and_its_anchors(env_sweep, monkeypatc
     low, high = bootstrap_ci(np.array(EVAL["hopper"]), iqm)
     assert (hopper_eval[2][-1], hopper_eval[3][-1]) == pytest.approx((low, high))
     drawn = {(ax.get_title(), y) for ax, y, _ in lines}
-    assert drawn == {("Hopper-v5", 2382.86), ("Hopper-v5", 2410.435), ("Ant-v5", 1327.158)}
+    assert drawn == {
+        *(
+            ("Hopper-v5", 2382.86),
+            ("Hopper-v5", 2410.435),
+            ("Hopper-v5", 2504),
+            ("Hopper-v5", 3303),
+        ),
+        *(("Ant-v5", 1327.158), ("Ant-v5", 652), ("Ant-v5", 1112), ("Swimmer-v5", 281.561)),
+    }
 
 
 def test_rlexp_report_on_a_sweep_over_envs_prints_the_results(env_sweep):

@@ -161,6 +161,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
         return None
     register_configs()
     GlobalHydra.instance().clear()
+    loader = None
     try:
         with initialize_hydra(conf_dir, args.config_dir):  # and the user's --config-dir after it
             loader = GlobalHydra.instance().config_loader()
@@ -171,6 +172,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
         sweeper = OmegaConf.to_container(cfg.hydra.sweeper, resolve=False)
         if args.multirun:
             check_pbt(cfg, loader, args.overrides)
+            check_tuned_sweep(cfg, loader, args.overrides)
         with open_dict(cfg):
             del cfg["hydra"]
         if args.multirun:
@@ -187,7 +189,8 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
                 "(python train.py -m +sweep=pbt ..., docs/pbt.md)"
             )
     except (HydraException, OmegaConfBaseException) as exc:
-        raise ConfigError(_variant_key_message(exc) or _first_line(exc)) from None
+        message = missing_tuned_preset(exc, loader) or _variant_key_message(exc)
+        raise ConfigError(message or _first_line(exc)) from None
     finally:
         GlobalHydra.instance().clear()
     from rlexp.config.checks import check_buildable
@@ -284,6 +287,69 @@ def _run_dir(cfg: Any) -> Path | None:
         return Path(str(OmegaConf.select(cfg, "hydra.run.dir", throw_on_resolution_failure=True)))
     except Exception:
         return None
+
+
+#: The config group of the tuned per-task presets (conf/tuned/<env>.yaml, +experiment=tuned).
+TUNED_GROUP = "tuned"
+#: The env option of a --config-json run (``rlexp.launch.json_entry.ENV_NODE``; not imported: the
+#: entry imports rlexp.app, which imports this module).
+JSON_ENV_OPTION = "json_task"
+
+
+def missing_tuned_preset(exc: BaseException, loader: Any = None) -> str | None:
+    """``+experiment=tuned`` with an env that has no ``conf/tuned/<env>.yaml``: one line naming the
+    env and the tasks that have a preset, not Hydra's "Could not find 'tuned/<env>'" and its
+    search path."""
+    import re
+
+    found = re.search(rf"Could not find '{TUNED_GROUP}/([^']+)'", str(exc))
+    return no_tuned_preset(found.group(1), loader) if found is not None else None
+
+
+def no_tuned_preset(env: str, loader: Any = None) -> str:
+    """The line for an env option without a tuned preset (``loader``: lists the ones there are)."""
+    what = (
+        f"env={env}" if env != JSON_ENV_OPTION else "a --config-json run's env (from its JSON file)"
+    )
+    tasks: list[str] = []
+    if loader is not None:
+        tasks = [o for o in loader.get_group_options(TUNED_GROUP) if o != "none"]
+    return (
+        f"+experiment=tuned has no preset for {what} (no conf/{TUNED_GROUP}/{env}.yaml); the tasks "
+        f"with one: {tasks}: choose one of them with env=..., or leave out +experiment=tuned"
+    )
+
+
+def check_tuned_sweep(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
+    """A sweep with the tuned presets (``+experiment=tuned``, ``+sweep=tuned_1m``) over envs: every
+    env it launches must have a preset, checked before any job starts (Hydra composes the jobs'
+    configs one batch at a time, so a later job's missing preset would stop the sweep midway, in
+    Hydra's words). ``cfg``: composed with its ``hydra`` node for the sweep's first job."""
+    import re
+
+    from omegaconf import OmegaConf
+
+    from rlexp.reporting.plan import plan_from_config
+
+    choices = OmegaConf.select(cfg, "hydra.runtime.choices", default={}) or {}
+    tuned = choices.get(TUNED_GROUP)
+    if tuned in (None, "none") or tuned != choices.get("env"):  # off, or one task's preset
+        return
+    task = [o for o in overrides if not re.match(r"[+~]*hydra[./]", o)]
+    sweep = {
+        "sweep": OmegaConf.to_container(cfg.hydra.sweep, resolve=False),
+        "sweeper": OmegaConf.to_container(cfg.hydra.sweeper, resolve=False),
+        "overrides": {"task": task},
+    }
+    plan = plan_from_config(OmegaConf.create({"hydra": sweep}), loader)
+    presets = set(loader.get_group_options(TUNED_GROUP))
+    for job in plan.jobs or []:
+        env = dict(o.lstrip("+").split("=", 1) for o in job.overrides or () if "=" in o).get("env")
+        if env is not None and env not in presets:
+            message = missing_tuned_preset(
+                ValueError(f"Could not find '{TUNED_GROUP}/{env}'"), loader
+            )
+            raise ConfigError(f"job {job.num} ({job.label}): {message}")
 
 
 def _variant_key_message(exc: BaseException) -> str | None:

@@ -103,6 +103,18 @@ def insert_override(args: Sequence[str], override: str) -> list[str]:
     return [*args, override]
 
 
+def check_no_tuned_preset(overrides: Sequence[str]) -> None:
+    """``+experiment=tuned`` picks ``conf/tuned/<env>.yaml`` by the env chosen in ``conf/``; a JSON
+    file's env is none of those (and the run is already ``+experiment=json_experiment``): one line,
+    not Hydra's "Multiple values for experiment"."""
+    if any(o.lstrip("+~").split("=", 1) == ["experiment", "tuned"] for o in overrides):
+        raise ConfigError(
+            "+experiment=tuned has no preset for a --config-json run's env (from its JSON file; "
+            "the tuned presets are for the envs of conf/tuned/, docs/results.md): set the values "
+            "in the JSON file or on the command line, or leave out +experiment=tuned"
+        )
+
+
 def register_json_experiment(exp: JsonExperiment) -> None:
     """Put ``exp`` into Hydra's ConfigStore as ``env/json_task``, ``logger/json_logger`` and
     ``experiment/json_experiment``. The experiment chooses the other two in its defaults list, so a
@@ -223,6 +235,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
         path, rest = split_config_arg(args)
         if path is not None:
+            check_no_tuned_preset(rest)
             prepare(path)
             rest = insert_override(rest, f"+experiment={EXPERIMENT}")
     except ConfigError as exc:

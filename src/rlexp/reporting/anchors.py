@@ -5,7 +5,8 @@ Only numbers copied from a source named here: an env a source has no number for 
 (its cell stays empty), never an estimate. The numbers were measured on other versions of the
 tasks than rlexp's (Gymnasium MuJoCo v4 or gym's v3, rlexp runs v5) and with other
 hyperparameters, so each cell names its env id: a reference point, not a like-for-like comparison.
-docs/results.md lists the same table with its sources.
+docs/results.md lists the same table with its sources. One more source is rlexp's own: its
+defaults' IQMs on the MuJoCo v5 suite (docs/results.md), shown next to a tuned suite's.
 """
 
 from __future__ import annotations
@@ -27,6 +28,10 @@ class Source:
     measures: str  # TRAIN or EVAL: the metric of ours it sits next to
     what: str  # one line: the metric, env version, seeds, steps, what the ± is
     where: str  # the file (repository, commit) or page the numbers were copied from
+    #: whether the time to its number is a column (env steps and wall until our metric first
+    #: reached it: the published references, not rlexp's own earlier results)
+    time_to: bool = True
+    short: str = ""  # its name in the time-to columns ("steps to CleanRL mean")
 
 
 @dataclass(frozen=True)
@@ -35,13 +40,15 @@ class Anchor:
 
     source: str  # Source.key
     env_id: str  # e.g. "Hopper-v4"
-    mean: float
-    std: float
+    mean: float  # the number: a mean over seeds or episodes, or an IQM over seeds (``ci``)
+    std: float  # NaN for an IQM
+    ci: tuple[float, float] | None = None  # an IQM's 95% bootstrap interval (rlexp's own results)
 
 
 CLEANRL = Source(
     key="cleanrl_ppo",
     name="CleanRL PPO",
+    short="CleanRL",
     measures=TRAIN,
     what=(
         "`ppo_continuous_action.py`, MuJoCo v4, 1M env steps, 3 seeds: per seed the mean return "
@@ -57,10 +64,11 @@ CLEANRL = Source(
 RL_ZOO = Source(
     key="rl_zoo_ppo",
     name="rl-zoo PPO",
+    short="rl-zoo",
     measures=EVAL,
     what=(
         "Stable-Baselines3 PPO with rl-baselines3-zoo's hyperparameters (tuned per env; Ant-v3: "
-        "SB3 defaults with normalisation), gym MuJoCo v3, 1M env steps, one trained agent (one "
+        "SB3 defaults with normalisation; Swimmer-v3: the same with gamma 0.9999), gym MuJoCo v3, 1M env steps, one trained agent (one "
         "seed): the mean return of its deterministic policy over ~150k evaluation steps (150-175 "
         "episodes), ± the std over those episodes, not over seeds"
     ),
@@ -69,16 +77,57 @@ RL_ZOO = Source(
         "https://github.com/DLR-RM/rl-baselines3-zoo/blob/master/benchmark.md"
     ),
 )
-SOURCES = (CLEANRL, RL_ZOO)
+_DEFAULTS_WHAT = (
+    "rlexp's default PPO (conf/config.yaml: 1 env x 2048 steps, 10 epochs of 64, 64x64 tanh, "
+    "lr 3e-4 annealed, observation and reward normalisation; `+sweep=mujoco_1m`), Gymnasium "
+    "MuJoCo v5, 1M env steps, 5 seeds: the IQM [95% bootstrap CI] over seeds of {metric}, as "
+    "this table computes it (rounded to integers as docs/results.md prints them)"
+)
+_DEFAULTS_WHERE = (
+    'docs/results.md, "Results (1M steps, 5 seeds)" (rlexp commit ebe04ef, 2026-11-23, the 2-core '
+    "Xeon dev machine)"
+)
+DEFAULTS_TRAIN = Source(
+    key="rlexp_defaults_train",
+    name="rlexp defaults",
+    measures=TRAIN,
+    what=_DEFAULTS_WHAT.format(metric="the final train return (last 100 training episodes)"),
+    where=_DEFAULTS_WHERE,
+    time_to=False,
+)
+DEFAULTS_EVAL = Source(
+    key="rlexp_defaults_eval",
+    name="rlexp defaults",
+    measures=EVAL,
+    what=_DEFAULTS_WHAT.format(metric="the final deterministic eval return (10 episodes)"),
+    where=_DEFAULTS_WHERE,
+    time_to=False,
+)
+SOURCES = (CLEANRL, RL_ZOO, DEFAULTS_TRAIN, DEFAULTS_EVAL)
+NAN = float("nan")  # the std of an IQM anchor
 
 ANCHORS = (
     Anchor(CLEANRL.key, "Hopper-v4", 2382.86, 271.74),
     Anchor(CLEANRL.key, "Walker2d-v4", 2287.95, 571.78),
     Anchor(CLEANRL.key, "HalfCheetah-v4", 1442.64, 46.03),
+    Anchor(CLEANRL.key, "InvertedPendulum-v4", 963.09, 22.20),
+    Anchor(CLEANRL.key, "Humanoid-v4", 716.11, 49.08),
     Anchor(RL_ZOO.key, "Hopper-v3", 2410.435, 10.026),
     Anchor(RL_ZOO.key, "Walker2d-v3", 3478.798, 821.708),
     Anchor(RL_ZOO.key, "HalfCheetah-v3", 5819.099, 663.530),
     Anchor(RL_ZOO.key, "Ant-v3", 1327.158, 451.577),
+    # benchmark.md's row `ppo Swimmer-v3 281.561 9.671 1M` (150 episodes; the Swimmer-v3 entry
+    # of that commit: gamma 0.9999 and SB3's defaults, before the zoo tuned it in PR #335)
+    Anchor(RL_ZOO.key, "Swimmer-v3", 281.561, 9.671),
+    # rlexp's defaults, docs/results.md's table: IQM [95% CI] of the train and the eval return
+    Anchor(DEFAULTS_TRAIN.key, "Hopper-v5", 2504, NAN, (2401, 2629)),
+    Anchor(DEFAULTS_TRAIN.key, "Walker2d-v5", 3555, NAN, (2302, 3978)),
+    Anchor(DEFAULTS_TRAIN.key, "HalfCheetah-v5", 1711, NAN, (1680, 1765)),
+    Anchor(DEFAULTS_TRAIN.key, "Ant-v5", 652, NAN, (455, 785)),
+    Anchor(DEFAULTS_EVAL.key, "Hopper-v5", 3303, NAN, (3090, 3376)),
+    Anchor(DEFAULTS_EVAL.key, "Walker2d-v5", 4277, NAN, (3146, 4808)),
+    Anchor(DEFAULTS_EVAL.key, "HalfCheetah-v5", 1829, NAN, (1769, 1883)),
+    Anchor(DEFAULTS_EVAL.key, "Ant-v5", 1112, NAN, (649, 1476)),
 )
 
 

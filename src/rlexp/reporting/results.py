@@ -4,7 +4,8 @@ configuration of the sweep, its env's two result metrics over seeds (the mean re
 each as IQM with a 95% bootstrap interval and as mean ± std, next to the published anchors that
 measure the same thing (``rlexp.reporting.anchors``), the eval success rate for tasks that define
 success, the median wall time per job and the env steps per second, and the time to the CleanRL
-mean (``TimeTo``: the env steps and wall-clock until the training return first reached it).
+mean and to the rl-zoo mean (``TimeTo``: the env steps and wall-clock until the training return,
+respectively the deterministic eval return, first reached it).
 Written as a section of ``report.md`` and as ``results.csv``; the curves are
 ``rlexp.reporting.plot.plot_results``."""
 
@@ -18,7 +19,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rlexp.reporting.anchors import CLEANRL, EVAL, SOURCES, TRAIN, Anchor, Source, anchors_for
+from rlexp.reporting.anchors import (
+    CLEANRL,
+    EVAL,
+    RL_ZOO,
+    SOURCES,
+    TRAIN,
+    Anchor,
+    Source,
+    anchors_for,
+)
 from rlexp.reporting.jobs import STOPPED_EARLY, Job, split_override
 from rlexp.reporting.summary import common_overrides, config_key
 from rlexp.stats import bootstrap_ci, iqm, steps_to_threshold
@@ -93,6 +103,11 @@ class EnvResult:
     steps_per_s: float  # median over them of global_step / wall
     anchors: dict[str, Anchor]  # by Source.key
     to_cleanrl: TimeTo | None = None  # None: no CleanRL anchor for the env
+    to_rl_zoo: TimeTo | None = None  # None: no rl-zoo anchor for the env
+
+    def time_to(self, source: Source) -> TimeTo | None:
+        """The time to ``source``'s number (CleanRL's or rl-zoo's); None without one."""
+        return {CLEANRL.key: self.to_cleanrl, RL_ZOO.key: self.to_rl_zoo}.get(source.key)
 
     @property
     def n(self) -> int:
@@ -101,8 +116,9 @@ class EnvResult:
 
 @dataclass(frozen=True)
 class TimeTo:
-    """Time to result: per seed the first logged ``train/episode_return`` >= an anchor's mean, its
-    env step and its wall-clock (the row's ``time`` less the job's start, ``provenance.json``)."""
+    """Time to result: per seed the first logged value of the anchor's metric (the train return
+    for CleanRL, the deterministic eval return for rl-zoo) >= the anchor's mean, its env step and
+    its wall-clock (the row's ``time`` less the job's start, ``provenance.json``)."""
 
     target: float  # the anchor's mean
     n: int  # the seeds with a result (the row's seeds)
@@ -123,18 +139,18 @@ class TimeTo:
         return _median(self.seconds)
 
 
-def time_to(jobs: list[Job], target: float) -> TimeTo:
-    """Per job, the first step whose ``train/episode_return`` is >= ``target``
-    (``rlexp.stats.steps_to_threshold``, one value) and the seconds from the job's start to the
-    row that logged it. No seconds for a job resumed (a row written before its start: the start is
-    its last attempt's) nor for a row with no ``time``."""
+def time_to(jobs: list[Job], target: float, metric: str = TRAIN_METRIC) -> TimeTo:
+    """Per job, the first step whose ``metric`` is >= ``target`` (``rlexp.stats.steps_to_threshold``,
+    one value) and the seconds from the job's start to the row that logged it. No seconds for a
+    job resumed (a row written before its start: the start is its last attempt's) nor for a row
+    with no ``time``."""
     steps, seconds = [], []
     for job in jobs:
-        step = steps_to_threshold(job.curves.get(TRAIN_METRIC) or [], target)
+        step = steps_to_threshold(job.curves.get(metric) or [], target)
         if step is None:
             continue
         steps.append(step)
-        times = job.logged_at.get(TRAIN_METRIC, {})
+        times = job.logged_at.get(metric, {})
         one_attempt = job.start is not None and all(t >= job.start for t in times.values())
         if one_attempt and step in times:
             seconds.append(times[step] - job.start)
@@ -170,7 +186,7 @@ def env_results(jobs: list[Job]) -> list[EnvResult]:
         )
         walls = [j.wall_s for j in done if j.wall_s]
         anchors = anchors_for(envs[0] if len(envs) == 1 else None)
-        cleanrl = anchors.get(CLEANRL.key)
+        cleanrl, rl_zoo = anchors.get(CLEANRL.key), anchors.get(RL_ZOO.key)
 
         def finals(metric: str, done: list[Job] = done) -> OverSeeds:
             return over_seeds([v for v in (_last(j, metric) for j in done) if v is not None])
@@ -188,6 +204,7 @@ def env_results(jobs: list[Job]) -> list[EnvResult]:
                 steps_per_s=_median([j.global_step / j.wall_s for j in done if j.wall_s]),
                 anchors=anchors,
                 to_cleanrl=time_to(done, cleanrl.mean) if cleanrl is not None else None,
+                to_rl_zoo=time_to(done, rl_zoo.mean, EVAL_METRIC) if rl_zoo is not None else None,
             )
         )
     return out
@@ -211,7 +228,11 @@ def _mean_cell(s: OverSeeds) -> str:
 
 
 def _anchor_cell(a: Anchor | None) -> str:
-    return "" if a is None else f"{fixed(a.mean, 0)} ± {fixed(a.std, 0)} ({a.env_id})"
+    if a is None:
+        return ""
+    if a.ci is not None:  # an IQM over seeds: its interval, as our own cells
+        return f"{fixed(a.mean, 0)} [{fixed(a.ci[0], 0)}, {fixed(a.ci[1], 0)}] ({a.env_id})"
+    return f"{fixed(a.mean, 0)} ± {fixed(a.std, 0)} ({a.env_id})"
 
 
 def _steps(x: float) -> str:
@@ -247,9 +268,14 @@ def results_markdown(results: list[EnvResult]) -> list[str]:
     head += [f"{s.name} ({i})" for i, s in enumerate(sources, 1) if s.measures == EVAL]
     head += ["eval success: IQM [95% CI]"] if with_success else []
     head += ["wall per job (median)", "env steps/s (median)"]
-    with_time_to = CLEANRL in sources
-    if with_time_to:
-        head += ["steps to CleanRL mean (median, seeds)", "wall to CleanRL mean (median)"]
+    timed = [s for s in sources if s.time_to]  # CleanRL's (train return), rl-zoo's (eval return)
+    for s in timed:
+        which = "" if s.measures == TRAIN else "eval "
+        head += [
+            f"steps to {s.short} {which}mean (median, seeds)",
+            f"wall to {s.short} mean (median)",
+        ]
+    with_time_to = CLEANRL in timed
     lines = [
         "## Results per env",
         "",
@@ -269,6 +295,12 @@ def results_markdown(results: list[EnvResult]) -> list[str]:
             "A resumed job's steps count, its time does not (its start is its last attempt's)."
             if with_time_to
             else ""
+        )
+        + (
+            f" **To rl-zoo mean**: the same with the deterministic eval return (`{EVAL_METRIC}`, "
+            "every `trainer.eval_every` steps) and the rl-zoo anchor's mean, which measures it."
+            if RL_ZOO in timed
+            else ""
         ),
         "",
         "| " + " | ".join(head) + " |",
@@ -285,7 +317,8 @@ def results_markdown(results: list[EnvResult]) -> list[str]:
             cells.append(_iqm_cell(r.success, r.n, 2) if r.success is not None else "—")
         wall = format_duration(r.wall_s) if not math.isnan(r.wall_s) else "n/a"
         cells += [wall, fixed(r.steps_per_s, 0)]
-        cells += _time_to_cells(r.to_cleanrl) if with_time_to else []
+        for s in timed:
+            cells += _time_to_cells(r.time_to(s))
         lines.append("| " + " | ".join(cells) + " |")
     if with_success:
         lines += [
@@ -296,7 +329,8 @@ def results_markdown(results: list[EnvResult]) -> list[str]:
     if sources:
         lines += [
             "",
-            "Anchors: published numbers, not runs of this sweep, next to the metric they "
+            "Anchors: numbers from elsewhere (published ones; rlexp defaults: rlexp's own recorded "
+            "results), not runs of this sweep, next to the metric they "
             "measure; an empty cell: the source has no number for that task. They ran other "
             "versions of the tasks (the env id in each cell) with their own hyperparameters: "
             "reference points, not like-for-like comparisons.",
@@ -317,9 +351,11 @@ def results_csv(results: list[EnvResult]) -> str:
     fields += ["wall_median_s", "env_steps_per_s_median"]
     for s in sources:
         fields += [f"{s.key}_env", f"{s.key}_mean", f"{s.key}_std"]
-    if CLEANRL in sources:  # time to its mean: empty for an env with no CleanRL number
-        fields += [f"{CLEANRL.key}_{k}" for k in ("reached", "steps_median", "wall_median_s")]
-        fields += [f"{CLEANRL.key}_wall_n"]
+        if not s.time_to:  # rlexp's own results: an IQM and its interval
+            fields += [f"{s.key}_ci_low", f"{s.key}_ci_high"]
+    timed = [s for s in sources if s.time_to]
+    for s in timed:  # time to its mean: empty for an env with no number of that source
+        fields += [f"{s.key}_{k}" for k in ("reached", "steps_median", "wall_median_s", "wall_n")]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     writer.writeheader()
@@ -348,16 +384,19 @@ def results_csv(results: list[EnvResult]) -> str:
         for s in sources:
             a = r.anchors.get(s.key)
             if a is not None:
-                row.update(
-                    {f"{s.key}_env": a.env_id, f"{s.key}_mean": a.mean, f"{s.key}_std": a.std}
-                )
-        t = r.to_cleanrl
-        if t is not None and CLEANRL in sources:
-            row[f"{CLEANRL.key}_reached"] = t.k
-            row[f"{CLEANRL.key}_wall_n"] = len(t.seconds)
+                row.update({f"{s.key}_env": a.env_id, f"{s.key}_mean": a.mean})
+                row[f"{s.key}_std"] = a.std if a.ci is None else ""
+                if a.ci is not None:
+                    row.update({f"{s.key}_ci_low": a.ci[0], f"{s.key}_ci_high": a.ci[1]})
+        for s in timed:
+            t = r.time_to(s)
+            if t is None:
+                continue
+            row[f"{s.key}_reached"] = t.k
+            row[f"{s.key}_wall_n"] = len(t.seconds)
             if t.k:
-                row[f"{CLEANRL.key}_steps_median"] = t.median_steps
+                row[f"{s.key}_steps_median"] = t.median_steps
             if t.seconds:
-                row[f"{CLEANRL.key}_wall_median_s"] = t.median_s
+                row[f"{s.key}_wall_median_s"] = t.median_s
         writer.writerow(row)
     return buf.getvalue()
