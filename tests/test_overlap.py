@@ -17,7 +17,7 @@ import psutil
 import pytest
 import torch
 
-from conftest import Children, compose
+from conftest import REPO, Children, compose
 from rlexp.config.validate import ConfigError, to_root_config
 from rlexp.overlap import OverlapCollector
 
@@ -112,27 +112,51 @@ def _gone(pid: int) -> bool:
         return True
 
 
-def test_the_collection_child_ends_when_the_training_process_is_killed(tmp_path):
-    """SIGKILL to the training process alone (no chance to clean up): the child sees its pipe
-    close and exits by itself, within seconds."""
-    args = [*SMALL[1:], "env=half_cheetah", "trainer.total_frames=10000000",
-            "algorithm.overlap=true", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
+def _kill_the_training_process_and_check_the_child_ends(
+    tmp_path: Path, args: list[str], ready: str, env_extra: dict[str, str] | None = None
+) -> None:
+    """Start ``train.py args``; once its train.log shows ``ready`` (and its collection child
+    exists), SIGKILL the training process alone (no chance to clean up): the child must end by
+    itself within seconds."""
+    log = tmp_path / "run" / "train.log"
     with Children() as children:
-        proc = children.train(args, tmp_path, tmp_path / "run.txt")
+        proc = children.train([*args, f"hydra.run.dir={tmp_path / 'run'}"], tmp_path,
+                              tmp_path / "run.txt", env_extra=env_extra)  # fmt: skip
         deadline, forked = time.time() + 120, []
         while time.time() < deadline and proc.poll() is None and not forked:
-            log = tmp_path / "run" / "train.log"
-            if log.exists() and "[overlap] collecting in process" in log.read_text():
+            if log.exists() and ready in log.read_text():
                 forked = _child_pids(proc.pid)
             time.sleep(0.05)
         assert forked, f"no collection child: {(tmp_path / 'run.txt').read_text()[-2000:]}"
-        time.sleep(1.0)  # well into training: a rollout in flight or about to be
+        time.sleep(1.0)  # a rollout in flight (or stuck in its step)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=30)
         deadline = time.time() + 20
         while time.time() < deadline and not all(_gone(p) for p in forked):
             time.sleep(0.05)
         assert all(_gone(p) for p in forked), "the collection child outlived the training process"
+
+
+def test_the_collection_child_ends_when_the_training_process_is_killed(tmp_path):
+    """The child waiting on its pipe, or finishing a rollout: the pipe's end stops it."""
+    args = [
+        *SMALL[1:],
+        "env=half_cheetah",
+        "trainer.total_frames=10000000",
+        "algorithm.overlap=true",
+    ]
+    _kill_the_training_process_and_check_the_child_ends(tmp_path, args, "[train] step=2048")
+
+
+def test_a_collection_child_stuck_in_an_env_step_ends_with_the_training_process(tmp_path):
+    """stuck_envs:StuckAfter-v0 hangs forever in step 301, inside the child's second rollout; the
+    child never reads its pipe again, and still ends when the training process is killed."""
+    args = ["env=hopper", "env.name=stuck_envs:StuckAfter-v0", "+env.kwargs.after=300",
+            "env.num_envs=1", "trainer.frames_per_batch=256", "trainer.eval_every=0",
+            "trainer.total_frames=100000", "algorithm.num_epochs=1", "trainer.progress=false",
+            "algorithm.overlap=true", "logger=none"]  # fmt: skip
+    extra = {"PYTHONPATH": f"{REPO / 'src'}{os.pathsep}{REPO / 'tests'}", "MUJOCO_GL": "egl"}
+    _kill_the_training_process_and_check_the_child_ends(tmp_path, args, "[overlap]", extra)
 
 
 def test_settings_overlap_cannot_run_with_are_refused_naming_the_key(tmp_path):

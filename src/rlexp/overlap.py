@@ -27,6 +27,7 @@ to change (``config.validate``, ``build``).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import os
 import pickle
@@ -87,12 +88,13 @@ class OverlapCollector:
         self._in_flight = False
         self._base = collector
         self._conn, child = Pipe()
+        parent = os.getpid()
         pid = os.fork()
         if pid == 0:  # the child: serve until told to stop or this process goes away
             code = 0
             try:
                 self._conn.close()
-                _serve(child, collector, policy)
+                _serve(child, collector, policy, parent)
             except BaseException:
                 code = 1
             finally:
@@ -188,10 +190,11 @@ class OverlapCollector:
         return value
 
 
-def _serve(conn: Any, collector: Any, policy: torch.nn.Module) -> None:
+def _serve(conn: Any, collector: Any, policy: torch.nn.Module, parent: int) -> None:
     """The child's loop: a rollout per ``collect`` (the weights to act with, the seed of its
     draws), the envs' state or next observation on request, until ``close`` or end of pipe."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle
+    _die_with_parent(parent)
     torch.set_num_threads(1)
     after_fork = getattr(loop.base_env(collector.env), "after_fork", None)
     if after_fork is not None:  # thread pools do not survive a fork (native tasks' physics)
@@ -222,3 +225,15 @@ def _serve(conn: Any, collector: Any, policy: torch.nn.Module) -> None:
             conn.send_bytes(out)
         except OSError:
             return
+
+
+def _die_with_parent(parent: int) -> None:
+    """Linux: SIGKILL this child when the training process ends, also where an env step hangs and
+    the closed pipe is never read (elsewhere the pipe's end alone stops it)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent ended before the call: no signal will come
+        os._exit(0)
