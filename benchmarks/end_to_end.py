@@ -40,6 +40,8 @@ over ``model.ep_info_buffer``.
     python benchmarks/end_to_end.py --row whole                              # ~5 min on 2 cores
     python benchmarks/end_to_end.py --row e2e                                # ~35 min on 2 cores
     python benchmarks/end_to_end.py --row e2e --env hopper                   # or walker2d, ...
+    python benchmarks/end_to_end.py --row e2e --variant sync: \
+        --variant overlap:algorithm.overlap=true --no-sb3 --no-floors        # ~6 min on 2 cores
     python benchmarks/end_to_end.py --row whole --steps 4096 --eval-every 2048 --rounds 1 \\
         --out /tmp/e2e.md                                                    # smoke, ~1 min
     make bench-e2e ARGS="--row whole"
@@ -477,6 +479,8 @@ def contenders_for(args: argparse.Namespace) -> tuple[list[Contender], object]:
         cmd = ("python", "train.py", *overrides, f"hydra.run.dir={RUN_DIR}")
         out.append(Contender(label, "rlexp", cmd))
     config = configs[0]
+    if args.no_sb3:
+        return out, config
     flags = sb3_flags(config, args.sb3_eval_envs)
     if args.anchor is not None:
         flags += ["--anchor", repr(args.anchor)]
@@ -513,6 +517,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "results.md")
     parser.add_argument("--keep-runs", type=Path, help="keep the run dirs under this directory")
     parser.add_argument("--dry-run", action="store_true", help="print the commands and stop")
+    parser.add_argument(
+        "--no-sb3",
+        action="store_true",
+        help="rlexp's variants alone (e.g. sync against algorithm.overlap=true), no SB3 run",
+    )
     parser.add_argument(
         "--no-floors",
         action="store_true",
