@@ -432,6 +432,9 @@ FIELDS = [  # (id, change, value, what the message names)
     ("obs count", _set("policy", "normalizer.count"), torch.tensor(-1.0, dtype=torch.float64), "policy.normalizer.count holds negative values"),
     ("adam lr", lambda s, v: s["algorithm"]["optimizer"]["param_groups"][0].update(lr=v), math.inf, "param_groups[0].lr=inf; expected a finite number >= 0"),
     ("no rng", lambda s, v: s.pop("rng"), None, "rng is missing: a resume needs it"),
+    ("rollout size", _set("pending_rollout"), {"data": {}, "batch_size": [1, -3]}, "pending_rollout.batch_size=[1, -3]; expected [envs, steps]"),
+    ("rollout key", _set("pending_rollout"), {"data": {"observation": torch.zeros(1, 4, 3), "action": torch.zeros(1, 4, 2), "action_log_prob": torch.zeros(1, 4), "next": {"done": torch.zeros(1, 4, 1)}}, "batch_size": [1, 4]}, "pending_rollout.data.next.reward is missing: the update reads it"),
+    ("rollout shape", _set("pending_rollout"), {"data": {"observation": torch.zeros(1, 4, 3), "action": torch.zeros(1, 5, 2), "action_log_prob": torch.zeros(1, 4)}, "batch_size": [1, 4]}, "pending_rollout.data.action is tensor("),
 ]  # fmt: skip
 
 

@@ -147,6 +147,40 @@ def check_state(sd: Mapping[str, Any], step: int, resume: bool) -> None:
         not isinstance(pending, torch.Tensor) or not pending.is_floating_point()
     ):
         raise FieldError(f"pending_observation is {_shown(pending)[:40]}, not a float tensor")
+    if sd.get("pending_rollout") is not None:
+        _check_pending_rollout(_mapping(sd["pending_rollout"], "pending_rollout"))
+
+
+#: What the update reads of a rollout (``algorithm.overlap``'s pending one: rlexp/overlap.py).
+ROLLOUT_KEYS = {"": ("observation", "action", "action_log_prob"), "next": ("reward", "done")}
+
+
+def _check_pending_rollout(rollout: Mapping[str, Any]) -> None:
+    """[envs, steps] as its batch size; what the update reads present; every tensor of that
+    leading shape."""
+    size = rollout.get("batch_size")
+    if not (
+        isinstance(size, list)
+        and len(size) == 2
+        and all(isinstance(n, int) and not isinstance(n, bool) and 0 < n <= 10**8 for n in size)
+    ):
+        raise FieldError(f"pending_rollout.batch_size={_shown(size)}; expected [envs, steps]")
+
+    def walk(data: Any, inner: str) -> None:
+        path = f"pending_rollout.data{inner}"
+        data = _mapping(data, path)
+        for key in ROLLOUT_KEYS.get(inner.lstrip("."), ()):
+            if key not in data:
+                raise FieldError(f"{path}.{key} is missing: the update reads it")
+        for key, value in data.items():
+            if isinstance(value, Mapping):
+                walk(value, f"{inner}.{key}")
+            elif not isinstance(value, torch.Tensor) or list(value.shape[:2]) != size:
+                raise FieldError(
+                    f"{path}.{key} is {_shown(value)[:40]}; expected a tensor of {size} x ..."
+                )
+
+    walk(rollout.get("data"), "")
 
 
 def _check_policy(policy: Mapping[str, Any]) -> None:

@@ -393,7 +393,7 @@ class Trainer:
         if self.dist.is_main:  # with the env state it belongs to (rank 0's)
             self._resume_obs = sd.get("pending_observation")
         if self.env_resume is not None and self.env_resume.startswith("restarted"):
-            self._resume_obs = None  # new episodes: nothing of the interrupted ones carries over
+            self._resume_obs = self._resume_rollout = None  # new episodes: nothing carries over
             self.episodes.drop_running()
             loop.restart_returns(self.algorithm)
         if not self.dist.is_main:  # rank 0's RNG would give every rank the same noise
