@@ -382,8 +382,10 @@ def test_the_suites_envs_pass_the_sweep_check():
     from hydra.core.global_hydra import GlobalHydra
 
     from rlexp.config.precheck import check_tuned_sweep
+    from rlexp.config.schema import register_configs
     from rlexp.paths import initialize_hydra
 
+    register_configs()  # the schemas the configs name (also when this test runs alone)
     GlobalHydra.instance().clear()
     with initialize_hydra(CONF_DIR, None):
         from hydra import compose as hydra_compose

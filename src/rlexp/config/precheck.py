@@ -239,7 +239,6 @@ def check_pbt(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
     """A PBT sweep runs its members side by side, as many as its population
     (``rlexp.pbt.config.check_pbt_sweep``); ``cfg``: composed with its ``hydra`` node,
     ``overrides``: the command line's (sweeps unexpanded)."""
-    import re
 
     from omegaconf import OmegaConf
 
@@ -248,20 +247,13 @@ def check_pbt(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
     hooks = OmegaConf.to_container(cfg.hooks, resolve=True) if "hooks" in cfg else {}
     if not pbt_hooks(hooks):
         return
-    from rlexp.reporting.plan import plan_from_config
 
     launcher = {
         key: OmegaConf.select(cfg, f"hydra.launcher.{key}", default=None)
         for key in ("_target_", "n_jobs", "array_parallelism")
     }
     launcher = {k: v for k, v in launcher.items() if v is not None}
-    task = [o for o in overrides if not re.match(r"[+~]*hydra[./]", o)]
-    sweep = {
-        "sweep": OmegaConf.to_container(cfg.hydra.sweep, resolve=False),
-        "sweeper": OmegaConf.to_container(cfg.hydra.sweeper, resolve=False),
-        "overrides": {"task": task},
-    }
-    plan = plan_from_config(OmegaConf.create({"hydra": sweep}), loader)
+    plan = _sweep_plan(cfg, overrides, loader)
     try:
         for name, params in pbt_hooks(hooks):  # the same for every member: checked once, here
             PBTConfig.from_params(params, f"hooks.{name}")
@@ -325,23 +317,14 @@ def check_tuned_sweep(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
     env it launches must have a preset, checked before any job starts (Hydra composes the jobs'
     configs one batch at a time, so a later job's missing preset would stop the sweep midway, in
     Hydra's words). ``cfg``: composed with its ``hydra`` node for the sweep's first job."""
-    import re
 
     from omegaconf import OmegaConf
-
-    from rlexp.reporting.plan import plan_from_config
 
     choices = OmegaConf.select(cfg, "hydra.runtime.choices", default={}) or {}
     tuned = choices.get(TUNED_GROUP)
     if tuned in (None, "none") or tuned != choices.get("env"):  # off, or one task's preset
         return
-    task = [o for o in overrides if not re.match(r"[+~]*hydra[./]", o)]
-    sweep = {
-        "sweep": OmegaConf.to_container(cfg.hydra.sweep, resolve=False),
-        "sweeper": OmegaConf.to_container(cfg.hydra.sweeper, resolve=False),
-        "overrides": {"task": task},
-    }
-    plan = plan_from_config(OmegaConf.create({"hydra": sweep}), loader)
+    plan = _sweep_plan(cfg, overrides, loader)
     presets = set(loader.get_group_options(TUNED_GROUP))
     for job in plan.jobs or []:
         env = dict(o.lstrip("+").split("=", 1) for o in job.overrides or () if "=" in o).get("env")
@@ -392,3 +375,20 @@ def _first_line(exc: BaseException) -> str:
             parts.append(lines[0])
         exc = exc.__cause__ or exc.__context__
     return ": ".join(parts) if parts else "invalid config"
+
+
+def _sweep_plan(cfg: Any, overrides: list[str], loader: Any) -> Any:
+    """The jobs this sweep command will launch (its task overrides over the sweeper's params)."""
+    import re
+
+    from omegaconf import OmegaConf
+
+    from rlexp.reporting.plan import plan_from_config
+
+    task = [o for o in overrides if not re.match(r"[+~]*hydra[./]", o)]
+    sweep = {
+        "sweep": OmegaConf.to_container(cfg.hydra.sweep, resolve=False),
+        "sweeper": OmegaConf.to_container(cfg.hydra.sweeper, resolve=False),
+        "overrides": {"task": task},
+    }
+    return plan_from_config(OmegaConf.create({"hydra": sweep}), loader)
