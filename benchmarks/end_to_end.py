@@ -433,7 +433,7 @@ def kept_sections(text: str) -> str:
     keep = False
     for line in text.splitlines():
         if line.startswith("## "):
-            keep = line.startswith(SECTION)
+            keep = line.startswith((SECTION, SECTION.replace(":", " (rlexp variants):")))
         if keep:
             out.append(line)
     return ("\n" + "\n".join(out).rstrip() + "\n") if out else ""
@@ -544,7 +544,8 @@ def main() -> None:
     machine = machine_note()
     started = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
     eval_every = config.trainer.eval_every
-    key = f"{SECTION}{args.env}, {args.steps:,} env steps"
+    section = SECTION.replace(":", " (rlexp variants):") if args.no_sb3 else SECTION
+    key = f"{section}{args.env}, {args.steps:,} env steps"  # --no-sb3: SB3's section stays
     heading = (
         f"{key}, eval every {eval_every:,} ({started})" if eval_every else f"{key} ({started})"
     )
