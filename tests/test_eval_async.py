@@ -322,8 +322,6 @@ def test_eval_every_0_builds_no_eval_env_starts_no_worker_and_logs_no_eval(tmp_p
         (["events=eval_video"], 8, 1, False, "events.eval (record_video)"),
         (["hooks=early_stop"], 8, 1, False, "hooks.early_stop act on eval results"),
         (["env=push_cube"], 2, 1, False, "no spare core"),  # the physics pool has the cores
-        (["algorithm.overlap=true"], 2, 1, False, "no spare core"),  # the collection process has it
-        (["algorithm.overlap=true"], 3, 1, True, "1 job(s) x (1 rank(s) x 2 thread(s) + 1"),
     ],
 )
 def test_auto_is_on_with_a_spare_core_and_nothing_acting_on_eval_results(

@@ -338,8 +338,6 @@ def decide_eval_async(
         from rlexp.envs.native.env import default_num_threads
 
         threads = max(threads, default_num_threads(e.num_envs))
-    if getattr(config.algorithm, "overlap", False):  # its collection process keeps a core busy
-        threads += 1
     need = jobs * (ranks * threads + 1)
     detail = f"{cpus} CPUs, {jobs} job(s) x ({ranks} rank(s) x {threads} thread(s) + 1 eval worker)"
     if cpus < need:
