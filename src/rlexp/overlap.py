@@ -108,8 +108,7 @@ class OverlapCollector:
         if self._in_flight or self.pending is not None:
             return
         seed = int(torch.randint(0, 2**62, ()).item())  # the child's draws, from this generator
-        weights = {k: v.detach().clone() for k, v in self.policy.state_dict().items()}
-        self._send(("collect", weights, seed))
+        self._send(("collect", self.policy.state_dict(), seed))  # pickled (copied) right here
         self._in_flight = True
 
     def wait(self) -> None:
@@ -150,17 +149,13 @@ class OverlapCollector:
         with contextlib.suppress(OSError):
             self._conn.send_bytes(pickle.dumps(("close",)))
         deadline = time.monotonic() + 10.0
-        while time.monotonic() < deadline:
-            with contextlib.suppress(ChildProcessError):
-                if os.waitpid(pid, os.WNOHANG)[0] != 0:
-                    break
-                time.sleep(0.01)
-                continue
-            break  # already reaped
-        else:
-            with contextlib.suppress(ProcessLookupError, ChildProcessError):
-                os.kill(pid, signal.SIGKILL)
-                os.waitpid(pid, 0)
+        while not _ended(pid):
+            if time.monotonic() > deadline:
+                with contextlib.suppress(ProcessLookupError, ChildProcessError):
+                    os.kill(pid, signal.SIGKILL)
+                    os.waitpid(pid, 0)
+                break
+            time.sleep(0.01)
         self._conn.close()
         self._base.shutdown()
 
@@ -225,6 +220,14 @@ def _serve(conn: Any, collector: Any, policy: torch.nn.Module, parent: int) -> N
             conn.send_bytes(out)
         except OSError:
             return
+
+
+def _ended(pid: int) -> bool:
+    """Whether child ``pid`` has exited (reaping it), or was reaped already."""
+    try:
+        return os.waitpid(pid, os.WNOHANG)[0] != 0
+    except ChildProcessError:
+        return True
 
 
 def _die_with_parent(parent: int) -> None:
