@@ -317,7 +317,6 @@ def check_tuned_sweep(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
     env it launches must have a preset, checked before any job starts (Hydra composes the jobs'
     configs one batch at a time, so a later job's missing preset would stop the sweep midway, in
     Hydra's words). ``cfg``: composed with its ``hydra`` node for the sweep's first job."""
-
     from omegaconf import OmegaConf
 
     choices = OmegaConf.select(cfg, "hydra.runtime.choices", default={}) or {}
@@ -329,10 +328,7 @@ def check_tuned_sweep(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
     for job in plan.jobs or []:
         env = dict(o.lstrip("+").split("=", 1) for o in job.overrides or () if "=" in o).get("env")
         if env is not None and env not in presets:
-            message = missing_tuned_preset(
-                ValueError(f"Could not find '{TUNED_GROUP}/{env}'"), loader
-            )
-            raise ConfigError(f"job {job.num} ({job.label}): {message}")
+            raise ConfigError(f"job {job.num} ({job.label}): {no_tuned_preset(env, loader)}")
 
 
 def _variant_key_message(exc: BaseException) -> str | None:
