@@ -184,11 +184,12 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
         "train return: IQM [95% CI]",
         "train mean ± std",
         "CleanRL PPO (1)",
-        "rlexp defaults (3)",
+        "rlexp defaults (4)",
         "eval return: IQM [95% CI]",
         "eval mean ± std",
         "rl-zoo PPO (2)",
-        "rlexp defaults (4)",
+        "Tianshou PPO (3)",
+        "rlexp defaults (5)",
         "wall per job (median)",
         "env steps/s (median)",
         "steps to CleanRL mean (median, seeds)",
@@ -206,16 +207,17 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
     assert hopper[6] == iqm_cell(EVAL["hopper"]) and hopper[6].startswith("3100 [")
     assert hopper[7] == "3100 ± 1581"
     assert hopper[8] == "2410 ± 10 (Hopper-v3)"  # rl-zoo: deterministic evaluation
-    assert hopper[9] == "3303 [3090, 3376] (Hopper-v5)"  # the defaults' eval IQM
-    assert hopper[10] == "10m00s" and hopper[11] == f"{BUDGET / 600:.0f}"
+    assert hopper[9] == "2609 ± 701 (Hopper-v3)"  # Tianshou: the best over its curve
+    assert hopper[10] == "3303 [3090, 3376] (Hopper-v5)"  # the defaults' eval IQM
+    assert hopper[11] == "10m00s" and hopper[12] == f"{BUDGET / 600:.0f}"
     # Time to CleanRL's mean: 3 of 5 seeds, the median of 8000, 6000, 5000 steps and of 252.5,
     # 222.5, 212.5 s since the job's start (3m42s).
-    assert hopper[12:14] == ["6k (3/5)", "3m42s"]
+    assert hopper[13:15] == ["6k (3/5)", "3m42s"]
     # Time to rl-zoo's 2410.435 on the eval return (evals at 5000 and 10000 steps, rising to
     # 1100 ... 5100): seed 4 at 5000 (2550), seeds 2 and 3 at 10000; seeds 0, 1 never. Their eval
     # rows' times: 12.5 + 5 x 40 + 2.25 = 214.75, 12.5 + 10 x 30 + 2.25 = 314.75, 12.5 + 10 x 35
     # + 2.25 = 364.75 s: the median 314.75 s (5m14s), of 10000 steps.
-    assert hopper[14:] == ["10k (3/5)", "5m14s"]
+    assert hopper[15:] == ["10k (3/5)", "5m14s"]
 
     ant = row_of(md, "Ant-v5")  # seed 4 failed: 4 of its 5 jobs are its seeds
     assert ant[1] == "4 of 5"
@@ -223,16 +225,17 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
     assert ant[4] == ""  # CleanRL has no Ant number at 1M steps
     assert ant[5] == "652 [455, 785] (Ant-v5)"
     assert ant[8] == "1327 ± 452 (Ant-v3)"
-    assert ant[10] == "9m35s"  # the median of 500, 550, 600, 650 s
-    assert ant[12:14] == ["—", "—"]  # no CleanRL number: no time to it
+    assert ant[9] == "3258 ± 1079 (Ant-v3)"  # Tianshou
+    assert ant[11] == "9m35s"  # the median of 500, 550, 600, 650 s
+    assert ant[13:15] == ["—", "—"]  # no CleanRL number: no time to it
     # rl-zoo's 1327.158: seeds 2 (1600) and 3 (2600) at 10000 steps (at 5000: 800 and 1300),
     # 314.75 and 364.75 s: the median 339.75 s
-    assert ant[14:] == ["10k (2/4)", "5m39s"]
+    assert ant[15:] == ["10k (2/4)", "5m39s"]
 
     swimmer = row_of(md, "Swimmer-v5")  # rl-zoo's Swimmer-v3 only
-    assert swimmer[4] == "" and swimmer[5] == "" and swimmer[9] == ""
-    assert swimmer[8] == "282 ± 10 (Swimmer-v3)"
-    assert swimmer[12:] == ["—", "—", "not reached (0/5)", "—"]  # 180 < 281.561
+    assert swimmer[4] == "" and swimmer[5] == "" and swimmer[10] == ""
+    assert (swimmer[8], swimmer[9]) == ("282 ± 10 (Swimmer-v3)", "67 ± 99 (Swimmer-v3)")
+    assert swimmer[13:] == ["—", "—", "not reached (0/5)", "—"]  # 180 < 281.561
     assert "**To CleanRL mean**: per seed, the first logged `train/episode_return` >= " in md
     assert "**To rl-zoo mean**: the same with the deterministic eval return" in md
     assert swimmer[2] == iqm_cell(TRAIN["swimmer"])
@@ -241,7 +244,8 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
     assert "1. **CleanRL PPO**: `ppo_continuous_action.py`, MuJoCo v4, 1M env steps, 3 seeds" in md
     assert "docs/benchmark/ppo_continuous_action.md" in md
     assert "2. **rl-zoo PPO**: " in md and "rl-baselines3-zoo/blob/master/benchmark.md" in md
-    assert "3. **rlexp defaults**: " in md and "4. **rlexp defaults**: " in md
+    assert "3. **Tianshou PPO**: " in md and "thu-ml/tianshou `examples/mujoco/README.md`" in md
+    assert "4. **rlexp defaults**: " in md and "5. **rlexp defaults**: " in md
     assert "success" not in md.lower()  # Gymnasium tasks: no success anywhere
 
     with open(env_sweep / "results.csv") as f:
@@ -274,32 +278,56 @@ def test_a_sweep_over_envs_shows_both_metrics_anchors_and_time_per_env(env_sweep
 
 def test_anchors_only_for_tasks_a_source_has_a_number_for():
     defaults = {"rlexp_defaults_train", "rlexp_defaults_eval"}
-    assert set(anchors_for("Hopper-v5")) == {"cleanrl_ppo", "rl_zoo_ppo", *defaults}
+    assert set(anchors_for("Hopper-v5")) == {"cleanrl_ppo", "rl_zoo_ppo", "tianshou_ppo", *defaults}
     assert anchors_for("Walker2d-v5")["cleanrl_ppo"].mean == 2287.95
     assert anchors_for("HalfCheetah-v5")["cleanrl_ppo"].mean == 1442.64
-    assert set(anchors_for("Ant-v5")) == {"rl_zoo_ppo", *defaults}
+    assert set(anchors_for("Ant-v5")) == {"rl_zoo_ppo", "tianshou_ppo", *defaults}
     assert anchors_for("HalfCheetah-v5")["rlexp_defaults_eval"].ci == (1769, 1883)
     assert anchors_for("Walker2d-v5")["rlexp_defaults_train"].mean == 3555
     swimmer = anchors_for("Swimmer-v5")  # rl-zoo's benchmark.md: ppo Swimmer-v3 281.561 9.671
-    assert set(swimmer) == {"rl_zoo_ppo"} and swimmer["rl_zoo_ppo"].mean == 281.561
-    assert anchors_for("Reacher-v5") == {} and anchors_for("push_cube") == {}
+    assert set(swimmer) == {"rl_zoo_ppo", "tianshou_ppo"} and swimmer["rl_zoo_ppo"].mean == 281.561
+    assert anchors_for("push_cube") == {} and anchors_for("cart_pole") == {}
     # CleanRL's benchmark file (the same PR #424 runs): InvertedPendulum-v4, Humanoid-v4
     assert anchors_for("InvertedPendulum-v5")["cleanrl_ppo"].mean == 963.09
-    assert set(anchors_for("Humanoid-v5")) == {"cleanrl_ppo"}
+    assert set(anchors_for("Humanoid-v5")) == {"cleanrl_ppo", "tianshou_ppo"}
+    # Tianshou's README, PPO "Tianshou (1M)": every task of the suite, v3 (v2: Reacher, pendulums)
+    tianshou = {
+        "Ant-v3": (3258.4, 1079.3), "HalfCheetah-v3": (5783.9, 1244.0),
+        "Hopper-v3": (2609.3, 700.8), "Walker2d-v3": (3588.5, 756.6),
+        "Swimmer-v3": (66.7, 99.1), "Humanoid-v3": (787.1, 193.5), "Reacher-v2": (-4.1, 0.3),
+        "InvertedPendulum-v2": (1000.0, 0.0), "InvertedDoublePendulum-v2": (9231.3, 270.4),
+    }  # fmt: skip
+    for env_id, (mean, std) in tianshou.items():
+        a = anchors_for(env_id.replace("-v3", "-v5").replace("-v2", "-v5"))["tianshou_ppo"]
+        assert (a.env_id, a.mean, a.std) == (env_id, mean, std)
+    assert set(anchors_for("Reacher-v5")) == {"tianshou_ppo"}
     assert anchors_for("Hopper") == anchors_for("Hopper-v4") and anchors_for(None) == {}
 
 
 def test_a_sweep_over_envs_without_anchors_has_no_anchor_columns(tmp_path):
-    multirun_yaml(tmp_path, ["env=reacher,inverted_double_pendulum", "seed=0,1"])
-    jobs = [("reacher", 0), ("reacher", 1), ("inverted_double_pendulum", 0)]
+    multirun_yaml(tmp_path, ["env=reacher,cart_pole", "seed=0,1"])
+    jobs = [("cart_pole", 0), ("cart_pole", 1), ("reacher", 0)]
     for num, (env, seed) in enumerate(jobs):
         write_job(tmp_path, num, [f"env={env}", f"seed={seed}"], 50.0 + seed, 60.0)
     md = report(tmp_path, plot=False)
     assert "## Results per env" in md
-    assert "CleanRL" not in md and "rl-zoo" not in md and "Anchors:" not in md
-    assert "defaults" not in md
-    assert row_of(md, "Reacher-v5")[1:4] == ["2", "50 [50, 51]", "50 ± 1"]
-    assert row_of(md, "InvertedDoublePendulum-v5")[1:3] == ["1", "50 [n/a, n/a]"]
+    assert row_of(md, "cart_pole")[1:4] == ["2", "50 [50, 51]", "50 ± 1"]
+    assert row_of(md, "Reacher-v5")[1:3] == ["1", "50 [n/a, n/a]"]
+    # Reacher has one anchor (Tianshou's eval number), cart_pole none: only that source's column
+    assert "Tianshou PPO (1)" in md and "CleanRL" not in md and "rl-zoo" not in md
+    assert "rlexp defaults (" not in md
+    header = row_of(md.replace("| env |", "| `env` |", 1), "env")
+    assert row_of(md, "cart_pole")[header.index("Tianshou PPO (1)")] == ""
+
+
+def test_a_sweep_over_envs_no_source_has_a_number_for_has_no_anchor_columns(tmp_path):
+    multirun_yaml(tmp_path, ["env=cart_pole", "seed=0,1"])
+    for seed in range(2):
+        write_job(tmp_path, seed, ["env=cart_pole", f"seed={seed}"], 50.0 + seed, 60.0)
+    md = report(tmp_path, plot=False, results=True)
+    assert "## Results per env" in md
+    assert "CleanRL" not in md and "rl-zoo" not in md and "Tianshou" not in md
+    assert "Anchors:" not in md and "defaults" not in md
 
 
 def test_eval_success_is_shown_only_for_tasks_that_define_it(tmp_path):
@@ -392,10 +420,12 @@ def test_results_png_draws_each_envs_bands_and_its_anchors(env_sweep, monkeypatc
         *(
             ("Hopper-v5", 2382.86),
             ("Hopper-v5", 2410.435),
+            ("Hopper-v5", 2609.3),
             ("Hopper-v5", 2504),
             ("Hopper-v5", 3303),
         ),
-        *(("Ant-v5", 1327.158), ("Ant-v5", 652), ("Ant-v5", 1112), ("Swimmer-v5", 281.561)),
+        *(("Ant-v5", 1327.158), ("Ant-v5", 3258.4), ("Ant-v5", 652), ("Ant-v5", 1112)),
+        *(("Swimmer-v5", 281.561), ("Swimmer-v5", 66.7)),
     }
 
 

@@ -1,8 +1,11 @@
-"""The tuned per-task presets (``+experiment=tuned``, conf/tuned/<env>.yaml) and their suite
-(``+sweep=tuned_1m``): every task composes to the values of rl-baselines3-zoo's
+"""The per-task presets and their suites: rl-baselines3-zoo's (``+experiment=rl_zoo``,
+conf/rl_zoo/<env>.yaml, ``+sweep=rl_zoo_1m``), where every task composes to the values of the
 ``hyperparams/ppo.yml`` entry it cites (literals copied from that file here, not read from the
-presets), the values reach the built objects, an env without a preset is one line and exit 2, and
-the suite expands to 9 tasks x 5 seeds into one fixed sweep dir. docs/results.md, "Tuned presets"."""
+presets), and the tuned ones (``+experiment=tuned``, conf/tuned/<env>.yaml, ``+sweep=tuned_1m``),
+the best measured per task: rl-zoo's values, rlexp's defaults (Hopper, Walker2d) or Ant's own
+(literals below). The values reach the built objects, an env without a preset is one line and exit
+2, and each suite expands to 9 tasks x 5 seeds into one fixed sweep dir. docs/results.md, "Tuned
+presets"."""
 
 from __future__ import annotations
 
@@ -109,9 +112,39 @@ ZOO = {
 }  # fmt: skip
 
 
+#: rlexp's defaults (conf/algorithm/ppo.yaml, conf/policy/mlp.yaml, conf/trainer/default.yaml) in
+#: the keys of ``ZOO``, with the learning rate annealed: the tuned preset of Hopper and Walker2d.
+DEFAULTS = {
+    "num_envs": 1, "frames_per_batch": 2048, "mini_batch_size": 64, "num_epochs": 10,
+    "gamma": 0.99, "lmbda": 0.95, "lr": 3e-4, "clip_epsilon": 0.2,
+    "entropy_coeff": 0.0, "critic_coeff": 0.5, "max_grad_norm": 0.5,
+    **SB3_POLICY,
+}  # fmt: skip
+#: Ant's initial log-std (Tianshou's PPO value; -1.0 did less well on the same seed, results.md).
+ANT_LOG_STD = -0.5
+#: Ant's tuned preset: the defaults with a smaller initial log-std and Ant-v4's observation (no
+#: contact forces), measured in docs/results.md.
+ANT = {**DEFAULTS, "init_log_std": ANT_LOG_STD}
+#: The tuned preset per task: rl-zoo's values where they measured best here, else rlexp's own.
+TUNED = {
+    **ZOO,
+    "hopper": DEFAULTS,
+    "walker2d": DEFAULTS,
+    "ant": ANT,
+}
+#: The tasks whose tuned preset is rl-zoo's values unchanged (conf/tuned/<env>.yaml includes
+#: conf/rl_zoo/<env>.yaml).
+AS_ZOO = [e for e in MUJOCO if e not in ("hopper", "walker2d", "ant")]
+
+
 def tuned(env: str, *extra: str) -> RootConfig:
     """``python train.py env=<env> +experiment=tuned [extra]`` as a typed config."""
     return to_root_config(compose([f"env={env}", "+experiment=tuned", *extra]))
+
+
+def rl_zoo(env: str, *extra: str) -> RootConfig:
+    """``python train.py env=<env> +experiment=rl_zoo [extra]`` as a typed config."""
+    return to_root_config(compose([f"env={env}", "+experiment=rl_zoo", *extra]))
 
 
 def as_zoo(config: RootConfig) -> dict:
@@ -136,11 +169,13 @@ def test_every_mujoco_task_and_classic_preset_has_a_tuned_file():
     assert mujoco == set(MUJOCO)  # every MuJoCo task of conf/env/ is in the suite
     presets = {p.stem for p in (CONF_DIR / "tuned").glob("*.yaml")} - {"none"}
     assert presets == set(MUJOCO) | set(CLASSIC)
+    zoo = {p.stem for p in (CONF_DIR / "rl_zoo").glob("*.yaml")} - {"none"}
+    assert zoo == set(MUJOCO)
 
 
 @pytest.mark.parametrize("env", MUJOCO)
 def test_each_task_composes_to_rl_zoos_values(env):
-    config = tuned(env)
+    config = rl_zoo(env)
     assert as_zoo(config) == ZOO[env]
     # the same in every preset: VecNormalize (normalize: true), a constant learning rate, 1M steps
     assert config.env.normalize_observations and config.env.clip_observations == 10.0
@@ -151,15 +186,49 @@ def test_each_task_composes_to_rl_zoos_values(env):
     assert config.policy.critic.activation == ZOO[env]["activation"]
     # frames_per_batch a multiple of the minibatch (rlexp and SB3 then split rollouts alike)
     assert config.trainer.frames_per_batch % config.algorithm.mini_batch_size == 0
+    assert config.env.kwargs == {}  # the env as conf/env/ has it
+
+
+@pytest.mark.parametrize("env", MUJOCO)
+def test_each_task_composes_to_its_tuned_values(env):
+    config = tuned(env)
+    assert as_zoo(config) == TUNED[env]
+    assert config.env.normalize_observations and config.algorithm.normalize_rewards
+    assert config.algorithm.clip_rewards == 10.0 and config.trainer.total_frames == 1_000_000
+    assert config.policy.critic.hidden_sizes == TUNED[env]["sizes"]
+    assert config.policy.critic.activation == TUNED[env]["activation"]
+    # rl-zoo's constant rate where its values are the preset; the defaults' annealed one otherwise
+    assert config.algorithm.anneal_lr is (env not in AS_ZOO)
+    if env in AS_ZOO:  # the same run as +experiment=rl_zoo, key for key
+        assert to_dict(config) == to_dict(rl_zoo(env))
+    if env in ("hopper", "walker2d"):  # the same run as the defaults, key for key
+        assert to_dict(config) == to_dict(to_root_config(compose([f"env={env}"])))
+    expected_kwargs = {"include_cfrc_ext_in_observation": False} if env == "ant" else {}
+    assert config.env.kwargs == expected_kwargs
+
+
+def test_ants_preset_builds_the_v4_observation_without_contact_forces(tmp_path):
+    """Ant-v5 observes 105 numbers by default (27 positions and velocities, 78 contact forces);
+    the tuned preset observes the 27, as Ant-v4 does by default and rl-zoo's Ant-v3 row did."""
+    built = _built(tuned("ant", "env.num_eval_envs=1", "trainer.eval_every=0"), tmp_path)
+    assert built.env.observation_spec["observation"].shape[-1] == 27
+    assert torch.equal(built.policy.actor_net.log_std.detach(), torch.full((8,), ANT_LOG_STD))
+    built.env.close()
+    plain = _built(rl_zoo("ant", "env.num_eval_envs=1", "trainer.eval_every=0"), tmp_path / "z")
+    assert plain.env.observation_spec["observation"].shape[-1] == 105
+    plain.env.close()
 
 
 def test_the_env_may_come_before_or_after_the_preset_and_overrides_win():
-    assert to_dict(tuned("hopper")) == to_dict(
-        to_root_config(compose(["+experiment=tuned", "env=hopper"]))
+    assert to_dict(tuned("half_cheetah")) == to_dict(
+        to_root_config(compose(["+experiment=tuned", "env=half_cheetah"]))
     )
-    config = tuned("hopper", "algorithm.lr=0.001", "policy.init_log_std=-1")
+    assert to_dict(rl_zoo("hopper")) == to_dict(
+        to_root_config(compose(["+experiment=rl_zoo", "env=hopper"]))
+    )
+    config = tuned("half_cheetah", "algorithm.lr=0.001", "policy.init_log_std=-1")
     assert (config.algorithm.lr, config.policy.init_log_std) == (0.001, -1.0)
-    assert config.algorithm.gamma == 0.999  # the rest of the preset stays
+    assert config.algorithm.gamma == 0.98  # the rest of the preset stays
     # without +experiment=tuned: the defaults, whatever conf/tuned/ holds
     plain = to_root_config(compose(["env=hopper"]))
     assert (plain.algorithm.gamma, plain.algorithm.lr, plain.policy.init_log_std) == (
@@ -272,29 +341,33 @@ def test_a_tuned_run_trains_with_its_preset(tmp_path):
     assert saved.trainer.frames_per_batch == 512
 
 
-def test_an_env_without_a_preset_is_one_line_and_exit_2(tmp_path):
-    proc = run_train(["env=push_cube", "+experiment=tuned"], cwd=tmp_path, check=False, timeout=120)
+@pytest.mark.parametrize("group", ["tuned", "rl_zoo"])
+def test_an_env_without_a_preset_is_one_line_and_exit_2(tmp_path, group):
+    proc = run_train(
+        ["env=push_cube", f"+experiment={group}"], cwd=tmp_path, check=False, timeout=120
+    )
     assert proc.returncode == 2, proc.stderr
     err = proc.stderr.strip()
     assert err.splitlines() == [err], "one line, no traceback"
-    assert "+experiment=tuned has no preset for env=push_cube" in err
+    assert f"+experiment={group} has no preset for env=push_cube (no conf/{group}/push_cube" in err
     assert "'half_cheetah'" in err and "'inverted_double_pendulum'" in err
     assert not (tmp_path / "outputs").exists()
 
 
-def test_a_config_json_run_with_the_tuned_preset_is_one_line_and_exit_2(tmp_path):
+@pytest.mark.parametrize("group", ["tuned", "rl_zoo"])
+def test_a_config_json_run_with_a_task_preset_is_one_line_and_exit_2(tmp_path, group):
     from rlexp.config.precheck import JSON_ENV_OPTION
     from rlexp.launch.json_entry import ENV_NODE
 
     assert JSON_ENV_OPTION == ENV_NODE
     path = REPO / "examples/json/cart_pole/train_config.json"
     proc = run_train(
-        ["--config-json", str(path), "+experiment=tuned"], cwd=tmp_path, check=False, timeout=120
+        ["--config-json", str(path), f"+experiment={group}"], cwd=tmp_path, check=False, timeout=120
     )
     assert proc.returncode == 2, proc.stderr
     err = proc.stderr.strip()
     assert err.splitlines() == [err]
-    assert "+experiment=tuned has no preset for a --config-json run's env" in err
+    assert f"+experiment={group} has no preset for a --config-json run's env" in err
 
 
 def test_the_missing_preset_message_names_the_env_and_the_tasks():
@@ -307,11 +380,16 @@ def test_the_missing_preset_message_names_the_env_and_the_tasks():
     assert message is not None and message.startswith(
         "+experiment=tuned has no preset for env=my_env"
     )
+    exc = MissingConfigException("In 'config': Could not find 'rl_zoo/my_env'", "rl_zoo/my_env")
+    message = missing_tuned_preset(exc)
+    assert message is not None and message.startswith(
+        "+experiment=rl_zoo has no preset for env=my_env (no conf/rl_zoo/my_env.yaml)"
+    )
     assert missing_tuned_preset(MissingConfigException("Could not find 'env/x'", "env/x")) is None
 
 
-def _suite_jobs() -> list[list[str]]:
-    """The jobs' overrides of ``python train.py -m +sweep=tuned_1m``, as Hydra's basic sweeper
+def _suite_jobs(suite: str = "tuned_1m") -> list[list[str]]:
+    """The jobs' overrides of ``python train.py -m +sweep=<suite>``, as Hydra's basic sweeper
     expands them (its params, then the command line's)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
@@ -325,39 +403,47 @@ def _suite_jobs() -> list[list[str]]:
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = hydra_compose(
-            config_name="config", overrides=["+sweep=tuned_1m"], return_hydra_config=True
+            config_name="config", overrides=[f"+sweep={suite}"], return_hydra_config=True
         )
-    assert cfg.hydra.sweep.dir == "multirun/tuned_1m"  # fixed: the same command resumes
+    assert cfg.hydra.sweep.dir == f"multirun/{suite}"  # fixed: the same command resumes
     params = [f"{k}={v}" for k, v in cfg.hydra.sweeper.params.items()]
-    parsed = OverridesParser.create().parse_overrides(["+sweep=tuned_1m", *params])
+    parsed = OverridesParser.create().parse_overrides([f"+sweep={suite}", *params])
     batches = BasicSweeper.split_arguments(parsed, None)
     return [list(job) for batch in batches for job in batch]
 
 
-def test_the_suite_is_9_tasks_by_5_seeds_with_the_tuned_presets():
-    jobs = _suite_jobs()
+@pytest.mark.parametrize("suite", ["tuned_1m", "rl_zoo_1m"])
+def test_the_suite_is_9_tasks_by_5_seeds_with_its_presets(suite):
+    expected = TUNED if suite == "tuned_1m" else ZOO
+    jobs = _suite_jobs(suite)
     assert len(jobs) == 45
     pairs = [
         (dict(o.split("=") for o in job)["env"], dict(o.split("=") for o in job)["seed"])
         for job in jobs
     ]
     assert sorted(pairs) == sorted((env, str(seed)) for env in MUJOCO for seed in range(5))
-    # each job composes with its task's preset (two tasks checked; each composes once per env)
+    # each job composes with its task's preset (three tasks checked; each composes once per env)
+    for task in ("half_cheetah", "hopper", "ant"):
+        job = next(j for j in jobs if f"env={task}" in j)
+        assert as_zoo(to_root_config(compose(job))) == expected[task]
     for job in (jobs[0], next(j for j in jobs if "env=inverted_pendulum" in j)):
         config = to_root_config(compose(job))
         env = dict(o.split("=") for o in job)["env"]
-        assert as_zoo(config) == ZOO[env]
+        assert as_zoo(config) == expected[env]
         assert config.trainer.total_frames == 1_000_000
 
 
 def test_each_preset_sets_only_schema_keys_and_states_its_source():
+    sections = {f.name for f in dataclasses.fields(RootConfig)}
     for env in MUJOCO:
-        text = (CONF_DIR / "tuned" / f"{env}.yaml").read_text()
+        text = (CONF_DIR / "rl_zoo" / f"{env}.yaml").read_text()
         assert text.startswith("# @package _global_\n")
         assert "rl-baselines3-zoo" in text and "hyperparams/ppo.yml" in text
-        values = OmegaConf.create(text)
-        for section in values:
-            assert section in {f.name for f in dataclasses.fields(RootConfig)}
+        assert set(OmegaConf.create(text)) <= sections
+        text = (CONF_DIR / "tuned" / f"{env}.yaml").read_text()
+        assert text.startswith("# @package _global_\n")
+        assert "docs/results.md" in text or f"conf/rl_zoo/{env}.yaml" in text
+        assert set(OmegaConf.create(text)) <= sections | {"defaults"}
 
 
 def test_a_sweep_over_an_env_without_a_preset_is_refused_before_any_job(tmp_path):
@@ -395,6 +481,14 @@ def test_the_suites_envs_pass_the_sweep_check():
             config_name="config", overrides=["+sweep=tuned_1m"], return_hydra_config=True
         )
         check_tuned_sweep(cfg, loader, ["+sweep=tuned_1m"])  # all 9 have one: no error
-        with pytest.raises(ConfigError, match="job 5 .*no preset for env=push_cube"):
+        with pytest.raises(
+            ConfigError, match="job 5 .*experiment=tuned has no preset for env=push"
+        ):
             check_tuned_sweep(cfg, loader, ["+sweep=tuned_1m", "env=hopper,push_cube"])
+        cfg = hydra_compose(
+            config_name="config", overrides=["+sweep=rl_zoo_1m"], return_hydra_config=True
+        )
+        check_tuned_sweep(cfg, loader, ["+sweep=rl_zoo_1m"])
+        with pytest.raises(ConfigError, match="job 5 .*experiment=rl_zoo has no preset for env=pu"):
+            check_tuned_sweep(cfg, loader, ["+sweep=rl_zoo_1m", "env=hopper,push_cube"])
     GlobalHydra.instance().clear()

@@ -281,54 +281,66 @@ def _run_dir(cfg: Any) -> Path | None:
         return None
 
 
-#: The config group of the tuned per-task presets (conf/tuned/<env>.yaml, +experiment=tuned).
+#: The config groups of the per-task presets (conf/<group>/<env>.yaml), each selected for the env
+#: chosen by ``+experiment=<group>``: the tuned ones (the best measured) and rl-baselines3-zoo's.
 TUNED_GROUP = "tuned"
+PRESET_GROUPS = (TUNED_GROUP, "rl_zoo")
 #: The env option of a --config-json run (``rlexp.launch.json_entry.ENV_NODE``; not imported: the
 #: entry imports rlexp.app, which imports this module).
 JSON_ENV_OPTION = "json_task"
 
 
 def missing_tuned_preset(exc: BaseException, loader: Any = None) -> str | None:
-    """``+experiment=tuned`` with an env that has no ``conf/tuned/<env>.yaml``: one line naming the
-    env and the tasks that have a preset, not Hydra's "Could not find 'tuned/<env>'" and its
-    search path."""
+    """``+experiment=tuned`` (or ``rl_zoo``) with an env that has no ``conf/<group>/<env>.yaml``:
+    one line naming the env and the tasks that have a preset, not Hydra's "Could not find
+    'tuned/<env>'" and its search path."""
     import re
 
-    found = re.search(rf"Could not find '{TUNED_GROUP}/([^']+)'", str(exc))
-    return no_tuned_preset(found.group(1), loader) if found is not None else None
+    groups = "|".join(PRESET_GROUPS)
+    found = re.search(rf"Could not find '({groups})/([^']+)'", str(exc))
+    if found is None:
+        return None
+    return no_tuned_preset(found.group(2), loader, group=found.group(1))
 
 
-def no_tuned_preset(env: str, loader: Any = None) -> str:
-    """The line for an env option without a tuned preset (``loader``: lists the ones there are)."""
+def no_tuned_preset(env: str, loader: Any = None, group: str = TUNED_GROUP) -> str:
+    """The line for an env option without a preset in ``group`` (``loader``: lists the ones there
+    are)."""
     what = (
         f"env={env}" if env != JSON_ENV_OPTION else "a --config-json run's env (from its JSON file)"
     )
     tasks: list[str] = []
     if loader is not None:
-        tasks = [o for o in loader.get_group_options(TUNED_GROUP) if o != "none"]
+        tasks = [o for o in loader.get_group_options(group) if o != "none"]
     return (
-        f"+experiment=tuned has no preset for {what} (no conf/{TUNED_GROUP}/{env}.yaml); the tasks "
-        f"with one: {tasks}: choose one of them with env=..., or leave out +experiment=tuned"
+        f"+experiment={group} has no preset for {what} (no conf/{group}/{env}.yaml); the tasks "
+        f"with one: {tasks}: choose one of them with env=..., or leave out +experiment={group}"
     )
 
 
 def check_tuned_sweep(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
-    """A sweep with the tuned presets (``+experiment=tuned``, ``+sweep=tuned_1m``) over envs: every
-    env it launches must have a preset, checked before any job starts (Hydra composes the jobs'
-    configs one batch at a time, so a later job's missing preset would stop the sweep midway, in
-    Hydra's words). ``cfg``: composed with its ``hydra`` node for the sweep's first job."""
+    """A sweep with per-task presets (``+experiment=tuned``, ``+sweep=tuned_1m``, and the same for
+    ``rl_zoo``) over envs: every env it launches must have a preset, checked before any job starts
+    (Hydra composes the jobs' configs one batch at a time, so a later job's missing preset would
+    stop the sweep midway, in Hydra's words). ``cfg``: composed with its ``hydra`` node for the
+    sweep's first job."""
     from omegaconf import OmegaConf
 
     choices = OmegaConf.select(cfg, "hydra.runtime.choices", default={}) or {}
-    tuned = choices.get(TUNED_GROUP)
-    if tuned in (None, "none") or tuned != choices.get("env"):  # off, or one task's preset
+    groups = [g for g in PRESET_GROUPS if choices.get(g) not in (None, "none")]
+    groups = [g for g in groups if choices.get(g) == choices.get("env")]  # not one task's preset
+    if not groups:
         return
     plan = _sweep_plan(cfg, overrides, loader)
-    presets = set(loader.get_group_options(TUNED_GROUP))
-    for job in plan.jobs or []:
-        env = dict(o.lstrip("+").split("=", 1) for o in job.overrides or () if "=" in o).get("env")
-        if env is not None and env not in presets:
-            raise ConfigError(f"job {job.num} ({job.label}): {no_tuned_preset(env, loader)}")
+    for group in groups:
+        presets = set(loader.get_group_options(group))
+        for job in plan.jobs or []:
+            pairs = (o.lstrip("+").split("=", 1) for o in job.overrides or () if "=" in o)
+            env = dict(pairs).get("env")
+            if env is not None and env not in presets:
+                raise ConfigError(
+                    f"job {job.num} ({job.label}): {no_tuned_preset(env, loader, group)}"
+                )
 
 
 def _variant_key_message(exc: BaseException) -> str | None:

@@ -104,15 +104,20 @@ def insert_override(args: Sequence[str], override: str) -> list[str]:
 
 
 def check_no_tuned_preset(overrides: Sequence[str]) -> None:
-    """``+experiment=tuned`` picks ``conf/tuned/<env>.yaml`` by the env chosen in ``conf/``; a JSON
-    file's env is none of those (and the run is already ``+experiment=json_experiment``): one line,
-    not Hydra's "Multiple values for experiment"."""
-    if any(o.lstrip("+~").split("=", 1) == ["experiment", "tuned"] for o in overrides):
-        raise ConfigError(
-            "+experiment=tuned has no preset for a --config-json run's env (from its JSON file; "
-            "the tuned presets are for the envs of conf/tuned/, docs/results.md): set the values "
-            "in the JSON file or on the command line, or leave out +experiment=tuned"
-        )
+    """``+experiment=tuned`` (or ``rl_zoo``) picks ``conf/<group>/<env>.yaml`` by the env chosen in
+    ``conf/``; a JSON file's env is none of those (and the run is already
+    ``+experiment=json_experiment``): one line, not Hydra's "Multiple values for experiment"."""
+    from rlexp.config.precheck import PRESET_GROUPS
+
+    for o in overrides:
+        key, _, group = o.lstrip("+~").partition("=")
+        if key == "experiment" and group in PRESET_GROUPS:
+            raise ConfigError(
+                f"+experiment={group} has no preset for a --config-json run's env (from its JSON "
+                f"file; the {group} presets are for the envs of conf/{group}/, docs/results.md): "
+                f"set the values in the JSON file or on the command line, or leave out "
+                f"+experiment={group}"
+            )
 
 
 def register_json_experiment(exp: JsonExperiment) -> None:

@@ -77,6 +77,24 @@ RL_ZOO = Source(
         "https://github.com/DLR-RM/rl-baselines3-zoo/blob/master/benchmark.md"
     ),
 )
+TIANSHOU = Source(
+    key="tianshou_ppo",
+    name="Tianshou PPO",
+    short="Tianshou",
+    measures=EVAL,
+    what=(
+        "Tianshou's `examples/mujoco/mujoco_ppo.py` (64x64 tanh, 10 envs, 2048 steps per collect, "
+        "lr 3e-4 decayed, advantages recomputed each epoch), gym 0.17.3 MuJoCo v3 (Reacher and "
+        "the pendulums v2), 10 seeds: the maximum over the first 1M env steps of the mean test "
+        "return (10 test episodes), ± the std over the seeds. A maximum over the curve, where the "
+        "others are final values: the most favourable of these numbers"
+    ),
+    where=(
+        'thu-ml/tianshou `examples/mujoco/README.md`, section PPO, table "Tianshou (1M)" (read '
+        "at commit 1da9b86)"
+    ),
+    time_to=False,
+)
 _DEFAULTS_WHAT = (
     "rlexp's default PPO (conf/config.yaml: 1 env x 2048 steps, 10 epochs of 64, 64x64 tanh, "
     "lr 3e-4 annealed, observation and reward normalisation; `+sweep=mujoco_1m`), Gymnasium "
@@ -102,7 +120,7 @@ DEFAULTS_EVAL = _defaults(
     "rlexp_defaults_eval", EVAL, "the final deterministic eval return (10 episodes)"
 )
 
-SOURCES = (CLEANRL, RL_ZOO, DEFAULTS_TRAIN, DEFAULTS_EVAL)
+SOURCES = (CLEANRL, RL_ZOO, TIANSHOU, DEFAULTS_TRAIN, DEFAULTS_EVAL)
 NAN = float("nan")  # the std of an IQM anchor
 
 ANCHORS = (
@@ -118,6 +136,17 @@ ANCHORS = (
     # benchmark.md's row `ppo Swimmer-v3 281.561 9.671 1M` (150 episodes; the Swimmer-v3 entry
     # of that commit: gamma 0.9999 and SB3's defaults, before the zoo tuned it in PR #335)
     Anchor(RL_ZOO.key, "Swimmer-v3", 281.561, 9.671),
+    # Tianshou's PPO table "Tianshou (1M)": Ant, HalfCheetah, Hopper, Walker2d, Swimmer, Humanoid
+    # are gym's v3, Reacher and the pendulums v2 (the README's footnote 1)
+    Anchor(TIANSHOU.key, "Ant-v3", 3258.4, 1079.3),
+    Anchor(TIANSHOU.key, "HalfCheetah-v3", 5783.9, 1244.0),
+    Anchor(TIANSHOU.key, "Hopper-v3", 2609.3, 700.8),
+    Anchor(TIANSHOU.key, "Walker2d-v3", 3588.5, 756.6),
+    Anchor(TIANSHOU.key, "Swimmer-v3", 66.7, 99.1),
+    Anchor(TIANSHOU.key, "Humanoid-v3", 787.1, 193.5),
+    Anchor(TIANSHOU.key, "Reacher-v2", -4.1, 0.3),
+    Anchor(TIANSHOU.key, "InvertedPendulum-v2", 1000.0, 0.0),
+    Anchor(TIANSHOU.key, "InvertedDoublePendulum-v2", 9231.3, 270.4),
     # rlexp's defaults, docs/results.md's table: IQM [95% CI] of the train and the eval return
     Anchor(DEFAULTS_TRAIN.key, "Hopper-v5", 2504, NAN, (2401, 2629)),
     Anchor(DEFAULTS_TRAIN.key, "Walker2d-v5", 3555, NAN, (2302, 3978)),
