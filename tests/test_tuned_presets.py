@@ -2,7 +2,7 @@
 conf/rl_zoo/<env>.yaml, ``+sweep=rl_zoo_1m``), where every task composes to the values of the
 ``hyperparams/ppo.yml`` entry it cites (literals copied from that file here, not read from the
 presets), and the tuned ones (``+experiment=tuned``, conf/tuned/<env>.yaml, ``+sweep=tuned_1m``),
-the best measured per task: rl-zoo's values, rlexp's defaults (Hopper, Walker2d) or Ant's own
+the best measured per task: rl-zoo's values, rlexp's defaults (Hopper) or Ant's own
 (literals below). The values reach the built objects, an env without a preset is one line and exit
 2, and each suite expands to 9 tasks x 5 seeds into one fixed sweep dir. docs/results.md, "Tuned
 presets"."""
@@ -113,7 +113,7 @@ ZOO = {
 
 
 #: rlexp's defaults (conf/algorithm/ppo.yaml, conf/policy/mlp.yaml, conf/trainer/default.yaml) in
-#: the keys of ``ZOO``, with the learning rate annealed: the tuned preset of Hopper and Walker2d.
+#: the keys of ``ZOO``, with the learning rate annealed: the tuned preset of Hopper.
 DEFAULTS = {
     "num_envs": 1, "frames_per_batch": 2048, "mini_batch_size": 64, "num_epochs": 10,
     "gamma": 0.99, "lmbda": 0.95, "lr": 3e-4, "clip_epsilon": 0.2,
@@ -129,12 +129,11 @@ ANT = {**DEFAULTS, "init_log_std": ANT_LOG_STD}
 TUNED = {
     **ZOO,
     "hopper": DEFAULTS,
-    "walker2d": DEFAULTS,
     "ant": ANT,
 }
 #: The tasks whose tuned preset is rl-zoo's values unchanged (conf/tuned/<env>.yaml includes
 #: conf/rl_zoo/<env>.yaml).
-AS_ZOO = [e for e in MUJOCO if e not in ("hopper", "walker2d", "ant")]
+AS_ZOO = [e for e in MUJOCO if e not in ("hopper", "ant")]
 
 
 def tuned(env: str, *extra: str) -> RootConfig:
@@ -201,7 +200,7 @@ def test_each_task_composes_to_its_tuned_values(env):
     assert config.algorithm.anneal_lr is (env not in AS_ZOO)
     if env in AS_ZOO:  # the same run as +experiment=rl_zoo, key for key
         assert to_dict(config) == to_dict(rl_zoo(env))
-    if env in ("hopper", "walker2d"):  # the same run as the defaults, key for key
+    if env == "hopper":  # the same run as the defaults, key for key
         assert to_dict(config) == to_dict(to_root_config(compose([f"env={env}"])))
     expected_kwargs = {"include_cfrc_ext_in_observation": False} if env == "ant" else {}
     assert config.env.kwargs == expected_kwargs
