@@ -28,17 +28,17 @@ import tempfile
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-TASKS = [
-    "half_cheetah",
-    "hopper",
-    "walker2d",
-    "ant",
-    "humanoid",
-    "swimmer",
-    "reacher",
-    "inverted_pendulum",
-    "inverted_double_pendulum",
-]
+
+
+def suite_tasks() -> list[str]:
+    """The tuned suite's tasks, as ``conf/sweep/tuned_1m.yaml`` sweeps them."""
+    from omegaconf import OmegaConf
+
+    params = OmegaConf.load(REPO / "conf/sweep/tuned_1m.yaml").hydra.sweeper.params
+    return str(params.env).split(",")
+
+
+TASKS = suite_tasks()
 
 
 def seconds_per_million(task: str, tuned: bool, steps: int, root: Path) -> float:
