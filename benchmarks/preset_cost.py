@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -58,7 +57,7 @@ def seconds_per_million(task: str, tuned: bool, steps: int, root: Path) -> float
         "algorithm.compile=false",
         f"hydra.run.dir={run_dir}",
     ]
-    subprocess.run(args, cwd=root, check=True, capture_output=True, env={**os.environ})
+    subprocess.run(args, cwd=root, check=True, capture_output=True)
     rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     rows = [r for r in rows if "time" in r and "loss/policy" in r]  # the training rows
     first, last = rows[0], rows[-1]

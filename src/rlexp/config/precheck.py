@@ -332,12 +332,12 @@ def check_tuned_sweep(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
     if not groups:
         return
     plan = _sweep_plan(cfg, overrides, loader)
-    for group in groups:
-        presets = set(loader.get_group_options(group))
-        for job in plan.jobs or []:
-            pairs = (o.lstrip("+").split("=", 1) for o in job.overrides or () if "=" in o)
-            env = dict(pairs).get("env")
-            if env is not None and env not in presets:
+    presets = {g: set(loader.get_group_options(g)) for g in groups}
+    for job in plan.jobs or []:
+        pairs = (o.lstrip("+").split("=", 1) for o in job.overrides or () if "=" in o)
+        env = dict(pairs).get("env")
+        for group in groups:
+            if env is not None and env not in presets[group]:
                 raise ConfigError(
                     f"job {job.num} ({job.label}): {no_tuned_preset(env, loader, group)}"
                 )
