@@ -210,12 +210,16 @@ def test_ants_preset_builds_the_v4_observation_without_contact_forces(tmp_path):
     """Ant-v5 observes 105 numbers by default (27 positions and velocities, 78 contact forces);
     the tuned preset observes the 27, as Ant-v4 does by default and rl-zoo's Ant-v3 row did."""
     built = _built(tuned("ant", "env.num_eval_envs=1", "trainer.eval_every=0"), tmp_path)
-    assert built.env.observation_spec["observation"].shape[-1] == 27
-    assert torch.equal(built.policy.actor_net.log_std.detach(), torch.full((8,), ANT_LOG_STD))
-    built.env.close()
+    try:
+        assert built.env.observation_spec["observation"].shape[-1] == 27
+        assert torch.equal(built.policy.actor_net.log_std.detach(), torch.full((8,), ANT_LOG_STD))
+    finally:
+        built.env.close()
     plain = _built(rl_zoo("ant", "env.num_eval_envs=1", "trainer.eval_every=0"), tmp_path / "z")
-    assert plain.env.observation_spec["observation"].shape[-1] == 105
-    plain.env.close()
+    try:
+        assert plain.env.observation_spec["observation"].shape[-1] == 105
+    finally:
+        plain.env.close()
 
 
 def test_the_env_may_come_before_or_after_the_preset_and_overrides_win():
