@@ -387,11 +387,17 @@ def _check_gl() -> None:
 
 
 def _pbt_export(args: argparse.Namespace) -> None:
-    """``rlexp pbt export``: a member's schedule as a hooks config; one line and exit 2 if none."""
+    """``rlexp pbt export``: a member's schedule as a hooks config; one line and exit 2 if none, or
+    if its files cannot give one ``train.py`` accepts (nothing written)."""
     from rlexp.pbt.lineage import best_member, export_schedule, read_population
 
     sweep = Path(args.sweep_dir)
-    members = read_population(sweep) if sweep.is_dir() else []
+    skipped: dict[str, str] = {}
+    members = read_population(sweep, skipped=skipped) if sweep.is_dir() else []
+    if args.member is not None and args.member in skipped:
+        print(f"rlexp pbt export: member {args.member} in {sweep} cannot be exported: "
+              f"{skipped[args.member]}", file=sys.stderr)  # fmt: skip
+        sys.exit(2)
     chosen = (
         best_member(members)
         if args.member is None
@@ -402,7 +408,11 @@ def _pbt_export(args: argparse.Namespace) -> None:
         print(f"rlexp pbt export: no member {args.member or '(best)'} in {sweep} (members with "
               f"pbt/lineage.jsonl: {names})", file=sys.stderr)  # fmt: skip
         sys.exit(2)
-    text = export_schedule(chosen)
+    try:
+        text = export_schedule(chosen)
+    except ValueError as exc:
+        print(f"rlexp pbt export: {exc}", file=sys.stderr)
+        sys.exit(2)
     if args.output is None:
         print(text, end="")
         return

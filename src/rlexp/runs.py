@@ -249,7 +249,12 @@ def read_run(
     if (run_dir / "pbt" / "lineage.jsonl").is_file():  # a PBT member: what its lineage last set
         from rlexp.pbt.lineage import read_member
 
-        run.hyperparameters = read_member(run_dir, metric).current()
+        try:
+            member = read_member(run_dir, metric)
+            run.hyperparameters = member.current()
+            problems += member.problems
+        except safe_read.Unreadable as exc:  # one bad value: this run's hyperparameters left out
+            problems.append(str(exc))
     _wall(run, status, beat, parse_time(run.start), now)
     if shown == "died":
         from rlexp.launch.relaunch import resume_command as command  # cwd, entry, ranks, quoting

@@ -242,7 +242,7 @@ def check_pbt(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
 
     from omegaconf import OmegaConf
 
-    from rlexp.pbt.config import PBTConfig, check_pbt_sweep, pbt_hooks
+    from rlexp.pbt.config import PBTConfig, check_pbt_subdir, check_pbt_sweep, pbt_hooks
 
     hooks = OmegaConf.to_container(cfg.hooks, resolve=True) if "hooks" in cfg else {}
     if not pbt_hooks(hooks):
@@ -259,6 +259,9 @@ def check_pbt(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
             PBTConfig.from_params(params, f"hooks.{name}")
             _check_pbt_names(params, f"hooks.{name}", cfg.algorithm)
         check_pbt_sweep(launcher, len(plan.jobs) if plan.jobs is not None else None, hooks)
+        sweep = OmegaConf.select(cfg, "hydra.sweep")
+        raw = OmegaConf.to_container(sweep, resolve=False) if sweep is not None else {}
+        check_pbt_subdir(raw.get("subdir") if isinstance(raw, dict) else None, hooks)
     except (ValueError, TypeError) as exc:
         raise ConfigError(str(exc)) from None
 

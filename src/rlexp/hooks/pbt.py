@@ -38,6 +38,8 @@ class PopulationBasedTraining:
         self.last_ready = 0  # env step of the last ready point handled
         self.score: float | None = None  # the latest value of the score (checkpointed with it)
         self.lineage: list[dict[str, Any]] = []  # start, exploit records (pbt/lineage.jsonl)
+        self._names: list[str] | None = None  # the members' dir names (the sweep's jobs)
+        self._named: set[str] = set()  # strays and damaged files already warned about
 
     @staticmethod
     def check_params(params: dict[str, Any], where: str) -> None:
@@ -98,10 +100,11 @@ class PopulationBasedTraining:
         me = pop.Ready(member, step, generation, score, pop.ready_name(step),
                        dict(state.hyperparameters), time.time())  # fmt: skip
         pop.publish(run_dir, checkpoint, me, cfg.keep_ready)
+        names = self._members(run_dir)
         if cfg.mode == "sync":
             t0 = time.monotonic()
             others, dropped = pop.wait_for_generation(
-                run_dir, generation, cfg.population_size, cfg.sync_timeout_s
+                run_dir, names, generation, cfg.sync_timeout_s
             )
             if dropped:
                 log.warning(
@@ -111,7 +114,8 @@ class PopulationBasedTraining:
                     cfg.sync_timeout_s, len(others) + 1, cfg.population_size,
                 )  # fmt: skip
         else:
-            others = pop.population(run_dir, None)
+            others = pop.population(run_dir, names, None)
+        self._warn_damaged(run_dir)
         rng = pop.decision_rng(cfg.seed, member, generation)
         chosen = pop.choose_source(me, others, cfg, rng)
         if chosen is None:
@@ -122,7 +126,7 @@ class PopulationBasedTraining:
                 len(others) + 1,
             )
             return
-        taken = self._take(run_dir, *chosen)
+        taken = self._take(run_dir, *chosen, checkpoint)
         if taken is None:
             return
         incoming, source, source_step, copied = taken
@@ -144,12 +148,36 @@ class PopulationBasedTraining:
             ", ".join(f"{k} {own[k]:.4g} -> {new[k]:.4g} ({how[k]})" for k in new),
         )  # fmt: skip
 
+    def _members(self, run_dir: Path) -> list[str]:
+        """The population's dir names (read once), and one warning naming any new stray."""
+        if self._names is None:
+            self._names = pop.job_names(run_dir.parent, self.cfg.population_size)
+            if run_dir.name not in self._names:
+                log.warning("[pbt] this run's dir %s is not one of the sweep's jobs %s",
+                            run_dir.name, ", ".join(self._names))  # fmt: skip
+        _, strays = pop.scan(run_dir.parent, self._names)
+        pop.name_strays(strays, self._named)
+        return self._names
+
+    def _warn_damaged(self, run_dir: Path) -> None:
+        """One warning per sibling whose ready.jsonl has lines left out (damaged, wrong types)."""
+        for name in self._names or []:
+            if name == run_dir.name or f"ready:{name}" in self._named:
+                continue
+            problems: list[str] = []
+            pop.read_ready(run_dir.parent / name, problems)
+            if problems:
+                self._named.add(f"ready:{name}")
+                log.warning("[pbt] member %s: %s (left out)", name, "; ".join(problems[:3]))
+
     def _take(
-        self, run_dir: Path, source_dir: Path, source: pop.Ready
+        self, run_dir: Path, source_dir: Path, source: pop.Ready, own: Path
     ) -> tuple[Path, pop.Ready, int, dict[str, float]] | None:
-        """The source's snapshot, linked into this run's ``pbt/incoming.pt`` and checked; None
-        (logged) when it cannot be had."""
+        """The source's snapshot, linked into this run's ``pbt/incoming.pt`` and checked against
+        this member's own checkpoint ``own`` (same env, algorithm and policy tensors); None
+        (logged) when it cannot be had or does not fit: skipped like an unreadable one."""
         from rlexp.checkpoint import load_checkpoint_file
+        from rlexp.pbt.exploit import misfit
 
         incoming = run_dir / pop.PBT_DIR / pop.INCOMING
         if not pop.take(source_dir, source, incoming):
@@ -170,6 +198,11 @@ class PopulationBasedTraining:
                         "no exploit", source.member, step, source.step)  # fmt: skip
             return None
         hps = ckpt["algorithm"].get("hyperparameters") or {}
+        why = pop.hyperparameter_values(hps) or misfit(ckpt, own)
+        if why:
+            log.warning("[pbt] member %s's snapshot does not fit this member (%s); no exploit",
+                        source.member, why)  # fmt: skip
+            return None
         return incoming, source, step, {str(k): float(v) for k, v in hps.items()}
 
     # -- lineage and state ---------------------------------------------------------------------------

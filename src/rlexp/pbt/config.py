@@ -162,6 +162,25 @@ def check_pbt_sweep(launcher: dict[str, Any], n_jobs: int | None, hooks: Any) ->
         )
 
 
+#: How a PBT sweep names its job dirs: by job number (``rlexp.pbt.population.job_names``).
+JOB_NUM = "${hydra.job.num}"
+
+
+def check_pbt_subdir(subdir: Any, hooks: Any) -> None:
+    """A PBT population's members are known by their dirs: ``hydra.sweep.subdir`` must name each
+    job dir after its job number alone (``${hydra.job.num}``, or with a fixed prefix/suffix), one
+    level below the sweep dir; ValueError (one line) otherwise."""
+    if not pbt_hooks(hooks) or subdir is None:
+        return
+    text = str(subdir)
+    if text.count(JOB_NUM) != 1 or "/" in text or "${" in text.replace(JOB_NUM, ""):
+        raise ValueError(
+            f"hydra.sweep.subdir={text}: a PBT population ({SWEEP_FILE}) knows its members by "
+            f"their job dirs, named by job number: leave hydra.sweep.subdir at {JOB_NUM} (a fixed "
+            f"prefix such as member_{JOB_NUM} is fine)"
+        )
+
+
 def log_uniform(rng: Any, low: float, high: float) -> float:
     """A draw between ``low`` and ``high``, uniform in log space."""
     return float(math.exp(rng.uniform(math.log(low), math.log(high))))

@@ -5,13 +5,25 @@ without a population (``python train.py hooks=<name>``: the ``piecewise`` hook).
 
 from __future__ import annotations
 
+import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rlexp import safe_read
-from rlexp.pbt.population import PBT_DIR, read_lineage, read_ready
+from rlexp.pbt.population import (
+    LINEAGE,
+    PBT_DIR,
+    job_names,
+    name_strays,
+    out_of_range,
+    read_lineage,
+    read_ready,
+    scan,
+)
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -23,16 +35,21 @@ class Member:
     lineage: list[dict[str, Any]]
     final: float | None  # its final eval (status.json) or, without one, its last ready score
     step: int  # the last step it reported
+    problems: list[str] = field(default_factory=list)  # lines of its ready.jsonl left out: why
 
     def schedule(self) -> dict[str, list[tuple[int, float]]]:
-        """Each tuned hyperparameter as (step, value from that step on), from its lineage."""
+        """Each tuned hyperparameter as (step, value from that step on), from its lineage (checked
+        on reading: steps never go back); two records at one step: the later one's value."""
         out: dict[str, list[tuple[int, float]]] = {}
         for rec in self.lineage:
             values = rec.get("hyperparameters") if rec.get("event") == "start" else rec.get("new")
             for name, value in (values or {}).items():
                 points = out.setdefault(str(name), [])
+                step = int(rec["step"])
+                if points and points[-1][0] == step:
+                    points.pop()
                 if not points or points[-1][1] != float(value):
-                    points.append((int(rec["step"]), float(value)))
+                    points.append((step, float(value)))
         return out
 
     def current(self) -> dict[str, float]:
@@ -41,29 +58,80 @@ class Member:
 
 
 def is_member(run_dir: Path) -> bool:
-    return (run_dir / PBT_DIR / "lineage.jsonl").is_file()
+    return (run_dir / PBT_DIR / LINEAGE).is_file()
 
 
 def read_member(run_dir: Path, metric: str = "eval/episode_return") -> Member:
-    lineage = read_lineage(run_dir)
-    ready = read_ready(run_dir)
+    """A member's files, read bounded and checked; Unreadable (the file, the line and the value)
+    when its lineage cannot be used; lines of its ready.jsonl that fail are left out
+    (``Member.problems``)."""
+    try:
+        lineage = read_lineage(run_dir)
+    except safe_read.Unreadable as exc:
+        raise safe_read.Unreadable(f"{PBT_DIR}/{LINEAGE} {exc}") from None
+    problems: list[str] = []
+    ready = read_ready(run_dir, problems)
     final = None
     try:
-        status = safe_read.load_json(run_dir / "status.json") or {}
+        status = safe_read.read_checked(run_dir / "status.json", safe_read.STATUS_FIELDS)
         value = (status.get("final_eval") or {}).get(metric)
         final = float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
-    except (safe_read.Unreadable, AttributeError):
+    except safe_read.Unreadable:  # named by whoever lists the run (rlexp runs, report)
         status = {}
     if final is None and ready and ready[-1].score is not None:
         final = ready[-1].score
     step = max([int(status.get("global_step") or 0)] + [r.step for r in ready])
-    return Member(run_dir.name, run_dir, lineage, final, step)
+    return Member(run_dir.name, run_dir, lineage, final, step, problems)
 
 
-def read_population(sweep_dir: Path, metric: str = "eval/episode_return") -> list[Member]:
-    """The sweep's PBT members (job dirs with a lineage), by name."""
-    dirs = sorted(p for p in Path(sweep_dir).iterdir() if p.is_dir() and is_member(p))
-    return [read_member(d, metric) for d in dirs]
+def population_size_of(sweep_dir: Path) -> int | None:
+    """The PBT population's size as the sweep's ``multirun.yaml`` sets it (None: not known)."""
+    from rlexp.pbt.config import population_size
+
+    try:
+        data = safe_read.load_yaml(Path(sweep_dir) / "multirun.yaml")
+        size = population_size(data.get("hooks") if isinstance(data, dict) else None)
+    except (safe_read.Unreadable, AttributeError, TypeError, ValueError):
+        return None
+    return size if size is not None and 2 <= size <= 100_000 else None
+
+
+def read_population(
+    sweep_dir: Path,
+    metric: str = "eval/episode_return",
+    skipped: dict[str, str] | None = None,
+    quiet: bool = False,
+) -> list[Member]:
+    """The sweep's PBT members, by name: its own jobs (``multirun.yaml``; without one, the job
+    dirs with a lineage), never a stray dir or symlink (named once). A member whose files cannot
+    be used is left out with one warning (none with ``quiet``: read a second time), and why goes
+    into ``skipped``."""
+    warn = log.debug if quiet else log.warning
+    sweep_dir = Path(sweep_dir)
+    size = population_size_of(sweep_dir)
+    if size is not None:
+        dirs, strays = scan(sweep_dir, job_names(sweep_dir, size))
+    else:  # not known: every real job dir with a lineage
+        dirs, strays = scan(sweep_dir, [])
+        dirs = {name: sweep_dir / name for name, why in strays.items() if "symlink" not in why}
+        strays = {name: why for name, why in strays.items() if "symlink" in why}
+    strays = {k: v for k, v in strays.items() if is_member(sweep_dir / k)}
+    name_strays(strays, set(strays) if quiet else set())
+    members = []
+    for name, path in dirs.items():
+        if not is_member(path):
+            continue
+        try:
+            member = read_member(path, metric)
+        except safe_read.Unreadable as exc:
+            warn("[pbt] member %s left out: %s", name, exc)
+            if skipped is not None:
+                skipped[name] = str(exc)
+            continue
+        if member.problems:
+            warn("[pbt] member %s: %s (left out)", name, "; ".join(member.problems[:3]))
+        members.append(member)
+    return members
 
 
 def best_member(members: list[Member]) -> Member | None:
@@ -124,7 +192,7 @@ def pbt_markdown(sweep_dir: Path, metric: str = "eval/episode_return") -> list[s
 def plot_schedules(sweep_dir: Path, path: Path, metric: str = "eval/episode_return") -> bool:
     """``pbt_schedules.png``: each tuned hyperparameter over env steps, one line per member, the
     best one bold; False (nothing written) for a sweep without PBT members."""
-    members = read_population(sweep_dir, metric)
+    members = read_population(sweep_dir, metric, quiet=True)  # pbt_markdown warned
     if not members:
         return False
     import matplotlib
@@ -161,15 +229,50 @@ def plot_schedules(sweep_dir: Path, path: Path, metric: str = "eval/episode_retu
 def export_schedule(member: Member, prefix: str = "pbt") -> str:
     """A ``conf/hooks/<name>.yaml`` that replays ``member``'s schedule: one ``piecewise`` hook per
     tuned hyperparameter (values set before each update, by env step). The weights the member
-    copied are not part of it: the schedule alone, on one run."""
+    copied are not part of it: the schedule alone, on one run. ValueError (one line) for a
+    schedule ``train.py`` would refuse: a name that is not a mutable hyperparameter of the member's
+    algorithm, a value out of its field's range, no point at all."""
+    mutable = _mutable_of(member.path)
+    schedule = member.schedule()
+    where = f"member {member.name}'s {PBT_DIR}/{LINEAGE}"
+    if not schedule:
+        raise ValueError(f"{where} holds no hyperparameter values: nothing to export")
+    for name, points in schedule.items():
+        if name not in mutable:
+            raise ValueError(f"{where} sets {name!r}, not a mutable hyperparameter (one of "
+                             f"{sorted(mutable)}); nothing written")  # fmt: skip
+        bad = next((why for _, v in points if (why := out_of_range(name, v))), "")
+        if bad or any(not math.isfinite(v) for _, v in points):
+            raise ValueError(f"{where}: {bad or name + ' is not finite'}; nothing written")
     lines = [
         f"# The hyperparameter schedule of PBT member {member.name} ({member.path}), exported by",
         "# `rlexp pbt export`: python train.py hooks=<this file's name> (docs/pbt.md). It replays",
         "# the values over env steps on one run; the weights the member copied are not replayed.",
         "# The run's other settings (algorithm.anneal_lr, ...) should be the population's.",
     ]
-    for name, points in member.schedule().items():
-        pts = ", ".join(f"[{s}, {v!r}]" for s, v in points)
+    for name, points in schedule.items():
+        pts = ", ".join(f"[{s}, {_yaml_float(v)}]" for s, v in points)
         lines += [f"{prefix}_{name}:", "  func: piecewise", "  params:", f"    name: {name}",
                   f"    points: [{pts}]"]  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def _mutable_of(run_dir: Path) -> set[str]:
+    """The mutable hyperparameters of the member's algorithm (its ``config.yaml``); every
+    algorithm's where that cannot be read."""
+    from rlexp.config.rules import MUTABLE_HYPERPARAMETERS
+
+    try:
+        name = safe_read.load_yaml(run_dir / "config.yaml")["algorithm"]["name"]
+        return set(MUTABLE_HYPERPARAMETERS[name])
+    except (safe_read.Unreadable, KeyError, TypeError):
+        return {n for names in MUTABLE_HYPERPARAMETERS.values() for n in names}
+
+
+def _yaml_float(v: float) -> str:
+    """``v`` as a float both YAML 1.1 (PyYAML) and OmegaConf read back: 1e-05 -> 1.0e-05."""
+    text = repr(float(v))
+    if "e" in text and "." not in text.split("e")[0]:
+        mantissa, exp = text.split("e")
+        text = f"{mantissa}.0e{exp if exp[0] in '+-' else '+' + exp}"
+    return text
