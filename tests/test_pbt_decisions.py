@@ -228,3 +228,26 @@ def test_the_decision_generator_is_seeded_by_seed_member_and_generation():
     }
     assert len({tuple(v) for v in draws.values()}) == 4
     assert decision_rng(0, "0", 2).random(4).tolist() == draws[(0, "0", 2)]
+
+
+def test_explore_perturbs_the_copied_values_not_the_members_own(tmp_path, snapshots):
+    """The source's checkpoint holds PPO's lr 3e-4 and clip 0.2; the member's own are 1e-3 and 0.1:
+    x0.5 of the copied values is lr 1.5e-4, clip 0.1 (of its own: 5e-4 and 0.05)."""
+    from rlexp.pbt.population import Ready, publish, ready_name
+
+    me, other = tmp_path / "sweep" / "0", tmp_path / "sweep" / "1"
+    own_hps = {"lr": 1e-3, "clip_epsilon": 0.1, "entropy_coeff": 0.005}
+    hook = _hook(ready_every=256, perturb_factors=[0.5], resample_probability=0.0)
+    _at(hook, me, "train_start", 0, 4096, hps=own_hps)
+    publish(other, snapshots[512], Ready("1", 512, 2, 9.0, ready_name(512), HPS), keep=2)
+    ckpt = me / "checkpoints" / "m_step_000000512.pt"
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_bytes(snapshots[512].read_bytes())
+    _at(hook, me, "log", 512, 4096, hps=own_hps)
+    decisions = _at(hook, me, "checkpoint", 512, 4096, checkpoint=ckpt, hps=own_hps)
+    assert decisions.load is not None
+    assert decisions.set == pytest.approx({"lr": 1.5e-4, "clip_epsilon": 0.1})
+    [rec] = [json.loads(x) for x in (me / "pbt" / "lineage.jsonl").read_text().splitlines()][1:]
+    assert rec["old"] == {"lr": 1e-3, "clip_epsilon": 0.1}
+    assert rec["copied"] == pytest.approx({"lr": 3e-4, "clip_epsilon": 0.2})
+    assert rec["explore"] == {"lr": "x0.5", "clip_epsilon": "x0.5"}
