@@ -263,6 +263,9 @@ def test_an_export_is_one_train_py_accepts_or_nothing(tmp_path):
     for name, hook in exported.items():
         check_hook(hook["func"], hook["params"], f"hooks.{name}")  # what train.py checks
     assert exported["pbt_clip_epsilon"]["params"]["points"] == [[0, 0.2]]
+    # A dir name with a line break stays inside the file's comment
+    weird = read_member(_member(sweep, "x\nevil: 1", GOOD, 1.0))
+    assert set(yaml.safe_load(export_schedule(weird))) == set(exported)
     # A name the member's algorithm (ppo) cannot set: refused, one line naming it
     odd = read_member(_member(sweep, "1", [START, _exploit(1024, {**HPS, "kl_coeff": 0.1})], 1.0))
     with pytest.raises(ValueError, match=r"sets 'kl_coeff', not a mutable hyperparameter"):

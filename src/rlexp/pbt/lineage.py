@@ -245,7 +245,8 @@ def export_schedule(member: Member, prefix: str = "pbt") -> str:
         if bad or any(not math.isfinite(v) for _, v in points):
             raise ValueError(f"{where}: {bad or name + ' is not finite'}; nothing written")
     lines = [
-        f"# The hyperparameter schedule of PBT member {member.name} ({member.path}), exported by",
+        f"# The hyperparameter schedule of PBT member {_one_line(member.name)} "
+        f"({_one_line(str(member.path))}), exported by",
         "# `rlexp pbt export`: python train.py hooks=<this file's name> (docs/pbt.md). It replays",
         "# the values over env steps on one run; the weights the member copied are not replayed.",
         "# The run's other settings (algorithm.anneal_lr, ...) should be the population's.",
@@ -255,6 +256,11 @@ def export_schedule(member: Member, prefix: str = "pbt") -> str:
         lines += [f"{prefix}_{name}:", "  func: piecewise", "  params:", f"    name: {name}",
                   f"    points: [{pts}]"]  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def _one_line(text: str) -> str:
+    """``text`` for a YAML comment: a dir name with a line break must not start a YAML line."""
+    return "".join(c if c.isprintable() else "?" for c in text)
 
 
 def _mutable_of(run_dir: Path) -> set[str]:
