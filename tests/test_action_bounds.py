@@ -10,7 +10,7 @@ import logging
 import numpy as np
 import pytest
 import torch
-import toy_envs  # noqa: F401  (registers toy_envs:Throttle-v0)
+import toy_envs  # registers toy_envs:Throttle-v0
 
 from conftest import compose
 from rlexp.config.schema import EnvConfig
@@ -74,3 +74,26 @@ def test_rescaling_is_refused_where_it_cannot_apply():
     with pytest.raises(ConfigError) as err:
         to_root_config(compose(["env=cart_pole", "env.rescale_actions=true"]))
     assert str(err.value).startswith("env.rescale_actions=true maps") and "native" in str(err.value)
+
+
+class _Pump(toy_envs.Throttle):
+    action_space = toy_envs.spaces.Box(0.0, 5.0, (2,), np.float32)
+
+
+def test_the_docs_warning_line_is_what_users_get(caplog, monkeypatch):
+    from conftest import REPO
+
+    documented = next(
+        line
+        for line in (REPO / "docs" / "envs.md").read_text().splitlines()
+        if line.startswith("env.name='my_pkg.envs:Pump-v0': the action bounds")
+    )
+    import gymnasium as gym
+
+    if "Pump-v0" not in gym.registry:
+        gym.register("Pump-v0", entry_point=_Pump, max_episode_steps=5)
+    monkeypatch.setattr(adapter, "_BOUNDS_WARNED", set())
+    with caplog.at_level(logging.WARNING, logger="rlexp.envs.adapter"):
+        make_env(EnvConfig(name="Pump-v0"), 1, seed=0).close()
+    [line] = [r.getMessage() for r in caplog.records]
+    assert line == documented.replace("my_pkg.envs:Pump-v0", "Pump-v0")
