@@ -49,23 +49,34 @@ def test_without_rescaling_the_env_gets_the_policy_s_action_clipped():
         env.close()
 
 
+def _warnings(caplog, *configs: EnvConfig) -> list[str]:
+    """What the run's builder logs for envs of ``configs`` (``warn_action_bounds``, as build())."""
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="rlexp.envs.adapter"):
+        for cfg in configs:
+            env = make_env(cfg, 1, seed=0)
+            env.warn_action_bounds()
+            env.close()
+    return [r.getMessage() for r in caplog.records]
+
+
 def test_bounds_other_than_unit_are_warned_about_once(caplog, monkeypatch):
     monkeypatch.setattr(adapter, "_BOUNDS_WARNED", set())
-    with caplog.at_level(logging.WARNING, logger="rlexp.envs.adapter"):
-        for _ in range(2):
-            make_env(EnvConfig(name=THROTTLE), 1, seed=0).close()
-        make_env(EnvConfig(name="Hopper-v5"), 1, seed=0).close()  # [-1, 1]: nothing to say
-        make_env(EnvConfig(name=THROTTLE, rescale_actions=True), 1, seed=0).close()
-    lines = [r.getMessage() for r in caplog.records]
+    lines = _warnings(
+        caplog,
+        EnvConfig(name=THROTTLE),
+        EnvConfig(name=THROTTLE),  # once per env id and process
+        EnvConfig(name="Hopper-v5"),  # [-1, 1]: nothing to say
+        EnvConfig(name=THROTTLE, rescale_actions=True),
+    )
     assert len(lines) == 1, lines
     assert "env.name='toy_envs:Throttle-v0'" in lines[0]
     assert "low=[0.0, -3.0] high=[5.0, 1.0]" in lines[0] and "not symmetric" in lines[0]
     assert "env.rescale_actions=true" in lines[0]
-    caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="rlexp.envs.adapter"):
-        make_env(EnvConfig(name="Pendulum-v1"), 1, seed=0).close()  # symmetric, not unit
-    [line] = [r.getMessage() for r in caplog.records]
+    [line] = _warnings(caplog, EnvConfig(name="Pendulum-v1"))  # symmetric, not unit
     assert "[-2, 2] are not [-1, 1]" in line
+    monkeypatch.setattr(adapter, "_BOUNDS_WARNED", set())
+    assert _warnings(caplog, EnvConfig(name=THROTTLE, rescale_actions=True)) == []
 
 
 def test_rescaling_is_refused_where_it_cannot_apply():
@@ -93,7 +104,5 @@ def test_the_docs_warning_line_is_what_users_get(caplog, monkeypatch):
     if "Pump-v0" not in gym.registry:
         gym.register("Pump-v0", entry_point=_Pump, max_episode_steps=5)
     monkeypatch.setattr(adapter, "_BOUNDS_WARNED", set())
-    with caplog.at_level(logging.WARNING, logger="rlexp.envs.adapter"):
-        make_env(EnvConfig(name="Pump-v0"), 1, seed=0).close()
-    [line] = [r.getMessage() for r in caplog.records]
+    [line] = _warnings(caplog, EnvConfig(name="Pump-v0"))
     assert line == documented.replace("my_pkg.envs:Pump-v0", "Pump-v0")

@@ -112,6 +112,8 @@ def test_the_docs_env_gym_commands_run(tmp_path):
         assert "its other settings" not in log
         config = (run / "config.yaml").read_text()
         assert "num_envs: 4" in config and "num_eval_envs: 5" in config
+        if "Pendulum-v1" in command:  # Box(-2, 2): warned once, in the run's log
+            assert log.count("the action bounds [-2, 2] are not [-1, 1]") == 1, log
 
 
 @pytest.mark.slow

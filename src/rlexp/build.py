@@ -136,6 +136,8 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
             t.eval_episodes,
             e.num_eval_envs,
         )
+    if hasattr(env, "warn_action_bounds"):  # a Box not in [-1, 1]: once, in the run's log
+        env.warn_action_bounds()
     obs_dim = env.observation_spec["observation"].shape[-1]
     log.info(
         "env %s x%d: obs %d, action %d%s",
