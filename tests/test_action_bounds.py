@@ -106,3 +106,23 @@ def test_the_docs_warning_line_is_what_users_get(caplog, monkeypatch):
     monkeypatch.setattr(adapter, "_BOUNDS_WARNED", set())
     [line] = _warnings(caplog, EnvConfig(name="Pump-v0"))
     assert line == documented.replace("my_pkg.envs:Pump-v0", "Pump-v0")
+
+
+@pytest.mark.parametrize("backend", ["gymnasium_async", "envpool"])
+def test_the_vector_backends_rescale_as_the_env_would_by_hand(backend):
+    """Pendulum-v1's torque in [-2, 2]: a rescaled env given ``a`` steps as the plain env of the
+    same backend given ``2 * a`` (clipped to [-1, 1] first), observation for observation."""
+    if backend == "envpool":
+        pytest.importorskip("envpool")
+    actions = torch.tensor([[0.5], [-1.0], [3.0]])  # the last clips to 1 -> torque 2
+    by_hand = torch.tensor([[1.0], [-2.0], [2.0]])
+    seen = []
+    for rescale, given in ((True, actions), (False, by_hand)):
+        cfg = EnvConfig(name="Pendulum-v1", backend=backend, num_envs=3, rescale_actions=rescale)
+        env = make_env(cfg, 3, seed=4)
+        try:
+            env.reset()
+            seen.append(env.step_action(given)["observation"].clone())
+        finally:
+            env.close()
+    torch.testing.assert_close(seen[0], seen[1], rtol=0, atol=0)
