@@ -106,13 +106,20 @@ _BLOCKED_RUN = textwrap.dedent(
                     yield dist
     sys.meta_path[:] = [Lean if f is path_finder else f for f in sys.meta_path]
     assert Lean in sys.meta_path
-    sys.argv = [sys.argv[3], *sys.argv[4:]]
-    runpy.run_path(sys.argv[0], run_name="__main__")
+    if sys.argv[3] == "-m":  # python -m rlexp ...
+        sys.argv = [sys.argv[4], *sys.argv[5:]]
+        runpy.run_module(sys.argv[0], run_name="__main__", alter_sys=True)
+    else:
+        sys.argv = [sys.argv[3], *sys.argv[4:]]
+        runpy.run_path(sys.argv[0], run_name="__main__")
     """
 )
 
 
-def _lean_train(tmp_path: Path, args: list[str]) -> subprocess.CompletedProcess:
+def _lean_train(
+    tmp_path: Path, args: list[str], command: tuple[str, ...] | None = None
+) -> subprocess.CompletedProcess:
+    """``train.py ARGS`` (or ``command``) in a process that sees the core dependencies only."""
     dists, blocked = _extra_only()
     for module in ("wandb", "optuna", "matplotlib", "scipy", "onnx", "onnxruntime", "Box2D"):
         assert module in blocked, module  # the extras' packages are there to block
@@ -120,7 +127,8 @@ def _lean_train(tmp_path: Path, args: list[str]) -> subprocess.CompletedProcess:
     (tmp_path / "lean.py").write_text(_BLOCKED_RUN)
     return subprocess.run(
         [sys.executable, str(tmp_path / "lean.py"), ",".join(sorted(blocked)),
-         ",".join(sorted(dists)), str(REPO / "train.py"), *args, f"hydra.run.dir={tmp_path / 'run'}"],
+         ",".join(sorted(dists)),
+         *(command or (str(REPO / "train.py"), *args, f"hydra.run.dir={tmp_path / 'run'}"))],
         cwd=tmp_path, capture_output=True, text=True, timeout=300,
         env={**__import__("os").environ, "PYTHONPATH": str(REPO / "src")},
     )  # fmt: skip
@@ -132,6 +140,18 @@ def test_the_default_training_needs_only_the_core_dependencies(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (tmp_path / "run" / "tensorboard").is_dir()  # the default logger is core
+    # what a trained run is used for next, also core: eval, TorchScript export
+    for command in (("eval", "run", "--episodes", "1"), ("export", "run")):
+        proc = _lean_train(tmp_path, [], ("-m", "rlexp", *command))
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    # an mp4 of the evaluation needs the video extra: one line naming it
+    proc = _lean_train(tmp_path, [], ("-m", "rlexp", "eval", "run", "--episodes", "1", "--video"))
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert lines[0].startswith(
+        "rlexp eval: rlexp eval --video needs rlexp's optional 'video' extra (imageio_ffmpeg is not "
+        "installed): pip install "
+    ), lines
 
 
 def test_a_missing_box2d_extra_is_one_line_naming_it(tmp_path):
