@@ -38,6 +38,7 @@ def test_every_conf_file_composes_to_a_typed_config(group, option):
     # PPO needs a critic, which the actor-only policies have not).
     needs = {
         "algorithm=grpo": ["env.num_envs=4"],
+        "env=gym": ["env.name=Acrobot-v1"],  # any Gymnasium id: the user names it
         "policy=actor_only": ["algorithm=grpo", "env.num_envs=4"],
         "policy=actor_only_256": ["algorithm=grpo", "env.num_envs=4"],
     }
@@ -51,8 +52,9 @@ def test_every_env_builds_with_policy_and_ppo(option):
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import make_policy
 
+    named = ["env.name=Acrobot-v1"] if option == "gym" else []  # env=gym: the user names the id
     config = to_root_config(
-        compose([f"env={option}", "env.num_envs=2", "trainer.frames_per_batch=64"])
+        compose([f"env={option}", *named, "env.num_envs=2", "trainer.frames_per_batch=64"])
     )
     env = make_env(config.env, 2, seed=0)
     try:

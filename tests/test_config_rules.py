@@ -113,4 +113,5 @@ def test_render_mode_human_without_a_display_is_refused(monkeypatch):
 
 def test_the_defaults_pass():
     for env in sorted(p.stem for p in (Path(REPO) / "conf" / "env").glob("*.yaml")):
-        to_root_config(compose([f"env={env}"]))
+        named = ["env.name=Acrobot-v1"] if env == "gym" else []  # env=gym: the user names the id
+        to_root_config(compose([f"env={env}", *named]))

@@ -5,6 +5,7 @@ tests name them as ``env.name=toy_envs:<Id>`` (Gymnasium's ``module:EnvId`` synt
   ``get_state`` / ``set_state`` (exact resume), its own RNG draws at every reset and step.
 - ``NoStateWalk-v0``: Box observations, Discrete actions (``start=-1``), no state protocol.
 - ``BadState-v0``: a ``get_state`` with an object in it (refused at config check).
+- ``Throttle-v0``: Box actions in ``[0, 5] x [-3, 1]``, a Dict observation with a Discrete in it.
 - ``ImageObs-v0``, ``TextObs-v0``, ``TupleAction-v0``: spaces rlexp refuses.
 """
 
@@ -94,6 +95,50 @@ class BadState(NoStateWalk):
         self.x = state["x"]
 
 
+class Throttle(gym.Env):
+    """Box actions with bounds that are neither symmetric nor [-1, 1] (``[0, 5]`` and ``[-3, 1]``),
+    and a Dict observation of a Box, a Discrete (``start=1``) and a nested Dict: set the two
+    actuators to targets that depend on the observation. Every action the env received is kept in
+    ``received`` (tests read what reached the env)."""
+
+    observation_space = spaces.Dict(
+        {
+            "speed": spaces.Box(-2.0, 2.0, (2,), np.float32),
+            "gear": spaces.Discrete(3, start=1),
+            "sensors": spaces.Dict({"load": spaces.Box(0.0, 1.0, (1,), np.float32)}),
+        }
+    )
+    action_space = spaces.Box(
+        np.array([0.0, -3.0], np.float32), np.array([5.0, 1.0], np.float32), dtype=np.float32
+    )
+
+    def __init__(self) -> None:
+        self.received: list[np.ndarray] = []
+
+    def _obs(self):
+        return {
+            "speed": self.speed.astype(np.float32),
+            "gear": self.gear,
+            "sensors": {"load": np.array([self.load], np.float32)},
+        }
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.speed = self.np_random.uniform(-2, 2, 2)
+        self.gear = int(self.np_random.integers(1, 4))
+        self.load = float(self.np_random.uniform(0, 1))
+        return self._obs(), {}
+
+    def step(self, action):
+        action = np.asarray(action, dtype=np.float64)
+        self.received.append(action.copy())
+        target = np.array([1.5 * self.gear, -2.0 + 2.0 * self.load])
+        reward = -float(np.square(action - target).sum())
+        self.speed = np.clip(self.speed + 0.1 * (action - target), -2, 2)
+        self.load = float(self.np_random.uniform(0, 1))
+        return self._obs(), reward, False, False, {}
+
+
 class _Refused(gym.Env):
     action_space = spaces.Box(-1, 1, (1,), np.float32)
     observation_space = spaces.Box(-1, 1, (1,), np.float32)
@@ -122,6 +167,7 @@ for _name, _cls, _steps in (
     ("DictGoal-v0", DictGoal, 30),
     ("NoStateWalk-v0", NoStateWalk, 25),
     ("BadState-v0", BadState, 25),
+    ("Throttle-v0", Throttle, 20),
     ("ImageObs-v0", ImageObs, 10),
     ("TextObs-v0", TextObs, 10),
     ("TupleAction-v0", TupleAction, 10),

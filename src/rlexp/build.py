@@ -136,9 +136,16 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
             t.eval_episodes,
             e.num_eval_envs,
         )
+    if hasattr(env, "warn_action_bounds"):  # a Box not in [-1, 1]: once, in the run's log
+        env.warn_action_bounds()
     obs_dim = env.observation_spec["observation"].shape[-1]
     log.info(
-        "env %s x%d: obs %d, action %d", e.name, e.num_envs, obs_dim, env.action_spec.shape[-1]
+        "env %s x%d: obs %d, action %d%s",
+        e.name,
+        e.num_envs,
+        obs_dim,
+        env.action_spec.shape[-1],
+        env_section_note(e),
     )
     device = training_device(device, env, config)
     if getattr(config.algorithm, "overlap", False) and (dist.enabled or device != "cpu"):
@@ -165,4 +172,25 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
         events=EventManager(config.events.train, "events.train", seed=config.seed + 2),
         eval_events=EventManager(config.events.eval, "events.eval", seed=config.seed + 3),
         device=device,
+    )
+
+
+def env_section_note(e: Any) -> str:
+    """Where the env's other settings came from, when ``env.name`` was given on the command line
+    with an env option made for another task (``env.name=mymod:MyEnv-v0`` alone keeps the default
+    ``env=half_cheetah``'s copies, evaluation and normalisation): that option and ``env=gym``."""
+    from rlexp.rundir import HYDRA_JOB
+
+    hydra = HYDRA_JOB.get("hydra")
+    if hydra is None:
+        return ""  # not under Hydra (train() called from Python)
+    choice = hydra.runtime.choices.get("env")
+    named = any(str(o).lstrip("+~").startswith("env.name=") for o in hydra.overrides.task)
+    if choice in (None, "gym") or not named:
+        return ""
+    return (
+        f" (its other settings are env={choice}'s: num_envs={e.num_envs}, num_eval_envs="
+        f"{e.num_eval_envs}, normalize_observations={str(e.normalize_observations).lower()}, "
+        f"max_episode_steps={e.max_episode_steps}; env=gym env.name={e.name} has defaults for any "
+        "Gymnasium id)"
     )

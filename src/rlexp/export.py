@@ -59,7 +59,9 @@ class DeterministicActor(nn.Module):
     (``Discrete``: column 0; ``MultiDiscrete`` / ``MultiBinary``: reshape to the space's shape)."""
 
     # TorchScript: fixed branches
-    __constants__ = ["normalize", "clip", "clamp_actions", "categorical", "uniform", "k", "n"]
+    __constants__ = [
+        "normalize", "clip", "clamp_actions", "rescale", "categorical", "uniform", "k", "n"
+    ]  # fmt: skip
 
     def __init__(
         self,
@@ -68,6 +70,7 @@ class DeterministicActor(nn.Module):
         high: torch.Tensor,
         clamp_actions: bool,
         start: list[int] | None = None,
+        rescale: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> None:
         super().__init__()
         norm = policy.actor_net.normalizer
@@ -87,6 +90,11 @@ class DeterministicActor(nn.Module):
         self.uniform = len(set(nvec)) == 1
         self.k, self.n = len(nvec), nvec[0]
         self.register_buffer("action_start", torch.tensor(start or [0] * self.k, dtype=torch.int64))
+        # env.rescale_actions: [-1, 1] (the clamp's bounds) onto the env's (low, (high - low) / 2)
+        self.rescale = rescale is not None
+        low0, half = rescale if rescale is not None else (torch.zeros(1), torch.ones(1))
+        self.register_buffer("rescale_low", low0.detach().cpu().clone().float())
+        self.register_buffer("rescale_half", half.detach().cpu().clone().float())
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         x = observation
@@ -101,6 +109,8 @@ class DeterministicActor(nn.Module):
             return index + self.action_start
         if self.clamp_actions:
             out = torch.clamp(out, self.action_low, self.action_high)
+        if self.rescale:
+            out = (out + 1.0) * self.rescale_half + self.rescale_low
         return out
 
 
@@ -113,6 +123,8 @@ class Exported:
     checkpoint: str
     chosen: str  # why this checkpoint: given, best.pt, the newest step checkpoint
     global_step: int
+    #: the observation helper (export_obs.py) where the env's observation is not a flat Box
+    helper: Path | None = None
 
 
 def out_path(out: str | Path | None, checkpoint: str | Path, fmt: str) -> Path:
@@ -154,9 +166,10 @@ def export_policy(
             f"{metadata_path(target).name!r} beside it); rlexp export does not overwrite it"
         )
     _check_writable(target)  # a read-only run dir fails now, naming the path
-    actor, config, info = _actor_of(ckpt)
+    actor, config, info, samples = _actor_of(ckpt)
     if not target.parent.is_dir():
         target.parent.mkdir(parents=True)
+    helper = _write_helper(target, config, info, samples)  # numpy-only flattening, beside the file
     try:
         # the exporters choose the format by the suffix: the temporary file keeps it
         atomic_write(target, lambda tmp: _WRITERS[fmt](actor, tmp), keep_suffix=True)
@@ -169,6 +182,8 @@ def export_policy(
         "file": target.name,
         **_io_fields(info),
         **info,
+        # the env's own observation in, its own action out, with numpy only (export_obs.py)
+        "observation_helper": helper,
         **_source_fields(ckpt, chosen, config),
     }
     try:
@@ -178,12 +193,19 @@ def export_policy(
         raise
     meta_file = metadata_path(target)
     atomic_write_text(meta_file, json.dumps(meta, indent=2) + "\n")
-    return Exported(target, meta_file, ckpt["path"], chosen, int(ckpt["global_step"]))
+    plain = (info["observation_layout"] or {}).get("space") == "Box" and len(
+        info["observation_layout"]["parts"][0]["shape"]
+    ) == 1  # the observation is the input vector already: the helper is there, not worth a line
+    shown = None if helper is None or plain else target.parent / helper
+    return Exported(target, meta_file, ckpt["path"], chosen, int(ckpt["global_step"]), shown)
 
 
-def _actor_of(ckpt: dict[str, Any]) -> tuple[DeterministicActor, Any, dict[str, Any]]:
+def _actor_of(
+    ckpt: dict[str, Any],
+) -> tuple[DeterministicActor, Any, dict[str, Any], list[tuple[Any, Any]]]:
     """The checkpoint's policy rebuilt on one copy of its env (as ``rlexp eval`` builds it) -> the
-    deterministic actor, the typed config, and what the metadata says about the env."""
+    deterministic actor, the typed config, what the metadata says about the env, and a few
+    observations of its space (Gymnasium envs; they check the observation helper)."""
     from rlexp.checkpoint import check_checkpoint_fits, check_policy_before_building
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import policy_for_env
@@ -214,7 +236,13 @@ def _actor_of(ckpt: dict[str, Any]) -> tuple[DeterministicActor, Any, dict[str, 
             low = space.low.reshape(-1, act_dim)[0]
             high = space.high.reshape(-1, act_dim)[0]
             clamp = e.backend in CLIPPING_BACKENDS
-            actor = DeterministicActor(policy, low, high, clamp).eval()
+            scaled = getattr(base, "_rescale", None)  # env.rescale_actions: the env's own bounds
+            rescale = None if scaled is None else tuple(torch.as_tensor(v) for v in scaled)
+            actor = DeterministicActor(policy, low, high, clamp, rescale=rescale).eval()
+            if scaled is not None:  # the file's output lies in the env's bounds
+                low = torch.as_tensor(coding.low, dtype=torch.float64)
+                high = torch.as_tensor(coding.high, dtype=torch.float64)
+        samples = _sample_observations(base) if layout is not None else []
         info = {
             "observation_dim": obs_dim,
             "action_dim": act_dim,
@@ -227,6 +255,8 @@ def _actor_of(ckpt: dict[str, Any]) -> tuple[DeterministicActor, Any, dict[str, 
             "action_low": None if policy.categorical else _finite_or_none(low),
             "action_high": None if policy.categorical else _finite_or_none(high),
             "actions_clamped": actor.clamp_actions,
+            # env.rescale_actions: the policy acted in [-1, 1]; the file maps it onto the bounds
+            "actions_rescaled": actor.rescale,
             "observation_normalizer": {
                 "enabled": actor.normalize,
                 "clip": actor.clip if actor.normalize else None,
@@ -235,7 +265,44 @@ def _actor_of(ckpt: dict[str, Any]) -> tuple[DeterministicActor, Any, dict[str, 
         }
     finally:
         env.close()
-    return actor, config, info
+    return actor, config, info, samples
+
+
+def _sample_observations(base: Any, n: int = 8) -> list[tuple[Any, Any]]:
+    """``n`` observations drawn from the Gymnasium observation space of ``base`` (seeded: every
+    export draws the same), each with rlexp's flattening of it; [] where the backend does not show
+    the space."""
+    space = None
+    if getattr(base, "_envs", None):
+        space = base._envs[0].observation_space
+    elif getattr(base, "_vec", None) is not None:
+        space = base._vec.single_observation_space
+    if space is None:
+        return []
+    space.seed(0)
+    samples = [space.sample() for _ in range(n)]
+    return [(obs, base.obs_layout.flatten(obs)) for obs in samples]
+
+
+def _write_helper(
+    target: Path, config: Any, info: dict[str, Any], samples: list[tuple[Any, Any]]
+) -> str | None:
+    """Write the observation helper beside ``target`` (Gymnasium envs: those with an observation
+    layout), checked against rlexp's own flattening; its file name, or None."""
+    layout, action = info["observation_layout"], info["action_space"]
+    if layout is None or action is None:
+        return None
+    from rlexp.export_obs import check_helper, helper_name, helper_source
+
+    path = target.parent / helper_name(target)
+    atomic_write_text(path, helper_source(target, config.env.name, layout, action))
+    if samples:
+        try:
+            check_helper(path, samples)
+        except ValueError:
+            path.unlink()
+            raise
+    return path.name
 
 
 def _names(env: Any, config: Any) -> dict[str, Any]:

@@ -26,6 +26,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "video": ("imageio", "imageio_ffmpeg"),
     "report": ("scipy", "matplotlib"),
     "envpool": ("envpool",),
+    "box2d": ("Box2D",),  # Gymnasium's Box2D envs: LunarLander, BipedalWalker, CarRacing
 }
 
 #: Hydra config groups that only a plugin package of an extra provides (rlexp ships

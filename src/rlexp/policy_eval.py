@@ -207,12 +207,24 @@ def _exported_source(path: Path) -> EvalSource:
 
             start = torch.tensor(space["start"], dtype=torch.int64)
             return ExportedPolicy(lambda obs: act(obs) - start)
+        if meta.get("actions_rescaled"):  # the file gives the env's values; the env maps [-1, 1]
+            return ExportedPolicy(_unit_actions(act, meta))
         return ExportedPolicy(act)
 
     return EvalSource(
         str(path), meta["format"], int(meta["global_step"]), meta["config"], build,
         checkpoint=meta.get("source_checkpoint"),
     )  # fmt: skip
+
+
+def _unit_actions(act: Callable[[Any], Any], meta: dict[str, Any]) -> Callable[[Any], Any]:
+    """An export of an ``env.rescale_actions`` run (its output in the env's bounds) as the
+    [-1, 1] actions the run's env, which maps them onto the bounds itself, takes."""
+    import torch
+
+    low = torch.tensor(meta["action_low"], dtype=torch.float64)
+    half = (torch.tensor(meta["action_high"], dtype=torch.float64) - low) / 2.0
+    return lambda obs: ((act(obs).double() - low) / half - 1.0).float()
 
 
 def load_exported(path: Path, meta: dict[str, Any]) -> Callable[[Any], Any]:

@@ -35,6 +35,10 @@ def check_buildable(config: RootConfig) -> None:
         raise
     except Exception as exc:
         msg = first_line(exc)
+        if "box2d" in msg.lower():  # Gymnasium's own hint names swig; rlexp's extra has wheels
+            from rlexp.extras import require
+
+            require("box2d", f"env.name={e.name!r}")
         bad_kwarg = re.search(r"unexpected keyword argument '([^']+)'", msg)
         if bad_kwarg and bad_kwarg.group(1) in e.kwargs and not msg.startswith("env."):
             msg = (

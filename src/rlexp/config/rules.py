@@ -35,6 +35,9 @@ BACKENDS = ("gymnasium", "gymnasium_async", "envpool", "native", "vecenv", "torc
 #: Backends whose envs are stepped in the training process, so that ``algorithm.overlap``'s forked
 #: collection process owns a full copy (envpool's threads, worker processes, GPUs do not fork).
 OVERLAP_BACKENDS = ("gymnasium", "native")
+#: Backends whose envs can rescale Box actions from [-1, 1] to the env's bounds (env.rescale_actions):
+#: the Gymnasium-shaped adapters (rlexp.envs.adapter).
+RESCALE_BACKENDS = ("gymnasium", "gymnasium_async", "envpool")
 #: Backends whose env is built by a callable the config names (``env.name=package.module:callable``).
 CALLABLE_BACKENDS = ("vecenv", "torchrl")
 #: The metrics an evaluation round logs: what ``trainer.best_metric`` may follow.
@@ -216,8 +219,8 @@ FIELD_RULES: dict[str, Rule] = {
     # env
     "env.name": Rule(
         lambda v: isinstance(v, str) and bool(v.strip()),
-        "a registered Gymnasium id, a native task, or (vecenv, torchrl) package.module:callable "
-        "(checked by building one env)",
+        "a registered Gymnasium id (env=gym takes any: env=gym env.name=mymod:MyEnv-v0), a native "
+        "task, or (vecenv, torchrl) package.module:callable (checked by building one env)",
     ),
     "env.backend": one_of(*BACKENDS),
     "env.num_threads": between(0, 1024, " (0: every CPU the process may use; envpool only)"),
@@ -230,6 +233,11 @@ FIELD_RULES: dict[str, Rule] = {
     "env.max_episode_steps": optional(at_least(1), "the task's own limit"),
     "env.normalize_observations": FLAG,
     "env.clip_observations": above(0.0),
+    "env.rescale_actions": Rule(
+        lambda v: isinstance(v, bool),
+        f"true or false; true only with env.backend one of {list(RESCALE_BACKENDS)} and a Box "
+        "action space with finite bounds (checked by building one env)",
+    ),
     "env.kwargs": Rule(
         lambda v: isinstance(v, dict),
         "keyword arguments the env accepts (checked by building one env; render_mode=human "

@@ -215,6 +215,9 @@ class EnvConfig:
         True  # running mean/std normalisation (statistics are checkpointed)
     )
     clip_observations: float = 10.0  # normalised observations are clipped to +- this
+    # Box actions: the policy acts in [-1, 1], mapped affinely onto the env's finite bounds
+    # (gymnasium, gymnasium_async, envpool; docs/envs.md "Action bounds")
+    rescale_actions: bool = False
     kwargs: dict[str, Any] = field(
         default_factory=dict
     )  # extra keyword arguments for gymnasium.make

@@ -21,6 +21,7 @@ from rlexp.config.rules import (
     MAX_NAME,
     MUTABLE_HYPERPARAMETERS,
     OVERLAP_BACKENDS,
+    RESCALE_BACKENDS,
     available_cpus,
     get,
     is_safe_name,
@@ -229,6 +230,12 @@ def validate(config: RootConfig) -> None:
         raise ConfigError(
             f"algorithm.desired_kl={desired_kl} and algorithm.anneal_lr=true both set the learning "
             "rate; use one: algorithm.anneal_lr=false or algorithm.desired_kl=null (docs/ppo.md)"
+        )
+    if e.rescale_actions and e.backend not in RESCALE_BACKENDS:
+        raise ConfigError(
+            f"env.rescale_actions=true maps the policy's [-1, 1] onto a Gymnasium Box's bounds; "
+            f"env.backend={e.backend!r} does not: use one of {list(RESCALE_BACKENDS)}, or "
+            "env.rescale_actions=false"
         )
     if getattr(a, "overlap", False) and e.backend not in OVERLAP_BACKENDS:
         raise ConfigError(

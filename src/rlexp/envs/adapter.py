@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -24,6 +25,15 @@ from rlexp.envs.spaces import ActionCoding, ObsLayout
 from rlexp.envs.specs import set_specs
 
 log = logging.getLogger(__name__)
+#: Env ids whose action bounds were warned about in this process (``warn_action_bounds``).
+_BOUNDS_WARNED: set[str] = set()
+
+
+def _bounds(low: np.ndarray, high: np.ndarray) -> str:
+    """Bounds for a message: ``[0, 5]`` when every dimension has the same, else per dimension."""
+    if np.all(low == low[0]) and np.all(high == high[0]):
+        return f"[{low[0]:g}, {high[0]:g}]"
+    return f"low={[float(v) for v in low]} high={[float(v) for v in high]}"
 
 
 class GymShapedEnv(EnvBase):
@@ -59,6 +69,8 @@ class GymShapedEnv(EnvBase):
             self._low = np.asarray(coding.low, dtype=np.float64)
             self._high = np.asarray(coding.high, dtype=np.float64)
         self._state_warned = False
+        #: env.rescale_actions: (low, (high - low) / 2) of the env's Box (None: act as given)
+        self._rescale: tuple[np.ndarray, np.ndarray] | None = None
         self._seed: int | None = None  # seeds the next full reset (then None: streams continue)
         self._base_seed: int | None = (
             None  # the seed given to set_seed (restart seeds derive from it)
@@ -105,12 +117,63 @@ class GymShapedEnv(EnvBase):
         return self.clip_array(action.detach().cpu().numpy())
 
     def clip_array(self, raw: np.ndarray) -> np.ndarray:
-        """``clipped_actions`` of actions already in numpy (a new array: ``raw`` is left as it is)."""
+        """``clipped_actions`` of actions already in numpy (a new array: ``raw`` is left as it is);
+        with ``rescale_actions`` clipped to [-1, 1], then mapped onto the env's bounds."""
         if self._low is None:
             return raw
         raw = raw.astype(np.float64)
         np.clip(raw, self._low, self._high, out=raw)
+        if self._rescale is not None:
+            low, half = self._rescale
+            raw += 1.0
+            raw *= half
+            raw += low
         return raw
+
+    def rescale_actions(self) -> None:
+        """``env.rescale_actions=true``: the policy acts in [-1, 1] (its spec's bounds), each
+        action ``a`` becomes ``low + (a + 1) * (high - low) / 2`` for the env; ``ValueError`` (one
+        line) for categorical actions or a Box with an unbounded side."""
+        coding = self.action_coding
+        where = f"env.rescale_actions=true (env.name={self.env_id!r})"
+        if coding.categorical:
+            raise ValueError(
+                f"{where}: the action space is {coding.kind}, not a Box; nothing to rescale: "
+                "use env.rescale_actions=false"
+            )
+        low, high = np.asarray(coding.low), np.asarray(coding.high)
+        if not (np.isfinite(low).all() and np.isfinite(high).all()):
+            raise ValueError(
+                f"{where}: the action bounds {_bounds(low, high)} have an unbounded side, which "
+                "[-1, 1] cannot map onto: use env.rescale_actions=false"
+            )
+        unit = replace(coding, low=(-1.0,) * coding.dim, high=(1.0,) * coding.dim)
+        set_specs(self, self.num_envs, self.obs_dim, unit)
+        self._low, self._high = -np.ones(coding.dim), np.ones(coding.dim)
+        self._rescale = (low, (high - low) / 2.0)
+
+    def warn_action_bounds(self) -> None:
+        """Once per env id and process: a finite Box whose bounds are not [-1, 1] (the Gaussian
+        policy starts at mean 0 with std ~1, so early actions pile up at a bound or use a sliver
+        of the range), as Stable-Baselines3 warns; ``env.rescale_actions=true`` is the fix."""
+        coding = self.action_coding
+        if coding.categorical or self._rescale is not None or self.env_id in _BOUNDS_WARNED:
+            return
+        low, high = np.asarray(coding.low), np.asarray(coding.high)
+        if not (np.isfinite(low).all() and np.isfinite(high).all()):
+            return
+        if np.all(low == -1.0) and np.all(high == 1.0):
+            return
+        _BOUNDS_WARNED.add(self.env_id)
+        kind = "not symmetric" if np.any(low != -high) else "not [-1, 1]"
+        log.warning(
+            "env.name=%r: the action bounds %s are %s; the Gaussian policy starts at mean 0 with "
+            "std ~1, so early actions clip at a bound or use a sliver of the range: "
+            "env.rescale_actions=true lets the policy act in [-1, 1] mapped onto the bounds",
+            self.env_id,
+            _bounds(low, high),
+            kind,
+        )
 
     def env_actions(self, action: torch.Tensor) -> np.ndarray:
         """The policy's actions as a vector env takes them, batched: Box actions clipped (and

@@ -6,7 +6,7 @@ import logging
 
 from torchrl.envs import EnvBase
 
-from rlexp.config.rules import BACKENDS
+from rlexp.config.rules import BACKENDS, RESCALE_BACKENDS
 from rlexp.config.schema import EnvConfig
 
 log = logging.getLogger(__name__)
@@ -51,5 +51,11 @@ def make_env(cfg: EnvConfig, num_envs: int, seed: int, device: str = "cpu") -> E
         env = make_torchrl_gym_env(cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs)
     else:
         raise ValueError(f"env.backend={cfg.backend!r} is not one of {list(BACKENDS)}")
+    if cfg.rescale_actions and cfg.backend in RESCALE_BACKENDS:  # the Gymnasium-shaped adapters
+        try:
+            env.rescale_actions()
+        except ValueError:
+            env.close()
+            raise
     env.set_seed(seed)
     return env

@@ -119,7 +119,14 @@ def check_video_env(env: Any, where: str, num_envs: int | None = None, **params:
         import imageio_ffmpeg
 
         imageio_ffmpeg.get_ffmpeg_exe()
-    except Exception as exc:  # ImportError, or RuntimeError when no ffmpeg binary is found
+    except ImportError:  # the video extra is not installed: one line naming it
+        from rlexp.extras import install_hint
+
+        raise ValueError(
+            f"{where} needs rlexp's optional 'video' extra (imageio_ffmpeg is not installed): "
+            f"{install_hint('video')}"
+        ) from None
+    except Exception as exc:  # RuntimeError when no ffmpeg binary is found
         raise ValueError(f"{where}: cannot write mp4 videos: {exc}") from None
 
 
