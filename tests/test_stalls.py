@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import multiprocessing
 import os
 import re
 import signal
@@ -100,15 +99,35 @@ class _Alive:
         return True
 
 
+class _SilentPipe:
+    """A pipe on which nothing ever arrives; each ``poll(t)`` moves the fake clock on by ``t``
+    (instead of waiting), so the bound is checked on the clock the worker reads, not on how fast
+    this machine runs."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+        self.polls: list[float] = []
+
+    def poll(self, timeout: float) -> bool:
+        self.polls.append(timeout)
+        self.now += timeout
+        return False
+
+
 def test_an_eval_worker_that_never_answers_fails_within_the_bound_naming_it(monkeypatch):
-    ours, _theirs = multiprocessing.Pipe()  # nothing will ever be sent on _theirs
-    worker = EvalWorker(EvalSetup(None, None, 0, 1), timeout_s=0.5, _proc=_Alive(), _conn=ours)
+    import types
+
+    import rlexp.eval_worker as eval_worker
+
+    pipe = _SilentPipe()
+    monkeypatch.setattr(eval_worker, "time", types.SimpleNamespace(monotonic=lambda: pipe.now))
+    worker = EvalWorker(EvalSetup(None, None, 0, 1), timeout_s=0.5, _proc=_Alive(), _conn=pipe)
     worker._ready = True
     worker.in_flight = EvalRound(1536, {})
-    start = time.monotonic()
     with pytest.raises(RuntimeError) as err:
         worker.result()
-    assert 0.5 <= time.monotonic() - start < 5
+    # Given up at the first 0.1 s poll that ends 0.5 s of silence (up to float rounding).
+    assert set(pipe.polls) == {0.1} and 0.5 - 1e-9 < pipe.now - 1000.0 <= 0.6 + 1e-9
     assert str(err.value) == (
         "the eval worker (pid 4242) did not answer for its eval round of step 1536 within "
         "trainer.stall_timeout_s=0.5 s (stopped, or stuck in the eval env); "
@@ -117,12 +136,13 @@ def test_an_eval_worker_that_never_answers_fails_within_the_bound_naming_it(monk
     assert worker.in_flight is not None  # still in flight: the checkpoint records it for a resume
     # Its start-up (spawn, imports, its env) gets at least STARTUP_TIMEOUT_MIN_S, said so.
     monkeypatch.setattr("rlexp.eval_worker.STARTUP_TIMEOUT_MIN_S", 1.5)
-    start = time.monotonic()
+    pipe.polls.clear()
+    start = pipe.now
     with pytest.raises(RuntimeError, match=re.escape(
         "did not answer for its start-up within 1.5 s (trainer.stall_timeout_s=0.5 s, at least "
         "1.5 s to start)")):  # fmt: skip
         worker._receive("ready", "start-up")
-    assert 1.5 <= time.monotonic() - start < 6
+    assert set(pipe.polls) == {0.1} and 1.5 - 1e-9 < pipe.now - start <= 1.6 + 1e-9
 
 
 def test_a_stopped_eval_worker_ends_the_run_with_a_checkpoint_and_one_line(tmp_path, children):
