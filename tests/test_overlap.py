@@ -171,3 +171,18 @@ def test_settings_overlap_cannot_run_with_are_refused_naming_the_key(tmp_path):
         build(config, tmp_path, "cuda", 1000)
     with pytest.raises(Exception, match="overlap"):  # a PPO option: GRPO has no such key
         compose(["algorithm=grpo", "policy=actor_only", "algorithm.overlap=true"])
+
+
+def test_each_rollout_draws_new_action_noise(tmp_path):
+    """The child's generator is seeded anew for every rollout (from this process's generator): two
+    rollouts' noise, read back as (action - loc) / scale, is standard normal and uncorrelated, not
+    one rollout's noise again. A child seeded alike every rollout is deterministic and resumes
+    exactly (the resume tests pass), yet acts with the same noise each time."""
+    _, batches, _ = _run_recording(tmp_path, overlap=True)
+    noise = [((b["action"] - b["loc"]) / b["scale"]).reshape(-1) for b in batches]
+    assert len(noise) == 3 and noise[0].numel() == 256 * 3  # 256 steps x 3 action dims
+    for k, x in enumerate(noise):  # N(0, 1): 768 values, bounds at > 5 standard errors
+        assert abs(float(x.mean())) < 0.2 and 0.85 < float(x.std()) < 1.15, (k, x.mean(), x.std())
+    for k in (0, 1):
+        corr = float(torch.corrcoef(torch.stack([noise[k], noise[k + 1]]))[0, 1])
+        assert abs(corr) < 0.2, f"rollouts {k} and {k + 1}: noise correlation {corr:.3f}"

@@ -162,9 +162,13 @@ def test_pruning_never_removes_a_source_in_use(tmp_path):
     assert not take(source, read_ready(source)[0], tmp_path / "other.pt")
 
 
-def test_a_dead_member_is_dropped_after_the_sync_timeout(tmp_path, caplog):
+def test_a_dead_member_is_dropped_after_the_sync_timeout(tmp_path, caplog, monkeypatch):
+    import types
+
+    import rlexp.hooks.pbt as pbt_hook
     from rlexp.hooks.base import HookControl, HookState
     from rlexp.hooks.pbt import PopulationBasedTraining
+    from rlexp.pbt import population
     from rlexp.pbt.population import Ready, publish, ready_name
 
     sweep = tmp_path / "sweep"
@@ -185,11 +189,22 @@ def test_a_dead_member_is_dropped_after_the_sync_timeout(tmp_path, caplog):
         metrics={"train/episode_return": 1.0}, hyperparameters={"lr": 3e-4}, checkpoint=ckpt,
     )  # fmt: skip
     control = HookControl({"lr": 3e-4})
-    t0 = time.monotonic()
+    # A fake clock that each poll's sleep moves on: the bound is checked on the clock the hook
+    # reads, not on how fast this machine runs (no wall-clock assertion).
+    clock = {"now": 50.0}
+    sleeps: list[float] = []
+
+    def sleep(s: float) -> None:
+        sleeps.append(s)
+        clock["now"] += s
+
+    now = types.SimpleNamespace(monotonic=lambda: clock["now"], sleep=sleep, time=time.time)
+    monkeypatch.setattr(population, "time", now)
+    monkeypatch.setattr(pbt_hook, "time", now)
     with caplog.at_level(logging.INFO, logger="rlexp.hooks.pbt"):
         hook(state, control)
-    waited = time.monotonic() - t0
-    assert 1.5 <= waited < 5.0
+    # 0.2 s polls until 1.5 s have passed: given up at the first poll at or past the bound
+    assert set(sleeps) == {0.2} and 1.5 <= clock["now"] - 50.0 < 1.7 + 1e-9, sleeps
     line = next(r.getMessage() for r in caplog.records if "dropped" in r.getMessage())
     assert line.startswith("[pbt] generation 2 (step 1024): dropped 1 (at step 512), a member ")
     assert "never seen after waiting 2 s (hooks.pbt.params.sync_timeout_s=1.5)" in line

@@ -303,10 +303,10 @@ RUN = [
 ]
 
 
-def _ctrl_c_and_resume(tmp_path: Path, backend: str) -> tuple[Path, int, dict]:
+def _ctrl_c_and_resume(tmp_path: Path, backend: str) -> tuple[Path, int, dict, dict]:
     """Train on ``backend``; Ctrl-C (SIGINT to the run's process group) once the step-512
     checkpoint is there: exit 130 with a checkpoint, no process of the run left; resume to the end.
-    The run dir, the step it stopped at, its final status."""
+    The run dir, the step it stopped at, its final status, the checkpoint the stop wrote."""
     run_dir = tmp_path / backend
     args = [*RUN, f"env.backend={backend}", f"hydra.run.dir={run_dir}"]
     sid = _kill_after_checkpoint(args, tmp_path, run_dir / "checkpoints", 512, sig=signal.SIGINT)
@@ -315,10 +315,17 @@ def _ctrl_c_and_resume(tmp_path: Path, backend: str) -> tuple[Path, int, dict]:
         time.sleep(0.1)
     assert not _session(sid), f"processes of the stopped run still run: {_session(sid)}"
     stopped = max(int(p.stem.rsplit("_", 1)[1]) for p in step_checkpoints(run_dir / "checkpoints"))
+    # The stop itself checkpointed, envs included: not a worker killed by the Ctrl-C too (a second
+    # interrupt, no checkpoint), leaving the resume to the periodic checkpoint before it.
+    stop = json.loads((run_dir / "status.json").read_text())
+    newest = latest_checkpoint(run_dir / "checkpoints")
+    assert (stop["state"], stop["reason"]) == ("interrupted", "SIGINT received"), stop
+    assert stop["global_step"] == stopped and newest.name.endswith(f"_{stopped:09d}.pt"), stop
+    stop_ckpt = load_checkpoint(newest)
     run_train(args, cwd=tmp_path)
     status = json.loads((run_dir / "status.json").read_text())
     assert status["state"] == "finished" and status["global_step"] == 2048
-    return run_dir, stopped, status
+    return run_dir, stopped, status, stop_ckpt
 
 
 def _eval_and_export(run_dir: Path) -> dict:
@@ -337,8 +344,13 @@ def test_async_backend_trains_stops_on_ctrl_c_and_resumes_as_the_in_process_run(
     run of the in-process backend (the same rollouts, an exact MuJoCo resume)."""
     reference = tmp_path / "reference"
     run_train([*RUN, "env.backend=gymnasium", f"hydra.run.dir={reference}"], cwd=tmp_path)
-    run_dir, stopped, status = _ctrl_c_and_resume(tmp_path, "gymnasium_async")
+    run_dir, stopped, status, stop_ckpt = _ctrl_c_and_resume(tmp_path, "gymnasium_async")
     assert 512 <= stopped < 2048 and status["env_resume"] == "restored (MuJoCo state)"
+    # The stop checkpoint read the workers' envs: they were not hit by the Ctrl-C (own group).
+    assert (
+        stop_ckpt["envs"]["train"]["kind"] == "mujoco"
+        and len(stop_ckpt["envs"]["train"]["copies"]) == 2
+    )
     a = load_checkpoint(latest_checkpoint(reference / "checkpoints"))
     b = load_checkpoint(latest_checkpoint(run_dir / "checkpoints"))
     assert a["global_step"] == b["global_step"] == 2048
@@ -350,7 +362,7 @@ def test_async_backend_trains_stops_on_ctrl_c_and_resumes_as_the_in_process_run(
 
 
 def test_envpool_backend_trains_stops_on_ctrl_c_resumes_with_new_episodes_and_exports(tmp_path):
-    run_dir, stopped, status = _ctrl_c_and_resume(tmp_path, "envpool")
+    run_dir, stopped, status, _ = _ctrl_c_and_resume(tmp_path, "envpool")
     seed = (13 + 1_000_003 * (stopped // 2)) % 2**31  # seed + 1,000,003 x steps per env copy
     assert status["env_resume"] == (
         f"restarted (new episodes seeded {seed}: EnvPool offers no env state)"
