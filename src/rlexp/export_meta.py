@@ -69,6 +69,13 @@ def check_env_names(env: Any, where: str) -> None:
     from rlexp.envs.batched import ENV_MODULES_VAR, allowed_modules
     from rlexp.registry import check_module_name, module_of, strings_in, under
 
+    if env.backend in ("vecenv", "torchrl"):  # the callable: through the gate, nothing called
+        from rlexp.envs.batched import resolve_env_factory
+
+        try:
+            resolve_env_factory(env.name, env.backend)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
     named = [("env.name", env.name)]
     named += [(f"env.kwargs.{k}", v) for k, v in strings_in(env.kwargs or {})]
     for key, value in named:
