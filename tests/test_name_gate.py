@@ -212,6 +212,26 @@ def test_the_sweeper_s_custom_search_space_resolves_through_the_same_gate(path):
     assert "\n" not in str(err.value) and ("this" in sys.modules) == had_this
 
 
+@pytest.mark.parametrize(
+    "target",
+    ["shutil.copyfile", "subprocess.run", "hydra.utils.instantiate", "hydra.utils.os.system",
+     "hydra_evil.cb.Callback", "rlexp.registry.importlib"],
+)  # fmt: skip
+def test_hydra_callbacks_resolve_through_the_same_gate(target, tmp_path):
+    """Hydra calls each ``hydra.callbacks`` ``_target_`` at start-up: ``shutil.copyfile`` would
+    write the marker before the run (Hydra's own blocklist misses it)."""
+    from rlexp.config.precheck import precheck
+
+    marker = tmp_path / "pwned"
+    cb = [f"+hydra.callbacks.x._target_={target}", "+hydra.callbacks.x.src=/etc/hostname",
+          f"+hydra.callbacks.x.dst={marker}", f"+hydra.callbacks.x.args=[touch,'{marker}']"]  # fmt: skip
+    with pytest.raises(ConfigError, match=r"hydra.callbacks.x._target_=") as err:
+        precheck(["env=inverted_pendulum", "trainer=smoke", *cb], CONF_DIR)
+    assert "\n" not in str(err.value) and not marker.exists() and "hydra_evil" not in sys.modules
+    ok = "+hydra.callbacks.x._target_=hydra.experimental.callbacks.LogJobReturnCallback"
+    precheck(["env=inverted_pendulum", "trainer=smoke", ok, f"hydra.run.dir={tmp_path / 'r'}"], CONF_DIR)  # fmt: skip
+
+
 # -- #43 item 3: Gymnasium's module:EnvId -----------------------------------------------------------
 @pytest.mark.parametrize(
     "overrides",
