@@ -80,7 +80,7 @@ def check_env_names(env: Any, where: str) -> None:
     named += [(f"env.kwargs.{k}", v) for k, v in strings_in(env.kwargs or {})]
     for key, value in named:
         module = module_of(value)
-        if module is None or (key == "env.name" and env.name in _registered(env.backend)):
+        if module is None:
             continue
         line = f"{where}: {key}={value!r}"
         check_module_name(module, line, None)
@@ -91,14 +91,6 @@ def check_env_names(env: Any, where: str) -> None:
             f"metadata never imports code; if you trust it, allow the module from the shell "
             f"({ENV_MODULES_VAR}={module.split('.')[0]}) or install the plugin that registers the env"
         )
-
-
-def _registered(backend: str) -> set[str]:
-    if backend not in ("vecenv", "torchrl"):
-        return set()
-    from rlexp.envs.batched import ENV_FACTORIES
-
-    return set(ENV_FACTORIES)
 
 
 def check_action_space(meta: dict[str, Any], env: Any, where: str) -> None:
