@@ -214,6 +214,22 @@ def test_the_sweeper_s_custom_search_space_resolves_through_the_same_gate(path):
 
 @pytest.mark.parametrize(
     "target",
+    ["optuna.samplers._tpe.sampler.np.save", "optuna.samplers.TPESampler.__init__",
+     "optuna.samplers.os.system", "optuna.pruners.BasePruner.prune"],
+)  # fmt: skip
+def test_optuna_sampler_targets_reach_only_optuna_s_own_classes(target, tmp_path):
+    """Hydra's instantiate walks attributes: an allowed prefix reached numpy's ``np.save``."""
+    from rlexp.launch import optuna_study
+
+    marker = tmp_path / "pwned.npy"
+    node = {"_target_": target, "file": str(marker), "arr": [1]}
+    with pytest.raises(ValueError, match=r"hydra.sweeper.sampler._target_=") as err:
+        optuna_study.build(optuna_study.leaf_config("hydra.sweeper.sampler", node, {}))
+    assert "\n" not in str(err.value) and not marker.exists()
+
+
+@pytest.mark.parametrize(
+    "target",
     ["shutil.copyfile", "subprocess.run", "hydra.utils.instantiate", "hydra.utils.os.system",
      "hydra_evil.cb.Callback", "rlexp.registry.importlib"],
 )  # fmt: skip
