@@ -248,6 +248,42 @@ def test_hydra_callbacks_resolve_through_the_same_gate(target, tmp_path):
     precheck(["env=inverted_pendulum", "trainer=smoke", ok, f"hydra.run.dir={tmp_path / 'r'}"], CONF_DIR)  # fmt: skip
 
 
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        [
+            "+hydra.job_logging.handlers.x.class=tarfile.TarFile",
+            "+hydra.job_logging.handlers.x.name={m}",
+            "+hydra.job_logging.handlers.x.mode=w",
+        ],  # fmt: skip
+        [
+            "+hydra.hydra_logging.handlers.x.class=shutil.copyfile",
+            "+hydra.hydra_logging.handlers.x.src=/etc/hostname",
+            "+hydra.hydra_logging.handlers.x.dst={m}",
+        ],  # fmt: skip
+        [
+            "+hydra.job_logging.handlers.x.class=logging.handlers.os.system",
+            "+hydra.job_logging.handlers.x.command='touch {m}'",
+        ],  # fmt: skip
+        ["+hydra.job_logging.handlers.x.class=logging._StderrHandler"],
+        ["hydra.job_logging.handlers.console.stream=ext://antigravity.x"],
+        [
+            "+hydra.job_logging.formatters.x.format=x",
+            "+hydra.job_logging.formatters.x.class=pathlib.Path",
+        ],  # fmt: skip
+    ],
+)
+def test_hydra_logging_classes_are_logging_s_own(overrides, tmp_path):
+    """dictConfig builds each handler ``class`` with the config's keywords at start-up."""
+    from rlexp.config.precheck import precheck
+
+    marker = tmp_path / "pwned"
+    args = [o.replace("{m}", str(marker)) for o in overrides]
+    with pytest.raises(ConfigError, match=r"hydra\.(job|hydra)_logging\.") as err:
+        precheck(["env=inverted_pendulum", "trainer=smoke", *args], CONF_DIR)
+    assert "\n" not in str(err.value) and not marker.exists() and "antigravity" not in sys.modules
+
+
 # -- #43 item 3: Gymnasium's module:EnvId -----------------------------------------------------------
 @pytest.mark.parametrize(
     "overrides",

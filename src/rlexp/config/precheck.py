@@ -174,7 +174,12 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
             check_pbt(cfg, loader, args.overrides)
             check_tuned_sweep(cfg, loader, args.overrides)
         _check_presets(cfg, loader, args.overrides, args.multirun)
-        _check_callbacks(OmegaConf.select(cfg, "hydra.callbacks", default=None))
+        from rlexp.config.hydra_targets import check_hydra_targets
+
+        try:  # what Hydra itself would call: callbacks, logging classes
+            check_hydra_targets(OmegaConf.to_container(cfg.hydra, resolve=False))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         with open_dict(cfg):
             del cfg["hydra"]
         if args.multirun:
@@ -343,33 +348,6 @@ def check_tuned_sweep(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
                 raise ConfigError(
                     f"job {job.num} ({job.label}): {no_tuned_preset(env, loader, group)}"
                 )
-
-
-#: Where a ``hydra.callbacks.<name>._target_`` may point: Hydra's own and plugins' callbacks, rlexp's.
-CALLBACK_MODULES = ("hydra.", "hydra_plugins.", "rlexp.")
-
-
-def _check_callbacks(callbacks: Any) -> None:
-    """Each ``hydra.callbacks`` entry names a Hydra ``Callback`` class of :data:`CALLBACK_MODULES`
-    (rlexp.registry.reach): Hydra would otherwise call any ``_target_`` a config names
-    (``shutil.copyfile``) at start-up."""
-    from hydra.experimental.callback import Callback
-
-    from rlexp.registry import reach
-
-    for name, node in (callbacks or {}).items():
-        target = str(node.get("_target_", "")) if hasattr(node, "get") else ""
-        where = f"hydra.callbacks.{name}._target_={target!r}"
-        module, _, attr = target.rpartition(".")
-        try:
-            found = reach(module, attr, where, CALLBACK_MODULES)
-        except ValueError as exc:
-            raise ConfigError(
-                f"{exc} (a config may not import arbitrary code: a callback is a Hydra Callback "
-                f"class under {list(CALLBACK_MODULES)}; install your own in hydra_plugins)"
-            ) from None
-        if not (isinstance(found, type) and issubclass(found, Callback)):
-            raise ConfigError(f"{where}: not a hydra.experimental.callback.Callback class")
 
 
 def _check_presets(cfg: Any, loader: Any, overrides: Sequence[str], multirun: bool) -> None:
