@@ -61,7 +61,7 @@ def strings_in(node: Any, key: str = "") -> list[tuple[str, str]]:
         return [(key, node)]
     if isinstance(node, Mapping) or hasattr(node, "items"):
         items = list(node.items())
-    elif isinstance(node, list | tuple):
+    elif isinstance(node, Sequence) and not isinstance(node, bytes):  # list, tuple, ListConfig
         items = list(enumerate(node))
     else:
         return []
