@@ -33,6 +33,7 @@ import torch
 from torch import nn
 
 from rlexp.checkpoint import select_checkpoint
+from rlexp.export_meta import json_safe
 from rlexp.fsutil import atomic_write, atomic_write_text, temp_path
 from rlexp.policy_eval import (
     EXPORT_SCHEMA,
@@ -250,7 +251,7 @@ def _actor_of(
             # how the env's observation became the input vector (Dict / Tuple / Discrete parts)
             "observation_layout": layout.record() if layout is not None else None,
             # what the output is and how it becomes the env's action (docs/export.md)
-            "action_space": _json_safe(coding.record()) if coding is not None else None,
+            "action_space": json_safe(coding.record()) if coding is not None else None,
             "action_dtype": "int64" if policy.categorical else "float32",
             "action_low": None if policy.categorical else _finite_or_none(low),
             "action_high": None if policy.categorical else _finite_or_none(high),
@@ -336,15 +337,6 @@ def _names(env: Any, config: Any) -> dict[str, Any]:
 
 def _element(name: str, i: int, size: int) -> str:
     return name if size == 1 else f"{name}[{i}]"
-
-
-def _json_safe(record: dict[str, Any]) -> dict[str, Any]:
-    """An action coding's record with unbounded sides (+-inf: a batched torch env's Box) as null."""
-    return {
-        k: [None if isinstance(x, float) and x in (float("inf"), float("-inf")) else x for x in v]
-        if k in ("low", "high") else v
-        for k, v in record.items()
-    }  # fmt: skip
 
 
 def _finite_or_none(values: torch.Tensor) -> list[float | None]:

@@ -184,6 +184,9 @@ def read_metadata(path: Path) -> dict[str, Any]:
         raise ValueError(f"{str(meta_file)!r} is not rlexp export metadata ({EXPORT_SCHEMA!r})")
     if meta.get("format") not in EXPORT_SUFFIXES or not isinstance(meta.get("config"), dict):
         raise ValueError(f"export metadata {str(meta_file)!r} lacks a valid 'format' or 'config'")
+    from rlexp.export_meta import check_fields
+
+    check_fields(meta, f"export metadata {str(meta_file)!r}")
     return meta
 
 
@@ -198,8 +201,10 @@ def _exported_source(path: Path) -> EvalSource:
                 f"the env of its config gives {obs_dim}"
             )
         from rlexp.envs.spaces import check_layout
+        from rlexp.export_meta import check_action_space
 
         check_layout(meta.get("observation_layout"), env, f"exported policy {str(path)!r}")
+        check_action_space(meta, env, f"exported policy {str(path)!r}")
         act = load_exported(path, meta)
         space = meta.get("action_space") or {}
         if space.get("kind", "box") != "box":  # the file gives the env's values: back to indices
@@ -292,6 +297,10 @@ def evaluate(
     what = "checkpoint" if source.kind == "checkpoint" else "exported policy"
     config = typed_config(source.config, f"{what} {source.path!r}", render=video is not None)
     e = config.env
+    if source.kind != "checkpoint":  # a shared file's metadata is data: it imports nothing
+        from rlexp.export_meta import check_env_names
+
+        check_env_names(e, f"exported policy {source.path!r}")
     if seed is None:  # the run's own eval seed: the same episodes as the Trainer's eval rounds
         from rlexp.build import EVAL_SEED_OFFSET
 

@@ -173,6 +173,13 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
         if args.multirun:
             check_pbt(cfg, loader, args.overrides)
             check_tuned_sweep(cfg, loader, args.overrides)
+        _check_presets(cfg, loader, args.overrides, args.multirun)
+        from rlexp.config.hydra_targets import check_hydra_targets
+
+        try:  # what Hydra itself would call: callbacks, logging classes
+            check_hydra_targets(OmegaConf.to_container(cfg.hydra, resolve=False))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         with open_dict(cfg):
             del cfg["hydra"]
         if args.multirun:
@@ -344,6 +351,27 @@ def check_tuned_sweep(cfg: Any, loader: Any, overrides: Sequence[str]) -> None:
                 raise ConfigError(
                     f"job {job.num} ({job.label}): {no_tuned_preset(env, loader, group)}"
                 )
+
+
+def _check_presets(cfg: Any, loader: Any, overrides: Sequence[str], multirun: bool) -> None:
+    """A per-task preset applied to another env id: one line (rlexp.config.presets)."""
+    from omegaconf import OmegaConf
+
+    from rlexp.config.presets import GROUPS, check_preset_env, check_sweep_presets
+
+    choices = dict(OmegaConf.select(cfg, "hydra.runtime.choices", default={}) or {})
+    if all(choices.get(g) in (None, "none") for g in GROUPS) and not choices.get("experiment"):
+        return
+    name = str(OmegaConf.select(cfg, "env.name", default="") or "")
+    try:
+        if multirun:
+            check_sweep_presets(
+                choices, name, _sweep_plan(cfg, overrides, loader).jobs or [], loader
+            )
+        else:
+            check_preset_env(choices, name, loader)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def _variant_key_message(exc: BaseException) -> str | None:

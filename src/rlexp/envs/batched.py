@@ -4,8 +4,8 @@ factory), built by a callable the config names as ``env.name=package.module:call
 (docs/batched_envs.md).
 
 A config file cannot import arbitrary code: the callable is a name a plugin registered
-(``register_env_factory``), or lives in a module under an allowed prefix: ``rlexp.`` and
-``torchrl.envs.``, those a plugin adds (``allow_env_module``), and those the user's shell lists in
+(``register_env_factory``), or is a function or class defined in a module under an allowed prefix:
+``rlexp.envs.`` and ``torchrl.envs.``, those a plugin adds (``allow_env_module``), and those the user's shell lists in
 ``RLEXP_ENV_MODULES`` (comma-separated prefixes; the shell decides, not a config file).
 
 The callable gets ``env.kwargs`` as keywords, plus ``num_envs``, ``device`` (``env.device``
@@ -16,7 +16,6 @@ then be ``env.num_envs``.
 
 from __future__ import annotations
 
-import importlib
 import inspect
 import logging
 import os
@@ -28,14 +27,14 @@ from torchrl.envs import EnvBase
 
 from rlexp.config.rules import first_line
 from rlexp.config.schema import EnvConfig
-from rlexp.registry import choices_hint
+from rlexp.registry import check_module_name, choices_hint, module_of, reach, strings_in, under
 
 log = logging.getLogger(__name__)
 
 #: Registered env factories: name -> callable (``register_env_factory``).
 ENV_FACTORIES: dict[str, Callable[..., Any]] = {}
 #: Module prefixes whose callables a config may name (plus ``RLEXP_ENV_MODULES``).
-_ALLOWED_MODULES: list[str] = ["rlexp.", "torchrl.envs."]
+_ALLOWED_MODULES: list[str] = ["rlexp.envs.", "torchrl.envs."]
 #: The shell variable listing more allowed module prefixes (comma-separated).
 ENV_MODULES_VAR = "RLEXP_ENV_MODULES"
 #: What rlexp passes when the callable's signature names it.
@@ -89,26 +88,15 @@ def resolve_env_factory(name: str, backend: str) -> Callable[..., Any]:
     module, _, attr = name.partition(":")
     if not module or not attr or ":" in attr:
         raise ValueError(f"{where}: expected package.module:callable (one ':')")
-    if not any((module + ".").startswith(p) for p in allowed_modules()):
+    check_module_name(module, where, None)  # public parts, not the standard library
+    if not under(module, allowed_modules()):
         raise ValueError(_ways_to_allow(where, module))
-    try:
-        mod = importlib.import_module(module)
-    except Exception as exc:  # ModuleNotFoundError, or the module's own failure
+    fn = reach(module, attr, where, allowed_modules())
+    if backend == "torchrl" and inspect.isclass(fn) and not issubclass(fn, EnvBase):
         raise ValueError(
-            f"{where}: module {module!r} could not be imported ({type(exc).__name__}: "
-            f"{first_line(exc)}); install the package (pip install -e PATH) or fix PYTHONPATH"
-        ) from None
-    fn = mod
-    for part in attr.split("."):
-        owner, fn = fn, getattr(fn, part, None)
-        if fn is None:
-            import difflib
-
-            close = difflib.get_close_matches(part, [n for n in dir(owner) if n[:1] != "_"], n=1)
-            hint = f"; did you mean {close[0]!r}?" if close else ""
-            raise ValueError(f"{where}: module {module!r} has no attribute {attr!r}{hint}")
-    if not callable(fn):
-        raise ValueError(f"{where}: {attr!r} is a {type(fn).__name__}, not a callable")
+            f"{where}: {module}.{attr} is a class but not a TorchRL EnvBase; name an EnvBase "
+            "subclass or a function that returns one"
+        )
     return fn
 
 
@@ -167,6 +155,10 @@ def make_batched_env(cfg: EnvConfig, num_envs: int, seed: int) -> EnvBase:
             f"an env.backend={cfg.backend} env keeps its own time limit (pass it in env.kwargs)"
         )
     fn = resolve_env_factory(cfg.name, cfg.backend)
+    for key, value in strings_in(cfg.kwargs or {}):  # torchrl.envs:GymEnv's env_name='mod:Id'
+        module = module_of(value)
+        if module is not None:
+            check_module_name(module, f"{where}: env.kwargs.{key}={value!r}", None)
     device = resolve_env_device(cfg.device)
     kwargs, takes_count = factory_arguments(fn, cfg, num_envs, device, seed)
     try:

@@ -38,6 +38,13 @@ def check_gym_id(env_id: str) -> None:
         module, name = env_id.split(":", 1)
         import importlib
 
+        from rlexp.registry import check_module_name
+
+        try:  # before importing: no private part, no standard-library module ("this", "os")
+            check_module_name(module, f"env.name={env_id!r}", None)
+        except ValueError as exc:
+            raise KeyError(str(exc)) from None
+
         try:
             importlib.import_module(module)
         except Exception as exc:  # ModuleNotFoundError, or the module's own failure

@@ -74,8 +74,9 @@ def register_event(
 
 def allow_event_module(prefix: str) -> None:
     """Let configs name event functions by dotted path under ``prefix`` (from Python code only)."""
+    prefix = prefix if prefix.endswith(".") else prefix + "."
     if prefix not in _ALLOWED_MODULES:
-        _ALLOWED_MODULES.append(prefix if prefix.endswith(".") else prefix + ".")
+        _ALLOWED_MODULES.append(prefix)
 
 
 @dataclass

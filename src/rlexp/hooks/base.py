@@ -72,8 +72,9 @@ def register_hook(
 
 def allow_hook_module(prefix: str) -> None:
     """Let configs name hooks by dotted path under ``prefix`` (from Python code only)."""
+    prefix = prefix if prefix.endswith(".") else prefix + "."
     if prefix not in _ALLOWED_MODULES:
-        _ALLOWED_MODULES.append(prefix if prefix.endswith(".") else prefix + ".")
+        _ALLOWED_MODULES.append(prefix)
 
 
 @dataclass(frozen=True)

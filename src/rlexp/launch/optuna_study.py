@@ -97,6 +97,16 @@ def _check_targets(key: str, node: Any) -> None:
                 f"{key}._target_={target!r}: must be inside {list(ALLOWED_TARGETS)} "
                 "(a config may not import arbitrary code)"
             )
+        if target is not None:  # and reach only a class Optuna defines there (rlexp.registry)
+            from rlexp.registry import reach
+
+            module, _, name = str(target).rpartition(".")
+            try:
+                found = reach(module, name, f"{key}._target_={target!r}", ALLOWED_TARGETS)
+            except ValueError as exc:
+                raise StudyConfigError(str(exc)) from None
+            if not isinstance(found, type):
+                raise StudyConfigError(f"{key}._target_={target!r}: not a sampler or pruner class")
         for k, v in node.items():
             _check_targets(f"{key}.{k}", v)
     elif isinstance(node, list):

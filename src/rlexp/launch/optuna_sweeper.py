@@ -30,7 +30,6 @@ Here:
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import math
@@ -219,13 +218,14 @@ def check_spec(sweeper: Any, arguments: Sequence[str]) -> SweepSpec:
         spec.grid = {k: optuna_space.grid_choices(k, d) for k, d in dists.items()}
     custom = get("custom_search_space")
     if custom:
+        from rlexp.registry import reach
+
         module, _, name = str(custom).rpartition(".")
-        try:
-            spec.custom = getattr(importlib.import_module(module), name)
-        except (ImportError, AttributeError, ValueError) as exc:
-            raise StudyConfigError(
-                f"hydra.sweeper.custom_search_space={custom!r} cannot be imported: {exc}"
-            ) from None
+        where = f"hydra.sweeper.custom_search_space={custom!r}"
+        try:  # the user's own module (not the standard library's), a function defined there
+            spec.custom = reach(module, name, where, None)
+        except ValueError as exc:
+            raise StudyConfigError(str(exc)) from None
     return spec
 
 
