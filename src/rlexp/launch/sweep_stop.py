@@ -154,6 +154,11 @@ def launch_stoppable(launch: Callable[[], T], joblib_kwargs: dict[str, Any], swe
             returns = None  # joblib gave up on a job after the stop: what is left is on disk
     if stop.signum is None:
         return returns  # type: ignore[return-value]
+    exit_stopped(sweep_dir, stop)
+
+
+def exit_stopped(sweep_dir: str, stop: ParentStop) -> None:
+    """The sweep was stopped by a signal: one line, exit 128 + N (its summary is not printed)."""
     log.error(
         "sweep %s stopped by %s: its running jobs saved a checkpoint and say interrupted; run the "
         "same command again to resume them",
