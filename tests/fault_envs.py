@@ -26,7 +26,7 @@ def _raise(what: str) -> None:
     if what == "keyboard":
         raise KeyboardInterrupt
     if what == "memory":
-        np.zeros((2**40, 2**20), dtype=np.float64)  # numpy's _ArrayMemoryError (shape, dtype)
+        np.zeros((2**24, 2**24), dtype=np.float64)  # numpy's _ArrayMemoryError (shape, dtype)
     raise RuntimeError(f"unknown raise_what {what!r}")
 
 

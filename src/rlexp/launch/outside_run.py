@@ -37,6 +37,11 @@ SHUTDOWN_GRACE_S = 30.0
 _STATE: dict[str, Any] = {"final": False, "pending": None, "code": 0, "sweep": False}
 
 
+class SignalInterrupt(KeyboardInterrupt):
+    """The ``KeyboardInterrupt`` rlexp's own SIGINT handlers raise: a real Ctrl-C, told apart from
+    one that user code raises (``rlexp.user_code``)."""
+
+
 def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
@@ -59,7 +64,7 @@ def _set_handlers() -> None:
 def _handle(signum: int, frame: Any) -> None:
     if not _STATE["final"]:  # start-up: nothing to save yet
         if signum == signal.SIGINT:
-            raise KeyboardInterrupt
+            raise SignalInterrupt
         signal.signal(signum, signal.SIG_DFL)  # SIGTERM / SIGHUP: their default action, as before
         os.kill(os.getpid(), signum)
         return
