@@ -5,7 +5,7 @@ a step counter; what goes wrong is chosen by its kwargs.
 - ``Walk-v0``: ``kill_at=N`` SIGKILLs its own process at its N-th step (as the OOM killer would),
   once per ``marker`` file; ``exit_at=N`` raises ``raise_what`` (``exit0``: ``sys.exit(0)``,
   ``keyboard``: ``KeyboardInterrupt``, ``memory``: numpy's ``_ArrayMemoryError``) at its N-th step,
-  ``exit_in`` chooses ``step`` or ``reset``; ``bad_set_state``: ``set_state`` raises.
+  ``exit_in`` chooses ``step`` or ``reset``; ``bad_set_state`` (or ``FAULT_ENVS_BAD_SET_STATE=1``): ``set_state`` raises.
   ``endless``: episodes never end (registered without a time limit: ``Endless-v0``).
 """
 
@@ -76,7 +76,7 @@ class Walk(gym.Env):
         return {"x": self.x, "t": self.t}
 
     def set_state(self, state):
-        if self.bad_set_state:
+        if self.bad_set_state or os.environ.get("FAULT_ENVS_BAD_SET_STATE") == "1":
             raise ValueError("set_state: the saved walk does not fit this one")
         self.x, self.t = float(state["x"]), int(state["t"])
 

@@ -63,3 +63,82 @@ def test_an_error_in_the_overlap_child_names_its_type_message_and_place(tmp_path
     assert reason.startswith(head), reason
     assert f"(raised in _raise() at {FAULT_ENVS}:" in reason
     assert "Traceback" not in out, out[-3000:]
+
+
+# -- item 5: SystemExit / KeyboardInterrupt raised by user code ---------------------------------
+@pytest.mark.parametrize(
+    ("where", "what", "shown"),
+    [
+        ("step", "exit0", "SystemExit(0)"),
+        ("reset", "exit0", "SystemExit(0)"),
+        ("step", "keyboard", "KeyboardInterrupt"),
+    ],
+)
+def test_user_code_that_exits_or_interrupts_mid_run_fails_with_one_line_naming_it(
+    tmp_path, where, what, shown
+):
+    # reset: the 3rd reset (the first is the config check's, the 2nd the run's first): mid-run
+    at = 300 if where == "step" else 3
+    run_dir, code, out = _train(
+        tmp_path, f"+env.kwargs.exit_at={at}", f"+env.kwargs.exit_in={where}",
+        f"+env.kwargs.raise_what={what}", "+env.kwargs.episode=5",
+    )  # fmt: skip
+    assert code == 1, out[-3000:]
+    status = _status(run_dir)
+    assert status["state"] == "failed", status
+    assert f"user code raised {shown} (raised in _raise() at {FAULT_ENVS}:" in status["reason"]
+    assert "in the training loop" in status["reason"]
+    assert "Traceback" not in out, out[-3000:]
+    assert status["reason"].splitlines() == [status["reason"]]
+
+
+def test_sys_exit_at_the_env_modules_import_is_a_config_error_naming_it(tmp_path):
+    (tmp_path / "exits_on_import.py").write_text("import sys\nsys.exit(0)\n")
+    run_dir = tmp_path / "run"
+    proc = run_train(
+        [*RUN[:1], "env.name=exits_on_import:Walk-v0", *RUN[2:], f"hydra.run.dir={run_dir}"],
+        cwd=tmp_path, check=False, timeout=300,
+        env_extra={"PYTHONPATH": f"{REPO / 'src'}{os.pathsep}{tmp_path}"},
+    )  # fmt: skip
+    err = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert len(err) == 1 and "user code raised SystemExit(0)" in err[0], err
+    assert f"at {tmp_path / 'exits_on_import.py'}:2" in err[0]
+    assert not run_dir.exists()
+
+
+def test_a_sweep_goes_on_after_a_job_whose_env_exits(tmp_path):
+    sweep = tmp_path / "sweep"
+    proc = run_train(
+        ["-m", *RUN, "+env.kwargs.exit_at=300,0", f"hydra.sweep.dir={sweep}"],
+        cwd=tmp_path, check=False, env_extra=PYPATH, timeout=400,
+    )  # fmt: skip
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 1, out[-3000:]
+    assert _status(sweep / "0")["state"] == "failed"
+    assert "user code raised SystemExit(0)" in _status(sweep / "0")["reason"]
+    assert _status(sweep / "1")["state"] == "finished", out[-3000:]
+    assert f"sweep {sweep}: 1 of 2 jobs finished; 1 failed" in out
+
+
+# -- item 6: set_state raising on resume --------------------------------------------------------
+def test_set_state_raising_on_resume_is_one_line_exit_2_and_the_status_no_longer_finished(
+    tmp_path,
+):
+    run_dir, code, out = _train(tmp_path, "trainer.total_frames=256")
+    assert code == 0 and _status(run_dir)["state"] == "finished", out[-3000:]
+    proc = run_train(
+        [*RUN, f"hydra.run.dir={run_dir}", "trainer.total_frames=512"],
+        cwd=tmp_path, check=False, timeout=300,
+        env_extra={**PYPATH, "FAULT_ENVS_BAD_SET_STATE": "1"},
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    out = proc.stdout + proc.stderr
+    err = [ln for ln in out.splitlines() if "set_state() raised" in ln]
+    assert len(err) == 1, out
+    assert "env.name='fault_envs:Walk-v0': its set_state() raised while resuming" in err[0]
+    assert "ValueError: set_state: the saved walk does not fit this one" in err[0]
+    assert "Traceback" not in proc.stdout + proc.stderr
+    status = _status(run_dir)
+    assert status["state"] == "failed" and status["exit_code"] == 2
+    assert "set_state()" in status["reason"] and status["global_step"] == 256
