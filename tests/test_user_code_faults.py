@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -142,3 +144,41 @@ def test_set_state_raising_on_resume_is_one_line_exit_2_and_the_status_no_longer
     status = _status(run_dir)
     assert status["state"] == "failed" and status["exit_code"] == 2
     assert "set_state()" in status["reason"] and status["global_step"] == 256
+
+
+# -- item 7: episodes that never end ------------------------------------------------------------
+def test_an_eval_episode_that_never_ends_is_cut_at_the_bound_and_counted():
+    """Two copies, three episodes (quotas 2 and 1), a bound of 4 steps: copy 0 ends every 2 steps,
+    copy 1 never does and is cut at its 4th step. By hand: returns [2, 2, 8], lengths [2, 2, 4]."""
+    import numpy as np
+
+    from rlexp.evaluation import EpisodeTally
+
+    tally = EpisodeTally(2, 3, max_steps=4)
+    for step in range(1, 5):
+        tally.add(np.array([1.0, 2.0]), np.array([step % 2 == 0, False]), None)
+    assert tally.finished and tally.cut == 1
+    assert tally.returns == [2.0, 2.0, 8.0] and tally.lengths == [2, 2, 4]
+    assert tally.metrics()["eval/episode_return"] == pytest.approx(4.0)
+
+
+@pytest.mark.slow
+def test_a_run_and_rlexp_eval_of_an_env_without_end_finish_with_one_warning(tmp_path):
+    """fault_envs:Endless-v0 (no time limit, episodes never end): the run's eval rounds and
+    ``rlexp eval`` end after MAX_EPISODE_STEPS steps per episode, each with one warning."""
+    from rlexp.evaluation import MAX_EPISODE_STEPS
+
+    args = ["env.name=fault_envs:Endless-v0", "trainer.total_frames=256", "trainer.eval_every=256",
+            "trainer.eval_episodes=1", "env.num_eval_envs=1", "trainer.eval_async=false"]  # fmt: skip
+    run_dir, code, out = _train(tmp_path, *args)
+    assert code == 0, out[-3000:]
+    warning = f"ran {MAX_EPISODE_STEPS} steps without ending and were cut there"
+    assert out.count(warning) == 1 and "env.max_episode_steps=N" in out
+    assert _status(run_dir)["final_eval"]["eval/episode_length"] == MAX_EPISODE_STEPS
+    proc = subprocess.run(
+        [sys.executable, "-m", "rlexp", "eval", str(run_dir), "--episodes", "2"],
+        capture_output=True, text=True, timeout=300, env={**os.environ, **PYPATH},
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "2 of 2 eval episodes of fault_envs:Endless-v0 " + warning in proc.stderr
+    assert "over 2 episodes" in proc.stdout
