@@ -6,6 +6,7 @@ a step counter; what goes wrong is chosen by its kwargs.
   once per ``marker`` file; ``exit_at=N`` raises ``raise_what`` (``exit0``: ``sys.exit(0)``,
   ``keyboard``: ``KeyboardInterrupt``, ``memory``: numpy's ``_ArrayMemoryError``) at its N-th step,
   ``exit_in`` chooses ``step`` or ``reset``; ``bad_set_state`` (or ``FAULT_ENVS_BAD_SET_STATE=1``): ``set_state`` raises.
+  ``interrupt_marker``: its 2nd construction gets a Ctrl-C and fails (a build that a Ctrl-C broke).
   ``endless``: episodes never end (registered without a time limit: ``Endless-v0``).
 """
 
@@ -41,7 +42,13 @@ class Walk(gym.Env):
         bad_set_state: bool = False,
         endless: bool = False,
         episode: int = 20,
+        interrupt_marker: str = "",
     ) -> None:
+        if interrupt_marker:  # the 1st build (the config check) passes, the 2nd is interrupted
+            if os.path.exists(interrupt_marker):
+                os.kill(os.getpid(), signal.SIGINT)  # the terminal's Ctrl-C reached this process
+                raise RuntimeError("a worker the Ctrl-C reached died (simulated)")
+            open(interrupt_marker, "w").close()
         self.observation_space = spaces.Box(-np.inf, np.inf, (3,), np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, (1,), np.float32)
         self.kill_at, self.marker = int(kill_at), str(marker)

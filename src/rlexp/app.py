@@ -171,9 +171,12 @@ def _train_locked(
             diffs = config_differences(ckpt["config"], config_dict, ignore=RESUME_MAY_CHANGE)
             if diffs:
                 log.warning("resuming %s with a different config (%s)", t.resume, ", ".join(diffs))
-    except ConfigError:
-        raise
     except Exception as exc:
+        if stops.requested:  # a Ctrl-C that broke the build (a worker it reached): a stop, 128+N
+            raise RunEnded(f"interrupted ({stops.reason()}) while the run was built: nothing "
+                           "trained", EXIT_SIGNAL_BASE + (stops.signum or 2)) from None  # fmt: skip
+        if isinstance(exc, ConfigError):
+            raise
         raise ConfigError(f"the run cannot be built from this config: {first_line(exc)}") from None
     if objects.device != device:  # auto, decided from the env: the saved config records it
         device = t.device = objects.device
