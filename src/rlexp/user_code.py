@@ -9,7 +9,7 @@ runs user code (the config check's and the run's build, the training loop, ``rle
 episodes) and turns them into :class:`UserCodeExit`, an ``Exception``.
 
 A real Ctrl-C is not user code: rlexp's own signal handlers raise :class:`SignalInterrupt`
-(``launch/outside_run.py``, ``launch/signals.py``), which passes through untouched, as does a
+(``launch/entry.py``), which passes through untouched, as does a
 ``KeyboardInterrupt`` while Python's default SIGINT handler is in place (there it may be the
 terminal's).
 """
@@ -20,7 +20,7 @@ import signal
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from rlexp.launch.outside_run import SignalInterrupt
+from rlexp.launch.entry import SignalInterrupt
 
 
 class UserCodeExit(RuntimeError):

@@ -24,6 +24,8 @@ import sys
 import threading
 from typing import Any
 
+from rlexp.launch.entry import SignalInterrupt
+
 log = logging.getLogger(__name__)
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -35,11 +37,6 @@ SHUTDOWN_GRACE_S = 30.0
 #: ``final``: a run's final status is written; ``pending``: a stop signal that came after it;
 #: ``code``: the exit code that status implies (None: unknown); ``sweep``: this process runs a sweep.
 _STATE: dict[str, Any] = {"final": False, "pending": None, "code": 0, "sweep": False}
-
-
-class SignalInterrupt(KeyboardInterrupt):
-    """The ``KeyboardInterrupt`` rlexp's own SIGINT handlers raise: a real Ctrl-C, told apart from
-    one that user code raises (``rlexp.user_code``)."""
 
 
 def _main_thread() -> bool:

@@ -21,7 +21,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, Protocol
 
-from rlexp.launch.outside_run import SignalInterrupt
+from rlexp.launch.entry import SignalInterrupt
 
 log = logging.getLogger(__name__)
 
