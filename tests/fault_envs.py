@@ -7,6 +7,7 @@ a step counter; what goes wrong is chosen by its kwargs.
   ``keyboard``: ``KeyboardInterrupt``, ``memory``: numpy's ``_ArrayMemoryError``) at its N-th step,
   ``exit_in`` chooses ``step`` or ``reset``; ``bad_set_state`` (or ``FAULT_ENVS_BAD_SET_STATE=1``): ``set_state`` raises.
   ``interrupt_marker``: its 2nd construction gets a Ctrl-C and fails (a build that a Ctrl-C broke).
+  ``FAULT_ENVS_EXIT_IN_RESET=1``: every ``reset`` calls ``sys.exit(0)``.
   ``endless``: episodes never end (registered without a time limit: ``Endless-v0``).
 """
 
@@ -62,6 +63,8 @@ class Walk(gym.Env):
     def reset(self, *, seed=None, options=None):
         super().reset(seed=seed)
         self.resets += 1
+        if os.environ.get("FAULT_ENVS_EXIT_IN_RESET") == "1":
+            sys.exit(0)
         if self.exit_in == "reset" and self.exit_at and self.resets >= self.exit_at:
             _raise(self.raise_what)
         self.x, self.t = float(self.np_random.uniform(-0.5, 0.5)), 0

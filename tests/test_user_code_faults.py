@@ -182,3 +182,17 @@ def test_a_run_and_rlexp_eval_of_an_env_without_end_finish_with_one_warning(tmp_
     assert proc.returncode == 0, proc.stderr
     assert "2 of 2 eval episodes of fault_envs:Endless-v0 " + warning in proc.stderr
     assert "over 2 episodes" in proc.stdout
+
+
+def test_rlexp_eval_of_an_env_that_exits_is_one_line_and_exit_1(tmp_path):
+    run_dir, code, out = _train(tmp_path, "trainer.total_frames=128")
+    assert code == 0, out[-3000:]
+    proc = subprocess.run(
+        [sys.executable, "-m", "rlexp", "eval", str(run_dir), "--episodes", "1"],
+        capture_output=True, text=True, timeout=300,
+        env={**os.environ, **PYPATH, "FAULT_ENVS_EXIT_IN_RESET": "1"},
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    err = proc.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("rlexp eval: "), proc.stderr
+    assert f"user code raised SystemExit(0) (raised in reset() at {FAULT_ENVS}:" in err[0]
