@@ -20,7 +20,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from rlexp import _speedups
+from rlexp import _speedups, run_end
 from rlexp.build import seed_everything
 from rlexp.config.rules import first_line
 from rlexp.config.schema import RootConfig, register_configs
@@ -48,6 +48,7 @@ from rlexp.rundir import (
     write_run_files,
     write_status,
 )
+from rlexp.user_code import user_code_exits
 
 log = logging.getLogger(__name__)
 
@@ -161,7 +162,8 @@ def _train_locked(
     from rlexp.build import build
 
     try:
-        objects = build(config, run_dir, device, total)
+        with user_code_exits("the run's build"):
+            objects = build(config, run_dir, device, total)
         if ckpt is not None:
             check_checkpoint_fits(ckpt, config, objects.policy)
         elif t.resume not in ("auto", "never", ""):
@@ -169,9 +171,12 @@ def _train_locked(
             diffs = config_differences(ckpt["config"], config_dict, ignore=RESUME_MAY_CHANGE)
             if diffs:
                 log.warning("resuming %s with a different config (%s)", t.resume, ", ".join(diffs))
-    except ConfigError:
-        raise
     except Exception as exc:
+        if stops.requested:  # a Ctrl-C that broke the build (a worker it reached): a stop, 128+N
+            raise RunEnded(f"interrupted ({stops.reason()}) while the run was built: nothing "
+                           "trained", EXIT_SIGNAL_BASE + (stops.signum or 2)) from None  # fmt: skip
+        if isinstance(exc, ConfigError):
+            raise
         raise ConfigError(f"the run cannot be built from this config: {first_line(exc)}") from None
     if objects.device != device:  # auto, decided from the env: the saved config records it
         device = t.device = objects.device
@@ -193,10 +198,23 @@ def _train_locked(
         logger = MetricLogger([])
     trainer = objects.trainer(logger, config_dict, versions(), _eval_async(config, total, jobs))
     if ckpt is not None:
-        trainer.load_state_dict(ckpt)
+        _load(trainer, ckpt, run_dir)
     stops.attach(trainer)  # SIGINT / SIGTERM / SIGHUP: checkpoint at the end of the iteration
     install_preemption_handler(trainer)  # under SLURM: the preemption signal checkpoints, requeues
     return _run(trainer, run_dir, total, stops, ckpt)
+
+
+def _load(trainer: Any, ckpt: dict, run_dir: Path) -> None:
+    """Continue from ``ckpt``; the env's ``set_state`` raising is one line, exit 2, and
+    ``status.json`` says ``failed`` with it (it must not keep saying the run finished)."""
+    from rlexp.loop import EnvRestoreError
+
+    try:
+        trainer.load_state_dict(ckpt)
+    except EnvRestoreError as exc:
+        trainer.close()
+        write_status(run_dir, "failed", int(ckpt["global_step"]), reason=str(exc), exit_code=2)
+        raise ConfigError(str(exc)) from None
 
 
 def _run(
@@ -229,9 +247,10 @@ def _run(
             raise StopRequested(stops.reason())  # a signal during the build: nothing to save yet
         check_checkpoints_writable(trainer.ckpt_dir, trainer.cfg.exp_name)  # not at the 1st save
         _speedups.training_gc()  # the GC walks only what training creates from here on
-        trainer.train(total)
-        if trainer.eval_env is not None and not trainer.last_eval:
-            trainer.eval_once()
+        with user_code_exits("the training loop"):  # sys.exit() in an env: failed (user_code.py)
+            trainer.train(total)
+            if trainer.eval_env is not None and not trainer.last_eval:
+                trainer.eval_once()
         if trainer.stopped_early is not None:  # a hook ended it: a result, not a failure (exit 0)
             status(
                 "stopped_early",
@@ -267,15 +286,15 @@ def _run(
     except OSError as exc:  # an unwritable checkpoints/, a full disk
         where = f" ({exc.filename})" if exc.filename else ""
         reason = f"{exc.strerror or exc}{where}; {last_good()}"
-        _try_write_status(run_dir, trainer, reason)
+        run_end.try_write_status(run_dir, trainer, reason)
         raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
     except Exception as exc:  # a bug or a library failure mid-run: keep what can be kept
-        saved = _save_at_safe_point(trainer)
-        trace = _write_traceback(run_dir)
+        saved = run_end.save_at_safe_point(trainer)
+        trace = run_end.write_traceback(run_dir)
         reason = f"{type(exc).__name__}: {first_line(exc)} (traceback in {trace}); {last_good()}"
         if saved:
             reason += " (written at the end of the last complete update)"
-        _try_write_status(run_dir, trainer, reason)
+        run_end.try_write_status(run_dir, trainer, reason)
         raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
     finally:
         watchdog.ended = True  # status.json says how it ended: past the grace, only exit
@@ -302,39 +321,6 @@ def _eval_async(config: RootConfig, total: int, jobs: int) -> bool:
     choice = str(config.trainer.eval_async).lower()
     log.info("[eval] trainer.eval_async=%s -> %s: %s", choice, "on" if on else "off", why)
     return on
-
-
-def _save_at_safe_point(trainer: Any) -> bool:
-    """After a failure between an update and the end of its iteration (eval, an event, logging),
-    the policy and optimiser are consistent: save them so the work of that update is not lost."""
-    if not trainer.safe_point or not trainer.dist.is_main:
-        return False
-    try:
-        trainer.save_checkpoint()
-        return True
-    except Exception as exc:
-        log.error("could not save a checkpoint after the failure: %s", first_line(exc))
-        return False
-
-
-def _write_traceback(run_dir: Path) -> Path:
-    """The full traceback of the exception being handled, into ``<run_dir>/error.log``."""
-    import traceback
-
-    path = run_dir / "error.log"
-    try:
-        with open(path, "a") as f:
-            f.write(traceback.format_exc())
-    except OSError:
-        pass
-    return path
-
-
-def _try_write_status(run_dir: Path, trainer: Any, reason: str) -> None:
-    try:
-        write_status(run_dir, "failed", trainer.global_step, trainer.last_eval, reason=reason)
-    except OSError as exc:
-        log.error("could not write %s: %s", run_dir / "status.json", exc)
 
 
 #: Set by ``main`` once the command line passed ``precheck`` (a single run): the job need not build

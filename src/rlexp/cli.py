@@ -365,11 +365,17 @@ def _eval_or_export(args: argparse.Namespace) -> None:
     """``rlexp eval`` / ``rlexp export``: the result printed, or one line and exit 2 (3: NaN)."""
     _check_gl()
     _load_plugins_or_exit(f"rlexp {args.command}")  # the checkpoint's task may be a plugin's
+    from rlexp.user_code import UserCodeExit, user_code_exits
+
     try:
-        print(_eval(args) if args.command == "eval" else _export(args))
+        with user_code_exits(f"rlexp {args.command}"):  # sys.exit() in the env: exit 1, one line
+            print(_eval(args) if args.command == "eval" else _export(args))
     except (FileNotFoundError, ValueError) as exc:
         print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
         sys.exit(2)
+    except UserCodeExit as exc:
+        print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
+        sys.exit(1)
     except FloatingPointError as exc:  # NonFiniteError: NaN/Inf weights (not imported: slow)
         print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
         sys.exit(3)

@@ -14,6 +14,7 @@ without a task spec saying otherwise); Gymnasium's MuJoCo tasks define none.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -25,14 +26,26 @@ from torchrl.envs import EnvBase
 from rlexp.collector import devices, supports_fast_rollout
 from rlexp.loop import base_env
 
+log = logging.getLogger(__name__)
+
+
+#: The longest eval episode: one that has not ended after this many steps (an env without a time
+#: limit whose episodes never end) is cut there and counted as a truncated episode, with one
+#: warning; an eval round, and ``rlexp eval``, always ends. Far above any time limit in use
+#: (MuJoCo 1,000, Atari 27,000 agent steps).
+MAX_EPISODE_STEPS = 100_000
+
 
 class EpisodeTally:
     """Per-copy running returns, lengths and success, kept for each copy's first ``quota`` episodes
     (the copies' quotas sum to ``episodes`` and differ by at most one), so copies whose episodes
-    end early do not contribute more of them."""
+    end early do not contribute more of them. An episode still running after ``max_steps`` steps
+    is cut there (``cut`` counts them; the copy's next episode continues where it was)."""
 
-    def __init__(self, num_copies: int, episodes: int) -> None:
+    def __init__(self, num_copies: int, episodes: int, max_steps: int = MAX_EPISODE_STEPS) -> None:
         n = num_copies
+        self.max_steps = max_steps
+        self.cut = 0
         self.quota = np.full(n, episodes // n)
         self.quota[: episodes % n] += 1
         self.done_count = np.zeros(n, dtype=np.int64)
@@ -57,6 +70,10 @@ class EpisodeTally:
         if success is not None:
             self.tracks_success = True
             np.maximum(self.ep_success, success, out=self.ep_success)
+        if self.ep_len.max() >= self.max_steps:  # an episode that never ends: cut it here
+            long = (self.ep_len >= self.max_steps) & ~done.astype(bool)
+            self.cut += int((long & (self.done_count < self.quota)).sum())
+            done = done.astype(bool) | long
         if not done.any():
             return
         for i in np.flatnonzero(done):
@@ -166,6 +183,7 @@ def run_episodes(
     on_step: Callable[[TensorDictBase], None] | None = None,
     on_reset: Callable[[TensorDictBase], TensorDictBase] | None = None,
     lean: bool | None = None,
+    max_steps: int = MAX_EPISODE_STEPS,
 ) -> dict[str, float]:
     """Run ``episodes`` episodes spread evenly over the env's copies (each copy's first ones, so
     short episodes are not favoured); returns mean/std return, mean length and success rate.
@@ -173,7 +191,8 @@ def run_episodes(
     ``on_reset`` sees (and may replace) the first tensordict after the env's reset; ``on_step``
     sees each step's tensordict after the policy acted, before the env steps (it needs TorchRL's
     loop). ``lean``: None picks the lean loop where it applies; False forces TorchRL's loop (the
-    reference the lean one is tested against); True insists on the lean loop.
+    reference the lean one is tested against); True insists on the lean loop. ``max_steps``: an
+    episode not ended after that many steps is cut there, with one warning (``EpisodeTally``).
     """
     usable = on_step is None and supports_fast_rollout(env, policy)
     if lean and not usable:
@@ -181,7 +200,7 @@ def run_episodes(
             "run_episodes(lean=True) needs an rlexp env without transforms, rlexp's sampling "
             "policy and no on_step callback"
         )
-    tally = EpisodeTally(int(env.batch_size.numel()), episodes)
+    tally = EpisodeTally(int(env.batch_size.numel()), episodes, max_steps)
     td = env.reset()
     if on_reset is not None:
         td = on_reset(td)
@@ -189,6 +208,14 @@ def run_episodes(
         _lean_loop(env, policy, td.get("observation"), tally)
     else:
         _torchrl_loop(env, policy, td, tally, on_step)
+    if tally.cut:
+        name = getattr(base_env(env), "env_id", type(base_env(env)).__name__)
+        log.warning(
+            "[eval] %d of %d eval episodes of %s ran %d steps without ending and were cut there "
+            "(counted as truncated): the env has no time limit; give it one with "
+            "env.max_episode_steps=N",
+            tally.cut, episodes, name, tally.max_steps,
+        )  # fmt: skip
     return tally.metrics()
 
 

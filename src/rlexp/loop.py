@@ -14,6 +14,7 @@ from torchrl.envs import EnvBase
 
 from rlexp.algorithms.base import NonFiniteError
 from rlexp.launch.distributed import DistInfo, all_gather_object, all_reduce_sum
+from rlexp.user_code import describe, user_code_exits
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +89,10 @@ def envs_state(env: EnvBase | None) -> dict:
     return {"envs": envs, "observation_layout": None if layout is None else layout.record()}
 
 
+class EnvRestoreError(RuntimeError):
+    """The env's ``set_state`` raised on resume (the message is the one line to show)."""
+
+
 def restore_envs(env: EnvBase | None, sd: dict, is_main: bool) -> str | None:
     """Put the training envs back as checkpoint ``sd`` holds them (rank 0's; other ranks continue
     with fresh episodes): what happened (restored, or new episodes, and why), or None. ValueError
@@ -98,7 +103,21 @@ def restore_envs(env: EnvBase | None, sd: dict, is_main: bool) -> str | None:
     base = base_env(env)
     if not (is_main and "train" in sd.get("envs", {}) and hasattr(base, "load_env_state")):
         return None
-    base.load_env_state(sd["envs"]["train"])
+    try:
+        with user_code_exits("set_state"):
+            base.load_env_state(sd["envs"]["train"])
+    except Exception as exc:  # the env's own set_state (or its restore) failed: one line, exit 2
+        name = getattr(base, "env_id", type(base).__name__)
+        part = (
+            "its set_state()"
+            if getattr(base, "state_kind", "state") == "state"
+            else (f"restoring its {getattr(base, 'state_kind', '')} state")
+        )
+        raise EnvRestoreError(
+            f"env.name={name!r}: {part} raised while resuming from checkpoint "
+            f"{sd.get('path')}: {describe(exc)}; fix the env's set_state(), or start the run in a "
+            "new hydra.run.dir"
+        ) from None
     mode = getattr(base, "resume_mode", None) or "restored"
     log.info("[resume] training envs: %s", mode)
     return mode

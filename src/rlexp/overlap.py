@@ -41,6 +41,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from rlexp import loop
+from rlexp.user_code import describe
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +73,8 @@ def pending_rollout(collector: Any, resumed: dict[str, Any] | None) -> dict[str,
 
 
 class CollectionError(RuntimeError):
-    """The collection process failed (its traceback is the message) or died."""
+    """The collection process failed or died. The first line of the message says what was raised
+    there (its type and message); the child's traceback follows (``error.log``)."""
 
 
 class OverlapCollector:
@@ -181,7 +183,10 @@ class OverlapCollector:
                 f"the collection process {self.pid} died (algorithm.overlap=true; {exc!r})"
             ) from None
         if status == "error":
-            raise CollectionError(f"in the collection process (algorithm.overlap=true):\n{value}")
+            what, trace = value
+            raise CollectionError(
+                f"in the collection process (algorithm.overlap=true): {what}\n{trace}"
+            )
         return value
 
 
@@ -214,8 +219,8 @@ def _serve(conn: Any, collector: Any, policy: torch.nn.Module, parent: int) -> N
             else:  # "observation"
                 reply = collector.next_observation()
             out = pickle.dumps(("ok", reply), protocol=pickle.HIGHEST_PROTOCOL)
-        except Exception:
-            out = pickle.dumps(("error", traceback.format_exc()))
+        except BaseException as exc:  # SIGINT is ignored here: user code's SystemExit too
+            out = pickle.dumps(("error", (describe(exc), traceback.format_exc())))
         try:
             conn.send_bytes(out)
         except OSError:

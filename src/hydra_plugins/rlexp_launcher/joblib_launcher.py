@@ -1,5 +1,7 @@
-"""``hydra/launcher=local``: hydra-joblib-launcher's launcher whose jobs stop as a single run does on
-Ctrl-C, SIGTERM or SIGHUP (``rlexp.launch.sweep_stop``)."""
+"""``hydra/launcher=local``: hydra-joblib-launcher's config, rlexp's job pool: each job in a process
+of its own, so one that dies (the OOM killer) never takes the others down
+(``rlexp.launch.job_pool``); its jobs stop as a single run does on Ctrl-C, SIGTERM or SIGHUP
+(``rlexp.launch.sweep_stop``)."""
 
 from __future__ import annotations
 
@@ -14,17 +16,13 @@ except ImportError:  # hydra-joblib-launcher missing: hydra/launcher=local fails
 
 
 class RlexpJoblibLauncher(JoblibLauncher):
-    """Runs a batch of jobs in joblib (loky) worker processes, ``n_jobs`` at a time. A stop signal
-    lets the running jobs save at their safe point, starts no new job, and exits 128 + N."""
+    """Runs a batch of jobs, each in a process of its own, ``n_jobs`` at a time; a job that dies
+    is recorded ``failed`` and the others go on. A stop signal lets the running jobs save at their
+    safe point, starts no new job, and exits 128 + N."""
 
     def launch(
         self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int
     ) -> Sequence[JobReturn]:
-        from rlexp.launch.sweep_stop import launch_stoppable
+        from rlexp.launch.job_pool import launch_jobs
 
-        sweep_dir = str(self.config.hydra.sweep.dir) if self.config is not None else "?"
-        return launch_stoppable(
-            lambda: super(RlexpJoblibLauncher, self).launch(job_overrides, initial_job_idx),
-            self.joblib,
-            sweep_dir,
-        )
+        return launch_jobs(self, job_overrides, initial_job_idx)

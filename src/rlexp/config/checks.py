@@ -17,7 +17,19 @@ log = logging.getLogger(__name__)
 
 
 def check_buildable(config: RootConfig) -> None:
-    """Build one env copy, the policy and the event managers; check a resume checkpoint against them."""
+    """Build one env copy, the policy and the event managers; check a resume checkpoint against them.
+    User code that exits or raises ``KeyboardInterrupt`` (at its import, in its env's constructor,
+    reset or step) is a config error like any other it raises (``rlexp.user_code``)."""
+    from rlexp.user_code import UserCodeExit, user_code_exits
+
+    try:
+        with user_code_exits(f"env.name={config.env.name!r} while the config was checked"):
+            _check_buildable(config)
+    except UserCodeExit as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _check_buildable(config: RootConfig) -> None:
     from rlexp.envs.factory import make_env
     from rlexp.events import EventManager
     from rlexp.extras import check_config

@@ -64,6 +64,13 @@ def available_cpus() -> int:
         return os.cpu_count() or 1
 
 
+def async_worker_cap() -> int:
+    """The most worker processes ``env.backend=gymnasium_async`` may start for one env (one per
+    copy, ~50 MB each): 4 per CPU this process may use, at least 64. Beyond, copies wait for CPUs
+    anyway and memory runs out (``env.num_envs=65536`` was accepted)."""
+    return max(64, 4 * available_cpus())
+
+
 @dataclass(frozen=True)
 class Rule:
     """``check(value)`` is True for a good value; ``text`` completes "must be ..."."""

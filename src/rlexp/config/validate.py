@@ -198,6 +198,7 @@ def validate(config: RootConfig) -> None:
                 )
             raise ConfigError(f"{key}={value!r} must be {rule.text}")
     # -- between fields --
+    _check_async_workers(e)
     if t.frames_per_batch % e.num_envs:
         raise ConfigError(
             f"trainer.frames_per_batch={t.frames_per_batch} must be a positive multiple of "
@@ -277,6 +278,22 @@ def validate(config: RootConfig) -> None:
     _check_render_mode(e.kwargs)
     _check_events(config)
     _check_hooks(config)
+
+
+def _check_async_workers(e: Any) -> None:
+    """``env.backend=gymnasium_async`` starts one process per copy: at most ``async_worker_cap()``."""
+    from rlexp.config.rules import async_worker_cap
+
+    if e.backend != "gymnasium_async":
+        return
+    cap = async_worker_cap()
+    for key, n in (("env.num_envs", e.num_envs), ("env.num_eval_envs", e.num_eval_envs)):
+        if n > cap:
+            raise ConfigError(
+                f"{key}={n} with env.backend=gymnasium_async would start {n} worker processes "
+                f"(one per copy); the cap here is {cap} (4 per CPU, at least 64): use {key}<={cap}, "
+                "or env.backend=gymnasium (every copy in the training process)"
+            )
 
 
 def _check_variants(config: RootConfig) -> None:

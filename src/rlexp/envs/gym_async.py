@@ -26,6 +26,7 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import signal
+import threading
 import weakref
 from collections.abc import Iterator
 
@@ -36,7 +37,7 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 from rlexp.config.rules import first_line
 from rlexp.envs.adapter import GymShapedEnv
 from rlexp.envs.gym_ids import check_gym_id, mujoco_build_warnings
-from rlexp.envs.gym_worker import make_worker_env
+from rlexp.envs.gym_worker import HELD_SIGNALS, WorkerEnvError, make_worker_env
 from rlexp.envs.spaces import action_coding, obs_layout
 
 log = logging.getLogger(__name__)
@@ -71,6 +72,23 @@ def default_start_method(method: str) -> Iterator[None]:
         multiprocessing.set_start_method(current, force=True)
 
 
+@contextlib.contextmanager
+def signals_held() -> Iterator[None]:
+    """While workers start: the stop signals blocked in this thread, so that the forkserver and
+    the workers start with them blocked (the mask is inherited). A Ctrl-C to the terminal's process
+    group before a worker has left that group (``make_worker_env``) used to kill it with
+    ``KeyboardInterrupt``, and the run failed as a config error (exit 2) instead of stopping (130);
+    now the training process takes it once the workers run."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 class WorkerError(RuntimeError):
     """A worker died or its env raised; the message is one line naming the env and the worker."""
 
@@ -96,8 +114,9 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         self._where = f"env.name={env_id!r} (env.backend=gymnasium_async)"
         method = start_method()
         # (AsyncVectorEnv builds one copy here for the spaces)
+        vec = None
         try:
-            with mujoco_build_warnings(env_id), default_start_method(method):
+            with mujoco_build_warnings(env_id), default_start_method(method), signals_held():
                 vec = AsyncVectorEnv(
                     [make] * num_envs,
                     shared_memory=True,
@@ -106,16 +125,18 @@ class AsyncGymnasiumEnv(GymShapedEnv):
                     daemon=True,
                     autoreset_mode=AutoresetMode.SAME_STEP,
                 )
-        except (EOFError, ConnectionError) as exc:  # (AsyncVectorEnv terminates the others)
-            raise WorkerError(
-                f"{self._where}: a worker failed to start ({exc!r}; its traceback is above)"
-            ) from None
-        try:
             obs_space, act_space, kind = self._guarded(vec, vec.call, "rlexp_info")[0]
             where = f"env.name={env_id!r}"
             layout, coding = obs_layout(obs_space, where), action_coding(act_space, where)
-        except BaseException:
-            shutdown(vec, graceful=False)
+        except (EOFError, ConnectionError) as exc:  # (AsyncVectorEnv terminates the others)
+            if vec is not None:
+                shutdown(vec, graceful=False)
+            raise WorkerError(
+                f"{self._where}: a worker failed to start ({exc!r}; its traceback is above)"
+            ) from None
+        except BaseException:  # (a Ctrl-C held while they started is taken here)
+            if vec is not None:
+                shutdown(vec, graceful=False)
             raise
         super().__init__(env_id, num_envs, layout, coding)
         self._vec = vec
@@ -133,7 +154,10 @@ class AsyncGymnasiumEnv(GymShapedEnv):
             shutdown(vec, graceful=False)
             if not isinstance(exc, Exception):
                 raise
-            message = f"{self._where}: a worker failed: {type(exc).__name__}: {first_line(exc)}"
+            what = first_line(exc)  # a WorkerEnvError's names the type already
+            if not isinstance(exc, WorkerEnvError):
+                what = f"{type(exc).__name__}: {what}"
+            message = f"{self._where}: a worker failed: {what}"
         shutdown(vec, graceful=False)
         raise WorkerError(f"{message}; all workers are closed") from None
 

@@ -9,7 +9,10 @@ No torch here: each worker imports this module, and torch would cost every worke
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import os
+import signal
 from typing import Any
 
 import gymnasium as gym
@@ -18,6 +21,51 @@ import numpy as np
 from rlexp.envs.env_state import copy_state, env_state_kind, restore_copy
 from rlexp.envs.gym_ids import mujoco_build_warnings
 from rlexp.envs.spaces import obs_layout
+from rlexp.user_code import describe
+
+#: Blocked while the workers start (``gym_async.signals_held``), unblocked in each worker.
+HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+class WorkerEnvError(RuntimeError):
+    """What user code raised in a worker, as one line (its type, message and place): an exception
+    class Gymnasium cannot rebuild from its value alone (numpy's ``_ArrayMemoryError`` wants a
+    shape and a dtype) came back as a garbled ``TypeError``, and ``SystemExit`` ended the worker."""
+
+
+def _die_with_parent(training_pid: int) -> None:
+    """Linux: SIGKILL this worker when its parent (the forkserver, or the training process) ends,
+    even where an env step hangs and the closed pipe is never read; gone already: exit now."""
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    try:
+        os.kill(training_pid, 0)
+    except ProcessLookupError:
+        os._exit(1)
+    except PermissionError:
+        pass
+    if os.getppid() != parent:  # the parent ended before the call: no signal will come
+        os._exit(1)
+
+
+def _plain_errors(fn: Any) -> Any:
+    """``fn``, with whatever it raises (``SystemExit`` and ``KeyboardInterrupt`` too) turned into
+    one :class:`WorkerEnvError` that pickles and rebuilds as it is."""
+
+    @functools.wraps(fn)
+    def wrapped(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except WorkerEnvError:
+            raise
+        except BaseException as exc:
+            raise WorkerEnvError(describe(exc)) from None
+
+    return wrapped
 
 
 def make_worker_env(env_id: str, kwargs: dict, parent_pid: int) -> WorkerEnv:
@@ -28,7 +76,12 @@ def make_worker_env(env_id: str, kwargs: dict, parent_pid: int) -> WorkerEnv:
         # A worker leads a process group of its own: Ctrl-C (SIGINT to the terminal's process
         # group) and ``kill -TERM -PGID`` are the training process's to handle; it finishes its
         # iteration, checkpoints and closes the workers. A worker still exits when its pipe closes.
+        # It started with the stop signals blocked (``gym_async.signals_held``): one that came
+        # before this point was meant for the training process; SIGINT stays ignored here.
         os.setpgrp()
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, HELD_SIGNALS)
+        _die_with_parent(parent_pid)
     if ":" not in env_id and env_id not in gym.registry:
         from rlexp.plugins import load_plugins
 
@@ -50,14 +103,17 @@ class WorkerEnv(gym.Wrapper):
         self.kind = env_state_kind(env)
         self._restored = False
 
+    @_plain_errors
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         obs, _ = self.env.reset(seed=seed, options=options or None)
         return self.layout.flatten(obs), {}
 
+    @_plain_errors
     def step(self, action: Any):
         obs, reward, terminated, truncated, _ = self.env.step(action)
         return self.layout.flatten(obs), reward, terminated, truncated, {}
 
+    @_plain_errors
     def rlexp_info(self) -> tuple[gym.Space, gym.Space, str]:
         """The env's own observation and action spaces and its ``state_kind``."""
         return self.env.observation_space, self.env.action_space, self.kind
@@ -76,10 +132,12 @@ class WorkerEnv(gym.Wrapper):
         return self._restored
 
     @rlexp_restore.setter
+    @_plain_errors
     def rlexp_restore(self, value: tuple[str, dict]) -> None:
         kind, entry = value
         self._restored = restore_copy(self.env, entry, kind)
 
+    @_plain_errors
     def rlexp_current_obs(self) -> np.ndarray:
         """The flattened observation of a MuJoCo env's current (restored) state."""
         return self.layout.flatten(self.env.unwrapped._get_obs())

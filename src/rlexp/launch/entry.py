@@ -26,6 +26,11 @@ EXIT_BAD_INPUT = 2  # rlexp.rundir.EXIT_CONFIG (not imported: this module stays 
 EXIT_SIGINT = 130
 
 
+class SignalInterrupt(KeyboardInterrupt):
+    """The ``KeyboardInterrupt`` rlexp's own SIGINT handlers raise (``outside_run``, ``signals``):
+    a real Ctrl-C, told apart from one that user code raises (``rlexp.user_code``)."""
+
+
 class EntryError(Exception):
     """A fault of the environment a check found; its message is the whole line."""
 

@@ -24,6 +24,8 @@ import sys
 import threading
 from typing import Any
 
+from rlexp.launch.entry import SignalInterrupt
+
 log = logging.getLogger(__name__)
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -59,7 +61,7 @@ def _set_handlers() -> None:
 def _handle(signum: int, frame: Any) -> None:
     if not _STATE["final"]:  # start-up: nothing to save yet
         if signum == signal.SIGINT:
-            raise KeyboardInterrupt
+            raise SignalInterrupt
         signal.signal(signum, signal.SIG_DFL)  # SIGTERM / SIGHUP: their default action, as before
         os.kill(os.getpid(), signum)
         return

@@ -21,6 +21,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, Protocol
 
+from rlexp.launch.entry import SignalInterrupt
+
 log = logging.getLogger(__name__)
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -61,7 +63,7 @@ class StopSignals:
         if _WORKER is not None:
             _WORKER.note(signum)  # no later job of the sweep starts in this process
         if self.signum is not None and signum == signal.SIGINT:
-            raise KeyboardInterrupt  # a second Ctrl-C: stop now, no checkpoint
+            raise SignalInterrupt  # a second Ctrl-C: stop now, no checkpoint
         if self.signum is not None:
             return
         self.signum = signum

@@ -2,13 +2,13 @@
 as a single run does.
 
 Why this is needed: Ctrl-C in a terminal reaches every process of its process group, the sweep's
-process and its joblib (loky) workers alike. The workers' runs record the request and go on to the
+process and its job processes alike (``launch/job_pool.py``; joblib's loky workers before). The workers' runs record the request and go on to the
 end of their iteration, but the sweep's process, left with Python's default, raised
 ``KeyboardInterrupt`` inside joblib, and joblib then killed its workers (SIGKILL) mid-iteration: no
 stop checkpoint, ``status.json`` left ``running``. A SIGTERM to the sweep's process alone
 (``timeout``, SLURM, ``kill``) killed it and left the workers running on, orphaned.
 
-What :func:`launch_stoppable` does while the launcher runs a batch:
+What :class:`ParentStop` does while the job pool runs a batch:
 
 - the sweep's process never raises on a stop signal: the first is recorded, logged, and sent on
   to each worker (SIGTERM in place of a SIGINT: a worker in the terminal's group has the Ctrl-C
@@ -18,9 +18,9 @@ What :func:`launch_stoppable` does while the launcher runs a batch:
 - the stop signals stay blocked in the sweep's threads and are taken by a thread of its own
   (``sigtimedwait``): a worker started meanwhile inherits the blocked mask, so a signal during its
   start-up waits until its initializer (``signals.become_sweep_worker``) can record it;
-- a worker that got a stop starts no further job, nor does one started after it (the environment
-  says so), and joblib collects every job's return; then the sweep exits 128 + N without its
-  summary, as a single run does. Running the same command again resumes the interrupted jobs.
+- no further job starts after a stop, and the pool collects every running job's return; then
+  the sweep exits 128 + N without its summary (:func:`exit_stopped`), as a single run does.
+  Running the same command again resumes the interrupted jobs.
 
 A second Ctrl-C in the terminal reaches the workers directly: their runs stop at once, without a
 checkpoint (docs/faults.md). The sweep's process does not forward a second signal.
@@ -34,30 +34,16 @@ import signal
 import sys
 import threading
 from collections.abc import Callable, Iterable
-from typing import Any, TypeVar
+from typing import Any
 
-from rlexp.launch.signals import STOP_SIGNALS, SWEEP_STOPPING_ENV, become_sweep_worker
+from rlexp.launch.signals import STOP_SIGNALS, SWEEP_STOPPING_ENV
 from rlexp.rundir import EXIT_SIGNAL_BASE
 
 log = logging.getLogger(__name__)
 
-T = TypeVar("T")
 
 #: How long the waiting thread sleeps in ``sigtimedwait`` before it looks whether the batch ended.
 POLL_S = 0.2
-
-
-def loky_worker_pids() -> list[int]:
-    """The PIDs of joblib's (loky's) worker processes in this process, [] when there are none."""
-    try:
-        from joblib.externals.loky import reusable_executor
-    except ImportError:
-        return []
-    processes = getattr(getattr(reusable_executor, "_executor", None), "_processes", None)
-    try:
-        return [int(pid) for pid in list(processes or {})]
-    except (TypeError, ValueError):
-        return []
 
 
 class ParentStop:
@@ -141,19 +127,8 @@ class ParentStop:
         self._previous = {}
 
 
-def launch_stoppable(launch: Callable[[], T], joblib_kwargs: dict[str, Any], sweep_dir: str) -> T:
-    """Run a joblib launcher's ``launch`` (its ``joblib_kwargs`` get the workers' initializer) so
-    that a stop signal stops its jobs at their safe point; then exit 128 + N (module docstring)."""
-    joblib_kwargs["initializer"] = become_sweep_worker
-    with ParentStop(loky_worker_pids) as stop:
-        try:
-            returns = launch()
-        except Exception:
-            if stop.signum is None:
-                raise
-            returns = None  # joblib gave up on a job after the stop: what is left is on disk
-    if stop.signum is None:
-        return returns  # type: ignore[return-value]
+def exit_stopped(sweep_dir: str, stop: ParentStop) -> None:
+    """The sweep was stopped by a signal: one line, exit 128 + N (its summary is not printed)."""
     log.error(
         "sweep %s stopped by %s: its running jobs saved a checkpoint and say interrupted; run the "
         "same command again to resume them",
