@@ -267,7 +267,12 @@ def _main(argv: list[str]) -> None:
         "by rlexp export (its metadata JSON beside it)",
     )
     _add_checkpoint_option(ev)
-    ev.add_argument("--episodes", type=_at_least_1, default=10, help="episodes to run (>= 1)")
+    ev.add_argument(
+        "--episodes",
+        type=_at_least_1,
+        default=None,
+        help="episodes to run (>= 1; default: the run's trainer.eval_episodes, as its eval rounds)",
+    )
     ev.add_argument(
         "--num-envs", type=_at_least_1, default=None, help="eval envs (default: the run's)"
     )

@@ -255,7 +255,7 @@ class ExportedPolicy:
 
 def evaluate(
     checkpoint: str,
-    episodes: int,
+    episodes: int | None,
     num_envs: int | None,
     seed: int | None = None,
     video: str | Path | None = None,
@@ -264,8 +264,9 @@ def evaluate(
     """Rebuild the run's env and the policy of a checkpoint (a file, or the one of a run dir that
     ``which`` picks: ``select_checkpoint``) or of an exported file, and evaluate it
     deterministically; ``video``: also write an mp4 of env 0's episodes there ("": beside the
-    evaluated file)."""
-    if episodes < 1:
+    evaluated file). ``episodes`` None: the run's own ``trainer.eval_episodes``; with the run's
+    seed and env count, the episodes of its eval rounds, number for number."""
+    if episodes is not None and episodes < 1:
         raise ValueError(f"episodes={episodes}; evaluate at least 1 episode")
     if num_envs is not None and num_envs < 1:
         raise ValueError(f"num_envs={num_envs}; use at least 1 env (None: the run's num_eval_envs)")
@@ -276,10 +277,13 @@ def evaluate(
     from rlexp.build import seed_everything  # not rlexp.app: that imports Hydra (~0.2 s)
     from rlexp.envs.factory import make_env
     from rlexp.evaluation import run_episodes
+    from rlexp.loop import one_torch_thread
 
     what = "checkpoint" if source.kind == "checkpoint" else "exported policy"
     config = typed_config(source.config, f"{what} {source.path!r}", render=video is not None)
     e = config.env
+    if episodes is None:
+        episodes = max(1, config.trainer.eval_episodes)
     if seed is None:  # the run's own eval seed: the same episodes as the Trainer's eval rounds
         from rlexp.build import EVAL_SEED_OFFSET
 
@@ -291,7 +295,8 @@ def evaluate(
         film = None if video is None else _Video(env, source, Path(video))
         if film is not None:
             env.set_seed(seed)  # the camera check reset the env: start from the eval seed again
-        metrics = run_episodes(env, policy, episodes, None if film is None else film.on_step)
+        with one_torch_thread():  # as the run's eval rounds: the same kernels, the same numbers
+            metrics = run_episodes(env, policy, episodes, None if film is None else film.on_step)
         written = None if film is None else film.write()
     finally:
         env.close()

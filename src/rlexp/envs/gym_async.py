@@ -118,6 +118,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
             shutdown(vec, graceful=False)
             raise
         super().__init__(env_id, num_envs, layout, coding)
+        self._used = False  # a copy has been reset, stepped or restored since they were made
         self._vec = vec
         self.state_kind = kind
         self._close_workers = weakref.finalize(self, shutdown, vec)
@@ -157,10 +158,17 @@ class AsyncGymnasiumEnv(GymShapedEnv):
             self._pending_reset[done] = True
         return self.vector_output(obs, reward, terminated, truncated)
 
+    def _set_seed(self, seed: int | None) -> None:
+        super()._set_seed(seed)
+        if self._used:  # fresh copies, as in-process (GymnasiumEnv._set_seed says why)
+            self._call(self._vec.call, "rlexp_remake")
+            self._used = False
+
     def _seeds(self, ids) -> list[int | None]:
         return [None if self._seed is None else self._seed + int(i) for i in ids]
 
     def _reset_copies(self, ids: np.ndarray) -> np.ndarray:
+        self._used = True
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[ids] = True
         seeds = self._seeds(range(self.num_envs))
@@ -169,6 +177,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
 
     def _full_reset(self) -> np.ndarray:
         restored = self._restored
+        self._used = True
         if not restored.any():
             obs, _ = self._call(self._vec.reset, seed=self._seeds(range(self.num_envs)))
             self._seed = None  # seeded once: further resets draw from each copy's own stream
@@ -198,6 +207,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         return copies
 
     def _restore_copies(self, kind: str, copies: list[dict]) -> np.ndarray:
+        self._used = True
         self._call(self._vec.set_attr, "rlexp_restore", [(kind, c) for c in copies])
         return np.array(self._call(self._vec.get_attr, "rlexp_restore"), dtype=bool)
 
