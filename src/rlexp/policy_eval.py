@@ -280,6 +280,11 @@ def evaluate(
     from rlexp.loop import one_torch_thread
 
     what = "checkpoint" if source.kind == "checkpoint" else "exported policy"
+    from rlexp.env_source import ensure_env_importable, env_name_in, run_dir_of
+
+    # The user's own run may name the folder its env module came from; an exported file never does.
+    run_dir = run_dir_of(source.path) if source.kind == "checkpoint" else None
+    ensure_env_importable(env_name_in(source.config), run_dir)
     config = typed_config(source.config, f"{what} {source.path!r}", render=video is not None)
     e = config.env
     if episodes is None:
@@ -289,7 +294,10 @@ def evaluate(
 
         seed = config.seed + EVAL_SEED_OFFSET
     seed_everything(seed)
-    env = make_env(e, num_envs or max(1, e.num_eval_envs), seed)
+    try:
+        env = make_env(e, num_envs or max(1, e.num_eval_envs), seed)
+    except KeyError as exc:  # check_gym_id: the id, or its module's own failure, in one line
+        raise ValueError(exc.args[0] if exc.args else str(exc)) from None
     try:
         policy = source.build(config, env)
         film = None if video is None else _Video(env, source, Path(video))

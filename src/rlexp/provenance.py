@@ -63,12 +63,14 @@ def _project(cwd: Path, rlexp_repo: Path | None) -> dict | None:
     }
 
 
-def write_provenance(run_dir: Path, device: str) -> dict:
+def write_provenance(run_dir: Path, device: str, env_name: str | None = None) -> dict:
     """Write ``provenance.json`` (+ ``git.diff`` when dirty, ``pip-freeze.txt``) into the run dir.
 
     ``git_commit`` / ``git.diff``: rlexp's checkout when rlexp runs from one; ``project``: the git
     repository of the working directory when it is another (a user's project); ``plugins``: the
-    ``rlexp.plugins`` loaded, with their package versions."""
+    ``rlexp.plugins`` loaded, with their package versions; ``env_source``: the folder the module
+    of ``env.name=module:EnvId`` comes from (``rlexp.env_source``: eval / export from elsewhere)."""
+    from rlexp.env_source import locate
     from rlexp.launch.relaunch import launch_info
     from rlexp.paths import CONF_DIR
     from rlexp.plugins import LOADED
@@ -90,6 +92,9 @@ def write_provenance(run_dir: Path, device: str) -> dict:
         "launch": launch_info(),  # cwd, entry, arguments as typed, ranks: rlexp runs' resume command
         "start_time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
+    source = locate(env_name)
+    if source is not None:
+        info["env_source"] = source
     if diff:
         (run_dir / "git.diff").write_text(diff)
     # pip freeze's content, read from package metadata (a pip subprocess costs ~0.3 s of start-up)
