@@ -108,6 +108,14 @@ class WornTrack(gym.Env):
         return self._obs(), -abs(self.x - self.goal), False, False, {}
 
 
+class Knobs(NoStateWalk):
+    """A walk whose constructor takes ``size`` and ``speed``, and no ``render_mode``: it cannot
+    render, and ``env.kwargs`` are checked against that signature."""
+
+    def __init__(self, size: int = 3, speed: float = 0.5):
+        self.size, self.speed = size, speed
+
+
 class BadState(NoStateWalk):
     """A state protocol whose state a checkpoint cannot hold (an object inside)."""
 
@@ -146,6 +154,7 @@ for _name, _cls, _steps in (
     ("DictGoal-v0", DictGoal, 30),
     ("NoStateWalk-v0", NoStateWalk, 25),
     ("WornTrack-v0", WornTrack, 20),
+    ("Knobs-v0", Knobs, 20),
     ("BadState-v0", BadState, 25),
     ("ImageObs-v0", ImageObs, 10),
     ("TextObs-v0", TextObs, 10),

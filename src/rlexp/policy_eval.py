@@ -285,6 +285,8 @@ def evaluate(
     # The user's own run may name the folder its env module came from; an exported file never does.
     run_dir = run_dir_of(source.path) if source.kind == "checkpoint" else None
     ensure_env_importable(env_name_in(source.config), run_dir)
+    if video is not None:
+        _check_renders(source.config)
     config = typed_config(source.config, f"{what} {source.path!r}", render=video is not None)
     e = config.env
     if episodes is None:
@@ -319,6 +321,21 @@ def evaluate(
         "episodes": int(metrics["eval/episodes"]),
         "video": None if written is None else str(written),
     }
+
+
+def _check_renders(saved: dict[str, Any]) -> None:
+    """``--video`` on a Gymnasium env whose constructor takes no ``render_mode``: one line now
+    (``rlexp eval`` would pass it ``render_mode='rgb_array'``), not the constructor's TypeError."""
+    env = saved.get("env") if isinstance(saved.get("env"), dict) else {}
+    if env.get("backend", "gymnasium") not in ("gymnasium", "gymnasium_async"):
+        return
+    if "render_mode" in (env.get("kwargs") or {}):  # the run's own choice: as the run built it
+        return
+    from rlexp.envs.gym_ids import render_refusal
+
+    refusal = render_refusal(str(env.get("name")), "--video")
+    if refusal is not None:
+        raise ValueError(refusal)
 
 
 class _Video:

@@ -24,7 +24,7 @@ import torch
 
 from rlexp.envs.adapter import GymShapedEnv
 from rlexp.envs.env_state import copy_state, env_state_kind, restore_copy
-from rlexp.envs.gym_ids import GYM_MUJOCO_TASKS, check_gym_id, mujoco_build_warnings
+from rlexp.envs.gym_ids import GYM_MUJOCO_TASKS, check_gym_id, mujoco_build_warnings, render_refusal
 from rlexp.envs.spaces import action_coding, obs_layout
 
 __all__ = ["GYM_MUJOCO_TASKS", "GymnasiumEnv", "check_gym_id", "make_torchrl_gym_env"]
@@ -160,6 +160,9 @@ class GymnasiumEnv(GymShapedEnv):
         ``env.kwargs.render_mode=rgb_array``; size from ``env.kwargs.width/height``). Camera placement
         arguments (eye, target, intrinsics) apply to the native tasks only and are ignored here."""
         if self._envs[env_id].render_mode != "rgb_array":
+            refusal = render_refusal(self.env_id, "render")
+            if refusal is not None:  # render_mode=rgb_array would not help: one line saying so
+                raise ValueError(refusal)
             raise ValueError(
                 f"env.name={self.env_id!r}: rendering needs env.kwargs.render_mode=rgb_array "
                 "(e.g. +env.kwargs.render_mode=rgb_array on the command line)"

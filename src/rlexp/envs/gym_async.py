@@ -35,7 +35,7 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
 from rlexp.config.rules import first_line
 from rlexp.envs.adapter import GymShapedEnv
-from rlexp.envs.gym_ids import check_gym_id, mujoco_build_warnings
+from rlexp.envs.gym_ids import check_gym_id, mujoco_build_warnings, render_refusal
 from rlexp.envs.gym_worker import make_worker_env
 from rlexp.envs.spaces import action_coding, obs_layout
 
@@ -215,6 +215,9 @@ class AsyncGymnasiumEnv(GymShapedEnv):
     def render(self, env_id: int = 0, **camera) -> np.ndarray:
         """An RGB frame of copy ``env_id`` (``env.kwargs.render_mode=rgb_array``; as in-process)."""
         if self._vec.render_mode != "rgb_array":
+            refusal = render_refusal(self.env_id, "render")
+            if refusal is not None:  # render_mode=rgb_array would not help: one line saying so
+                raise ValueError(refusal)
             raise ValueError(
                 f"env.name={self.env_id!r}: rendering needs env.kwargs.render_mode=rgb_array "
                 "(e.g. +env.kwargs.render_mode=rgb_array on the command line)"
