@@ -43,6 +43,10 @@ def _check(overrides: list[str]) -> str:
             ["env=hopper", "env.name=Pendulum-v1", "+env.kwargs.rendr_mode=rgb_array"],
             ["env.kwargs.rendr_mode", "did you mean 'render_mode'?", "takes: render_mode, g"],
         ),
+        (  # a MuJoCo task's constructor also takes **kwargs: its named arguments still suggest
+            ["env=half_cheetah", "+env.kwargs.forward_reward=2"],
+            ["env.kwargs.forward_reward", "did you mean 'forward_reward_weight'?"],
+        ),
     ],
 )
 def test_an_env_kwarg_typo_names_the_closest_constructor_argument(overrides, words):

@@ -65,9 +65,10 @@ def check_gym_id(env_id: str) -> None:
 MAKE_KWARGS = ("max_episode_steps", "disable_env_checker")
 
 
-def constructor_args(env_id: str) -> list[str] | None:
+def constructor_args(env_id: str, complete: bool = True) -> list[str] | None:
     """The keyword arguments a registered env's constructor takes (``env.kwargs``), read from its
-    signature; None when it cannot be told (``**kwargs``, an entry point that does not load)."""
+    signature; None when it cannot be told (an entry point that does not load; with ``complete``,
+    also a constructor that takes ``**kwargs``: its named arguments are not all it takes)."""
     import inspect
 
     try:
@@ -81,7 +82,7 @@ def constructor_args(env_id: str) -> list[str] | None:
         params = inspect.signature(creator).parameters.values()
     except Exception:  # an unregistered id, a broken entry point, a builtin without a signature
         return None
-    if any(p.kind is p.VAR_KEYWORD for p in params):
+    if complete and any(p.kind is p.VAR_KEYWORD for p in params):
         return None
     kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
     return [p.name for p in params if p.kind in kinds and p.name != "self"]
@@ -92,12 +93,14 @@ def kwarg_hint(env_id: str, bad: str) -> str:
     refused; "" when its signature cannot be read."""
     import difflib
 
-    args = constructor_args(env_id)
-    if args is None:
+    named = constructor_args(env_id, complete=False)
+    if named is None:
         return ""
-    close = difflib.get_close_matches(bad, [*args, *MAKE_KWARGS], n=1, cutoff=0.6)
-    takes = ", ".join(args) if args else "no arguments"
-    return (f"; did you mean {close[0]!r}?" if close else "") + f" (its constructor takes: {takes})"
+    close = difflib.get_close_matches(bad, [*named, *MAKE_KWARGS], n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    if constructor_args(env_id) is None:  # it takes **kwargs too: its named ones are not all
+        return hint
+    return hint + f" (its constructor takes: {', '.join(named) or 'no arguments'})"
 
 
 def render_refusal(env_id: str, where: str) -> str | None:
