@@ -300,6 +300,9 @@ def evaluate(
         env = make_env(e, num_envs or max(1, e.num_eval_envs), seed)
     except KeyError as exc:  # check_gym_id: the id, or its module's own failure, in one line
         raise ValueError(exc.args[0] if exc.args else str(exc)) from None
+    except TypeError as exc:  # the constructor refused a kwarg (--video's render_mode included)
+        extra = " with render_mode='rgb_array' (--video)" if video is not None else ""
+        raise ValueError(f"env.name={e.name!r} cannot be built{extra}: {exc}") from None
     try:
         policy = source.build(config, env)
         film = None if video is None else _Video(env, source, Path(video))
