@@ -74,6 +74,8 @@ def test_every_argument_has_help_and_every_default_is_shown(command, capsys):
 
 def test_the_documented_defaults_are_the_values_used():
     parsers = _parsers()
-    assert parsers["eval"].parse_args(["x"]).episodes == 10
+    # None: the run's own trainer.eval_episodes, as its eval rounds (#45: the same numbers)
+    assert parsers["eval"].parse_args(["x"]).episodes is None
+    assert "the run's trainer.eval_episodes" in " ".join(parsers["eval"].format_help().split())
     assert parsers["export"].parse_args(["x"]).format == "torchscript"
     assert parsers["compare"].parse_args(["a", "b"]).metric == "eval/episode_return"

@@ -85,6 +85,38 @@ class NoStateWalk(gym.Env):
         return np.array([self.x], np.float32), -abs(self.x), False, False, {}
 
 
+class WornTrack(gym.Env):
+    """A 1-D track whose wear (like a Box2D world reused across resets) outlives its episodes: each
+    step wears it, and the wear slows every later move; ``reset(seed=...)`` does not restore it."""
+
+    observation_space = spaces.Box(-5.0, 5.0, (2,), np.float32)
+    action_space = spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self):
+        self.wear = 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x, self.goal = (float(v) for v in self.np_random.uniform(-2, 2, size=2))
+        return self._obs(), {}
+
+    def _obs(self):
+        return np.array([self.x, self.goal], np.float32)
+
+    def step(self, action):
+        self.wear += 1
+        self.x = float(np.clip(self.x + 0.3 * float(action[0]) / (1 + 1e-3 * self.wear), -5, 5))
+        return self._obs(), -abs(self.x - self.goal), False, False, {}
+
+
+class Knobs(NoStateWalk):
+    """A walk whose constructor takes ``size`` and ``speed``, and no ``render_mode``: it cannot
+    render, and ``env.kwargs`` are checked against that signature."""
+
+    def __init__(self, size: int = 3, speed: float = 0.5):
+        self.size, self.speed = size, speed
+
+
 class BadState(NoStateWalk):
     """A state protocol whose state a checkpoint cannot hold (an object inside)."""
 
@@ -166,6 +198,8 @@ class TupleAction(_Refused):
 for _name, _cls, _steps in (
     ("DictGoal-v0", DictGoal, 30),
     ("NoStateWalk-v0", NoStateWalk, 25),
+    ("WornTrack-v0", WornTrack, 20),
+    ("Knobs-v0", Knobs, 20),
     ("BadState-v0", BadState, 25),
     ("Throttle-v0", Throttle, 20),
     ("ImageObs-v0", ImageObs, 10),

@@ -31,6 +31,7 @@ from rlexp.launch.signals import sweep_worker
 from rlexp.next_steps import done_message
 from rlexp.paths import CONF_DIR, with_user_config_dir  # CONF_DIR: the package's or the checkout's
 from rlexp.plugins import load_plugins
+from rlexp.run_proof import check_continuation, finished_before_building, finished_result
 from rlexp.rundir import (
     EXIT_CONFIG,
     EXIT_FAILED,
@@ -126,7 +127,6 @@ def _train_locked(
     from rlexp.launch.slurm import install_preemption_handler
     from rlexp.logging import MetricLogger, make_logger
     from rlexp.provenance import versions
-    from rlexp.run_proof import check_continuation, finished_result
 
     t = config.trainer
     dist = distributed.info()
@@ -349,6 +349,8 @@ def _task(cfg: DictConfig) -> float | None:
     try:
         load_plugins()  # a sweep worker or a SLURM job is a fresh process
         config = to_root_config(cfg)
+        if (done := finished_before_building(config, run_dir)) is not None:
+            return done.get("eval/episode_return")  # a re-run sweep's finished job, before torch
         if not _PRECHECKED.get("config"):
             from rlexp.config.checks import check_buildable
 

@@ -22,7 +22,7 @@ import torch
 
 from rlexp.checkpoint_fields import FieldError, Use, check_fields, check_tensors_fit
 from rlexp.checkpoint_scan import ScanError, scan
-from rlexp.fsutil import atomic_write
+from rlexp.fsutil import atomic_write, step_file_name
 
 log = logging.getLogger(__name__)
 
@@ -279,7 +279,7 @@ def check_policy_before_building(
 
 
 def checkpoint_path(ckpt_dir: Path, exp_name: str, global_step: int) -> Path:
-    return ckpt_dir / f"{exp_name}_step_{global_step:09d}.pt"
+    return ckpt_dir / step_file_name(exp_name, global_step)
 
 
 def step_checkpoints(directory: Path) -> list[Path]:

@@ -267,7 +267,12 @@ def _main(argv: list[str]) -> None:
         "by rlexp export (its metadata JSON beside it)",
     )
     _add_checkpoint_option(ev)
-    ev.add_argument("--episodes", type=_at_least_1, default=10, help="episodes to run (>= 1)")
+    ev.add_argument(
+        "--episodes",
+        type=_at_least_1,
+        default=None,
+        help="episodes to run (>= 1; default: the run's trainer.eval_episodes, as its eval rounds)",
+    )
     ev.add_argument(
         "--num-envs", type=_at_least_1, default=None, help="eval envs (default: the run's)"
     )
@@ -370,15 +375,12 @@ def _eval_or_export(args: argparse.Namespace) -> None:
     try:
         with user_code_exits(f"rlexp {args.command}"):  # sys.exit() in the env: exit 1, one line
             print(_eval(args) if args.command == "eval" else _export(args))
-    except (FileNotFoundError, ValueError) as exc:
+    # (FloatingPointError: NonFiniteError, NaN/Inf weights; not imported: slow)
+    except (FileNotFoundError, ValueError, UserCodeExit, FloatingPointError) as exc:
         print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
-        sys.exit(2)
-    except UserCodeExit as exc:
-        print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
-        sys.exit(1)
-    except FloatingPointError as exc:  # NonFiniteError: NaN/Inf weights (not imported: slow)
-        print(f"rlexp {args.command}: {_one_line(exc)}", file=sys.stderr)
-        sys.exit(3)
+        sys.exit(
+            1 if isinstance(exc, UserCodeExit) else 3 if isinstance(exc, FloatingPointError) else 2
+        )
 
 
 def _check_gl() -> None:

@@ -208,12 +208,18 @@ def _actor_of(
     deterministic actor, the typed config, what the metadata says about the env, and a few
     observations of its space (Gymnasium envs; they check the observation helper)."""
     from rlexp.checkpoint import check_checkpoint_fits, check_policy_before_building
+    from rlexp.env_source import ensure_env_importable, env_name_in, run_dir_of
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import policy_for_env
 
+    name = env_name_in(ckpt["config"])
+    ensure_env_importable(name, run_dir_of(ckpt["path"]))
     config = typed_config(ckpt["config"], f"checkpoint {ckpt['path']!r}")
     e = config.env
-    env = make_env(e, 1, config.seed)
+    try:
+        env = make_env(e, 1, config.seed)
+    except KeyError as exc:  # check_gym_id: the id, or its module's own failure, in one line
+        raise ValueError(exc.args[0] if exc.args else str(exc)) from None
     try:
         check_policy_before_building(ckpt, lambda: policy_for_env(config.policy, e, env))
         policy = policy_for_env(config.policy, e, env)

@@ -26,6 +26,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 
+def step_file_name(exp_name: str, global_step: int) -> str:
+    """A step checkpoint's file name (``rlexp.checkpoint.checkpoint_path``), here without torch:
+    the run-dir checks before training (``rlexp.writable``) size it."""
+    return f"{exp_name}_step_{global_step:09d}.pt"
+
+
 def temp_path(path: Path, keep_suffix: bool = False) -> Path:
     """The temporary file ``atomic_write`` writes ``path`` through: hidden, in the same folder
     (a rename within one file system), named after this process (``.status.json.tmp-1234``;

@@ -272,7 +272,7 @@ class ExportedPolicy:
 
 def evaluate(
     checkpoint: str,
-    episodes: int,
+    episodes: int | None,
     num_envs: int | None,
     seed: int | None = None,
     video: str | Path | None = None,
@@ -281,8 +281,9 @@ def evaluate(
     """Rebuild the run's env and the policy of a checkpoint (a file, or the one of a run dir that
     ``which`` picks: ``select_checkpoint``) or of an exported file, and evaluate it
     deterministically; ``video``: also write an mp4 of env 0's episodes there ("": beside the
-    evaluated file)."""
-    if episodes < 1:
+    evaluated file). ``episodes`` None: the run's own ``trainer.eval_episodes``; with the run's
+    seed and env count, the episodes of its eval rounds, number for number."""
+    if episodes is not None and episodes < 1:
         raise ValueError(f"episodes={episodes}; evaluate at least 1 episode")
     if num_envs is not None and num_envs < 1:
         raise ValueError(f"num_envs={num_envs}; use at least 1 env (None: the run's num_eval_envs)")
@@ -293,26 +294,43 @@ def evaluate(
     from rlexp.build import seed_everything  # not rlexp.app: that imports Hydra (~0.2 s)
     from rlexp.envs.factory import make_env
     from rlexp.evaluation import run_episodes
+    from rlexp.loop import one_torch_thread
 
     what = "checkpoint" if source.kind == "checkpoint" else "exported policy"
+    from rlexp.env_source import ensure_env_importable, env_name_in, run_dir_of
+
+    # The user's own run may name the folder its env module came from; an exported file never does.
+    run_dir = run_dir_of(source.path) if source.kind == "checkpoint" else None
+    ensure_env_importable(env_name_in(source.config), run_dir)
+    if video is not None:
+        _check_renders(source.config)
     config = typed_config(source.config, f"{what} {source.path!r}", render=video is not None)
     e = config.env
     if source.kind != "checkpoint":  # a shared file's metadata is data: it imports nothing
         from rlexp.export_meta import check_env_names
 
         check_env_names(e, f"exported policy {source.path!r}")
+    if episodes is None:
+        episodes = max(1, config.trainer.eval_episodes)
     if seed is None:  # the run's own eval seed: the same episodes as the Trainer's eval rounds
         from rlexp.build import EVAL_SEED_OFFSET
 
         seed = config.seed + EVAL_SEED_OFFSET
     seed_everything(seed)
-    env = make_env(e, num_envs or max(1, e.num_eval_envs), seed)
+    try:
+        env = make_env(e, num_envs or max(1, e.num_eval_envs), seed)
+    except KeyError as exc:  # check_gym_id: the id, or its module's own failure, in one line
+        raise ValueError(exc.args[0] if exc.args else str(exc)) from None
+    except TypeError as exc:  # the constructor refused a kwarg (--video's render_mode included)
+        extra = " with render_mode='rgb_array' (--video)" if video is not None else ""
+        raise ValueError(f"env.name={e.name!r} cannot be built{extra}: {exc}") from None
     try:
         policy = source.build(config, env)
         film = None if video is None else _Video(env, source, Path(video))
         if film is not None:
             env.set_seed(seed)  # the camera check reset the env: start from the eval seed again
-        metrics = run_episodes(env, policy, episodes, None if film is None else film.on_step)
+        with one_torch_thread():  # as the run's eval rounds: the same kernels, the same numbers
+            metrics = run_episodes(env, policy, episodes, None if film is None else film.on_step)
         written = None if film is None else film.write()
     finally:
         env.close()
@@ -327,6 +345,21 @@ def evaluate(
         "episodes": int(metrics["eval/episodes"]),
         "video": None if written is None else str(written),
     }
+
+
+def _check_renders(saved: dict[str, Any]) -> None:
+    """``--video`` on a Gymnasium env whose constructor takes no ``render_mode``: one line now
+    (``rlexp eval`` would pass it ``render_mode='rgb_array'``), not the constructor's TypeError."""
+    env = saved.get("env") if isinstance(saved.get("env"), dict) else {}
+    if env.get("backend", "gymnasium") not in ("gymnasium", "gymnasium_async"):
+        return
+    if "render_mode" in (env.get("kwargs") or {}):  # the run's own choice: as the run built it
+        return
+    from rlexp.envs.gym_ids import render_refusal
+
+    refusal = render_refusal(str(env.get("name")), "--video")
+    if refusal is not None:
+        raise ValueError(refusal)
 
 
 class _Video:

@@ -63,12 +63,37 @@ def _project(cwd: Path, rlexp_repo: Path | None) -> dict | None:
     }
 
 
-def write_provenance(run_dir: Path, device: str) -> dict:
+def _name_version(dist: metadata.Distribution) -> tuple[str | None, str]:
+    """A distribution's name and version from its metadata file's header lines: the same values as
+    ``dist.metadata["Name"]`` / ``dist.version``, without parsing each whole file (its long
+    description): 0.003 s instead of 0.21 s for 123 packages at every run's start."""
+    path = getattr(dist, "_path", None)
+    for fname in ("METADATA", "PKG-INFO") if path is not None else ():
+        found: dict[str, str] = {}
+        try:
+            with open(Path(path) / fname, encoding="utf-8", errors="replace") as f:
+                for line in f:
+                    if not line.strip():  # the headers end at the first blank line
+                        break
+                    key, sep, value = line.partition(":")
+                    if sep and key in ("Name", "Version"):
+                        found.setdefault(key, value.strip())
+                    if len(found) == 2:
+                        return found["Name"], found["Version"]
+        except OSError:
+            continue
+        break
+    return dist.metadata["Name"], dist.version
+
+
+def write_provenance(run_dir: Path, device: str, env_name: str | None = None) -> dict:
     """Write ``provenance.json`` (+ ``git.diff`` when dirty, ``pip-freeze.txt``) into the run dir.
 
     ``git_commit`` / ``git.diff``: rlexp's checkout when rlexp runs from one; ``project``: the git
     repository of the working directory when it is another (a user's project); ``plugins``: the
-    ``rlexp.plugins`` loaded, with their package versions."""
+    ``rlexp.plugins`` loaded, with their package versions; ``env_source``: the folder the module
+    of ``env.name=module:EnvId`` comes from (``rlexp.env_source``: eval / export from elsewhere)."""
+    from rlexp.env_source import locate
     from rlexp.launch.relaunch import launch_info
     from rlexp.paths import CONF_DIR
     from rlexp.plugins import LOADED
@@ -90,16 +115,14 @@ def write_provenance(run_dir: Path, device: str) -> dict:
         "launch": launch_info(),  # cwd, entry, arguments as typed, ranks: rlexp runs' resume command
         "start_time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
+    source = locate(env_name)
+    if source is not None:
+        info["env_source"] = source
     if diff:
         (run_dir / "git.diff").write_text(diff)
     # pip freeze's content, read from package metadata (a pip subprocess costs ~0.3 s of start-up)
     dists = sorted(
-        {
-            f"{d.metadata['Name']}=={d.version}"
-            for d in metadata.distributions()
-            if d.metadata["Name"]
-        },
-        key=str.lower,
+        {f"{n}=={v}" for n, v in map(_name_version, metadata.distributions()) if n}, key=str.lower
     )
     (run_dir / "pip-freeze.txt").write_text("\n".join(dists) + "\n")
     (run_dir / "provenance.json").write_text(json.dumps(info, indent=2) + "\n")

@@ -90,6 +90,23 @@ def finished_result(
     return dict(final) if isinstance(final, dict) else {}
 
 
+def finished_before_building(config: Any, run_dir: Path) -> dict | None:
+    """A job whose dir already finished this config (``trainer.resume=auto``; not distributed,
+    whose ranks decide together in ``rlexp.app.train``): its saved result, proven as
+    :func:`finished_result` proves it, before the job's config check builds an env (and imports
+    torch): a re-run sweep skips its finished jobs in a fraction of a second each. None: build and
+    train."""
+    import os
+
+    from rlexp.config.validate import to_dict, total_frames
+
+    if config.trainer.resume != "auto" or os.environ.get("RLEXP_DISTRIBUTED") == "1":
+        return None
+    if not (Path(run_dir) / "status.json").is_file():
+        return None
+    return finished_result(Path(run_dir), to_dict(config), total_frames(config, 1))
+
+
 def check_continuation(
     run_dir: Path, config_dict: dict[str, Any], ckpt: dict[str, Any] | None
 ) -> None:

@@ -247,7 +247,7 @@ def write_run_files(config: Any, config_dict: dict, run_dir: Path, device: str) 
     escaped = OmegaConf.create(escape_interpolations(config_dict))
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(escaped))
     write_json_experiment(config, run_dir)
-    write_provenance(run_dir, device)
+    write_provenance(run_dir, device, config.env.name)
 
 
 #: The job's Hydra config, set by ``rlexp.app._task``: ``.hydra/`` is written by rlexp once the checks have

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rlexp.fsutil import temp_path
+from rlexp.fsutil import step_file_name, temp_path
 
 #: The names a run gives its files under its run dir (rlexp.checkpoint, rlexp.rundir).
 CHECKPOINTS = "checkpoints"
@@ -28,9 +28,7 @@ def checkpoint_temp_name(exp_name: str) -> str:
     """The temporary name of a step checkpoint (``rlexp.checkpoint.save_checkpoint`` writes through
     ``rlexp.fsutil.temp_path``), at the widest step the name has room for: the longest file name a
     run writes."""
-    from rlexp.checkpoint import checkpoint_path
-
-    return temp_path(checkpoint_path(Path(), exp_name, 999_999_999)).name
+    return temp_path(Path(step_file_name(exp_name, 999_999_999))).name
 
 
 def run_dir_longest(exp_name: str) -> int:

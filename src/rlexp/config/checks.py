@@ -51,11 +51,16 @@ def _check_buildable(config: RootConfig) -> None:
             from rlexp.extras import require
 
             require("box2d", f"env.name={e.name!r}")
-        bad_kwarg = re.search(r"unexpected keyword argument '([^']+)'", msg)
-        if bad_kwarg and bad_kwarg.group(1) in e.kwargs and not msg.startswith("env."):
-            msg = (
-                f"env.kwargs.{bad_kwarg.group(1)} is not an argument of {e.name} "
-                f"(gymnasium.make({e.name!r}, ...) refused it)"
+        bad = _refused_kwarg(e.name, e.kwargs, msg)
+        if bad is not None and not msg.startswith("env."):
+            from rlexp.envs.gym_ids import kwarg_hint, render_refusal
+
+            refusal = (
+                render_refusal(e.name, "env.kwargs.render_mode") if bad == "render_mode" else None
+            )
+            msg = refusal or (
+                f"env.kwargs.{bad} is not an argument of {e.name} "
+                f"(gymnasium.make({e.name!r}, ...) refused it){kwarg_hint(e.name, bad)}"
             )
         elif not msg.startswith("env."):
             msg = f"env.name={e.name!r} (env.backend={e.backend}) cannot be built: {msg}"
@@ -78,6 +83,22 @@ def _check_buildable(config: RootConfig) -> None:
         env.close()
     if config.trainer.resume not in ("auto", "never", ""):
         check_resume_checkpoint(config, policy)
+
+
+def _refused_kwarg(name: str, kwargs: dict, msg: str) -> str | None:
+    """The ``env.kwargs`` key a Gymnasium env's constructor refused: the one its TypeError names
+    (``unexpected keyword argument 'x'``), or (``takes no arguments``) the first its signature
+    lacks; None when the failure is something else."""
+    named = re.search(r"unexpected keyword argument '([^']+)'", msg)
+    if named:
+        return named.group(1) if named.group(1) in kwargs else None
+    if "takes no arguments" not in msg and "positional argument" not in msg:
+        return None
+    from rlexp.envs.gym_ids import MAKE_KWARGS, constructor_args
+
+    args = constructor_args(name)
+    unknown = [k for k in kwargs if args is not None and k not in (*args, *MAKE_KWARGS)]
+    return unknown[0] if unknown else None
 
 
 def _check_env_state(env: Any, name: str) -> None:

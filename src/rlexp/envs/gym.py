@@ -14,6 +14,7 @@ builds that reference path.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 
@@ -23,7 +24,7 @@ import torch
 
 from rlexp.envs.adapter import GymShapedEnv
 from rlexp.envs.env_state import copy_state, env_state_kind, restore_copy
-from rlexp.envs.gym_ids import GYM_MUJOCO_TASKS, check_gym_id, mujoco_build_warnings
+from rlexp.envs.gym_ids import GYM_MUJOCO_TASKS, check_gym_id, mujoco_build_warnings, render_refusal
 from rlexp.envs.spaces import action_coding, obs_layout
 
 __all__ = ["GYM_MUJOCO_TASKS", "GymnasiumEnv", "check_gym_id", "make_torchrl_gym_env"]
@@ -47,8 +48,9 @@ class GymnasiumEnv(GymShapedEnv):
         kwargs = dict(make_kwargs or {})
         if max_episode_steps is not None:
             kwargs["max_episode_steps"] = max_episode_steps
+        self._make = functools.partial(gym.make, env_id, **kwargs)
         with mujoco_build_warnings(env_id):
-            envs = [gym.make(env_id, **kwargs) for _ in range(num_envs)]
+            envs = [self._make() for _ in range(num_envs)]
         where = f"env.name={env_id!r}"
         layout = obs_layout(envs[0].observation_space, where)
         coding = action_coding(envs[0].action_space, where)
@@ -57,15 +59,27 @@ class GymnasiumEnv(GymShapedEnv):
         self._plain_obs = layout.plain
         self._reshape_actions = len(coding.shape) != 1
         self.state_kind = env_state_kind(envs[0])
+        self._used = False  # a copy has been reset or stepped since the copies were made
 
     # -- TorchRL API -------------------------------------------------------------------------------
     def _set_seed(self, seed: int | None) -> None:
         super()._set_seed(seed)
+        if self._used:
+            # A seeded env starts from copies made now, as one built with this seed would: an env
+            # may keep state across resets that its seed does not reset (Box2D's BipedalWalker
+            # reuses its physics world, whose contact order then depends on earlier episodes; a
+            # user's env may keep anything). Eval rounds reseed: each is as rlexp eval's fresh env.
+            for env in self._envs:
+                env.close()
+            with mujoco_build_warnings(self.env_id):
+                self._envs = [self._make() for _ in range(self.num_envs)]
+            self._used = False
         for i, env in enumerate(self._envs):
             env.action_space.seed(None if seed is None else seed + i)
 
     def _reset_one(self, i: int) -> np.ndarray:
         """Reset copy ``i``; its first observation, flattened."""
+        self._used = True
         if self._seed is not None:
             # Seed each copy once; later resets continue its own RNG stream.
             obs, _ = self._envs[i].reset(seed=self._seed + i)
@@ -135,6 +149,7 @@ class GymnasiumEnv(GymShapedEnv):
         return [copy_state(env, kind, self.env_id) for env in self._envs]
 
     def _restore_copies(self, kind: str, copies: list[dict]) -> np.ndarray:
+        self._used = True
         return np.array(
             [restore_copy(env, c, kind) for env, c in zip(self._envs, copies, strict=True)]
         )
@@ -145,6 +160,9 @@ class GymnasiumEnv(GymShapedEnv):
         ``env.kwargs.render_mode=rgb_array``; size from ``env.kwargs.width/height``). Camera placement
         arguments (eye, target, intrinsics) apply to the native tasks only and are ignored here."""
         if self._envs[env_id].render_mode != "rgb_array":
+            refusal = render_refusal(self.env_id, "render")
+            if refusal is not None:  # render_mode=rgb_array would not help: one line saying so
+                raise ValueError(refusal)
             raise ValueError(
                 f"env.name={self.env_id!r}: rendering needs env.kwargs.render_mode=rgb_array "
                 "(e.g. +env.kwargs.render_mode=rgb_array on the command line)"

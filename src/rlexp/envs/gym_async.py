@@ -36,7 +36,7 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
 from rlexp.config.rules import first_line
 from rlexp.envs.adapter import GymShapedEnv
-from rlexp.envs.gym_ids import check_gym_id, mujoco_build_warnings
+from rlexp.envs.gym_ids import check_gym_id, mujoco_build_warnings, render_refusal
 from rlexp.envs.gym_worker import HELD_SIGNALS, WorkerEnvError, make_worker_env
 from rlexp.envs.spaces import action_coding, obs_layout
 
@@ -139,6 +139,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
                 shutdown(vec, graceful=False)
             raise
         super().__init__(env_id, num_envs, layout, coding)
+        self._used = False  # a copy has been reset, stepped or restored since they were made
         self._vec = vec
         self.state_kind = kind
         self._close_workers = weakref.finalize(self, shutdown, vec)
@@ -181,10 +182,17 @@ class AsyncGymnasiumEnv(GymShapedEnv):
             self._pending_reset[done] = True
         return self.vector_output(obs, reward, terminated, truncated)
 
+    def _set_seed(self, seed: int | None) -> None:
+        super()._set_seed(seed)
+        if self._used:  # fresh copies, as in-process (GymnasiumEnv._set_seed says why)
+            self._call(self._vec.call, "rlexp_remake")
+            self._used = False
+
     def _seeds(self, ids) -> list[int | None]:
         return [None if self._seed is None else self._seed + int(i) for i in ids]
 
     def _reset_copies(self, ids: np.ndarray) -> np.ndarray:
+        self._used = True
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[ids] = True
         seeds = self._seeds(range(self.num_envs))
@@ -193,6 +201,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
 
     def _full_reset(self) -> np.ndarray:
         restored = self._restored
+        self._used = True
         if not restored.any():
             obs, _ = self._call(self._vec.reset, seed=self._seeds(range(self.num_envs)))
             self._seed = None  # seeded once: further resets draw from each copy's own stream
@@ -222,6 +231,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         return copies
 
     def _restore_copies(self, kind: str, copies: list[dict]) -> np.ndarray:
+        self._used = True
         self._call(self._vec.set_attr, "rlexp_restore", [(kind, c) for c in copies])
         return np.array(self._call(self._vec.get_attr, "rlexp_restore"), dtype=bool)
 
@@ -229,6 +239,9 @@ class AsyncGymnasiumEnv(GymShapedEnv):
     def render(self, env_id: int = 0, **camera) -> np.ndarray:
         """An RGB frame of copy ``env_id`` (``env.kwargs.render_mode=rgb_array``; as in-process)."""
         if self._vec.render_mode != "rgb_array":
+            refusal = render_refusal(self.env_id, "render")
+            if refusal is not None:  # render_mode=rgb_array would not help: one line saying so
+                raise ValueError(refusal)
             raise ValueError(
                 f"env.name={self.env_id!r}: rendering needs env.kwargs.render_mode=rgb_array "
                 "(e.g. +env.kwargs.render_mode=rgb_array on the command line)"

@@ -68,6 +68,61 @@ def check_gym_id(env_id: str) -> None:
     )
 
 
+#: ``gymnasium.make``'s own keyword arguments (besides the constructor's).
+MAKE_KWARGS = ("max_episode_steps", "disable_env_checker")
+
+
+def constructor_args(env_id: str, complete: bool = True) -> list[str] | None:
+    """The keyword arguments a registered env's constructor takes (``env.kwargs``), read from its
+    signature; None when it cannot be told (an entry point that does not load; with ``complete``,
+    also a constructor that takes ``**kwargs``: its named arguments are not all it takes)."""
+    import inspect
+
+    try:
+        check_gym_id(env_id)  # (imports the module of module:EnvId, which registers the id)
+        spec = gym.spec(env_id.split(":", 1)[-1])
+        creator = spec.entry_point
+        if isinstance(creator, str):
+            from gymnasium.envs.registration import load_env_creator
+
+            creator = load_env_creator(creator)
+        params = inspect.signature(creator).parameters.values()
+    except Exception:  # an unregistered id, a broken entry point, a builtin without a signature
+        return None
+    if complete and any(p.kind is p.VAR_KEYWORD for p in params):
+        return None
+    kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    return [p.name for p in params if p.kind in kinds and p.name != "self"]
+
+
+def kwarg_hint(env_id: str, bad: str) -> str:
+    """``; did you mean 'x'?`` (and what the constructor takes) for an ``env.kwargs`` key the env
+    refused; "" when its signature cannot be read."""
+    import difflib
+
+    named = constructor_args(env_id, complete=False)
+    if named is None:
+        return ""
+    close = difflib.get_close_matches(bad, [*named, *MAKE_KWARGS], n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    if constructor_args(env_id) is None:  # it takes **kwargs too: its named ones are not all
+        return hint
+    return hint + f" (its constructor takes: {', '.join(named) or 'no arguments'})"
+
+
+def render_refusal(env_id: str, where: str) -> str | None:
+    """One line for an env whose constructor takes no ``render_mode`` (it cannot give rlexp the
+    rgb_array frames a video needs), naming ``where`` the video was asked for; None otherwise."""
+    args = constructor_args(env_id)
+    if args is None or "render_mode" in args:
+        return None
+    return (
+        f"{where}: env.name={env_id!r} cannot render: its constructor takes no render_mode "
+        f"(it takes: {', '.join(args) or 'no arguments'}); give it a render_mode='rgb_array' "
+        "argument that returns frames from render(), or record no video"
+    )
+
+
 #: MuJoCo warnings about Gymnasium's own model files, not the user's: MuJoCo 4.0 deprecates the
 #: ``settotalmass`` compiler attribute that gymnasium's HalfCheetah, Hopper, Walker2d... XML use.
 IGNORED_MUJOCO_WARNINGS = ("compiler attribute 'settotalmass' is deprecated",)

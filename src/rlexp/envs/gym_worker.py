@@ -88,16 +88,17 @@ def make_worker_env(env_id: str, kwargs: dict, parent_pid: int) -> WorkerEnv:
         load_plugins()
     with mujoco_build_warnings(env_id):
         env = gym.make(env_id, **kwargs)
-    return WorkerEnv(env, env_id)
+    return WorkerEnv(env, env_id, kwargs)
 
 
 class WorkerEnv(gym.Wrapper):
     """A worker's env as the adapter drives it: flat float32 observations, no infos, and the
     ``rlexp_*`` calls (``AsyncVectorEnv.call`` / ``get_attr`` / ``set_attr``) for resume."""
 
-    def __init__(self, env: gym.Env, env_id: str) -> None:
+    def __init__(self, env: gym.Env, env_id: str, kwargs: dict | None = None) -> None:
         super().__init__(env)
         self.env_id = env_id
+        self.kwargs = dict(kwargs or {})
         self.layout = obs_layout(env.observation_space, f"env.name={env_id!r}")
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.layout.dim,), np.float32)
         self.kind = env_state_kind(env)
@@ -112,6 +113,14 @@ class WorkerEnv(gym.Wrapper):
     def step(self, action: Any):
         obs, reward, terminated, truncated, _ = self.env.step(action)
         return self.layout.flatten(obs), reward, terminated, truncated, {}
+
+    def rlexp_remake(self) -> None:
+        """Replace the env by one made now (``GymnasiumEnv._set_seed``: a reseeded env starts from
+        fresh copies, whatever state the old ones kept across resets)."""
+        self.env.close()
+        with mujoco_build_warnings(self.env_id):
+            self.env = gym.make(self.env_id, **self.kwargs)
+        self._restored = False
 
     @_plain_errors
     def rlexp_info(self) -> tuple[gym.Space, gym.Space, str]:
