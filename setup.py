@@ -1,7 +1,7 @@
 """Build hook: the repository's top-level ``conf/`` ships inside the wheel as ``rlexp/conf``.
 
 Everything else is declared in pyproject.toml. ``conf/`` stays at the top of the repository (the
-layout the README promises); an editable install reads it there (``rlexp.paths.CONF_DIR``), a wheel
+layout the README promises); an editable install reads it there (``rlexp.config.paths.CONF_DIR``), a wheel
 or an sdist-built wheel carries a copy under the package, found with ``importlib.resources``.
 """
 

@@ -42,11 +42,11 @@ def _rate(fn, steps: int, envs: int, repeats: int = 3) -> float:
 def measure(envs: int, device: str, steps: int) -> dict[str, float]:
     from batched_toy import ToyTorchRLEnv, ToyVecEnv
 
-    from rlexp.collector import RolloutCollector
     from rlexp.config.schema import EnvConfig, PolicyConfig
     from rlexp.envs.torchrl_env import TorchRLAdapter
     from rlexp.envs.vecenv import VecEnvAdapter
     from rlexp.policies.actor_critic import policy_for_env
+    from rlexp.training.collector import RolloutCollector
 
     raw = ToyVecEnv(envs, device, seed=0)
     adapter = VecEnvAdapter(ToyVecEnv(envs, device, seed=0), "toy")

@@ -46,13 +46,13 @@ def main() -> None:
     sys.path.insert(0, args.src)
     from hydra import compose, initialize_config_dir
 
-    from rlexp import _speedups
-    from rlexp.collector import RolloutCollector
+    from rlexp.common import speedups as _speedups
+    from rlexp.config.paths import CONF_DIR
     from rlexp.config.schema import register_configs
     from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
-    from rlexp.paths import CONF_DIR
     from rlexp.policies.actor_critic import policy_for_env
+    from rlexp.training.collector import RolloutCollector
 
     _speedups.apply()
     register_configs()

@@ -72,7 +72,7 @@ from phase_floors import floor_table, measure_floors, phase_sums  # noqa: E402
 
 #: The time-to-result anchors of #15: CleanRL's ppo_continuous_action.py at 1M env steps, the mean
 #: return of the last 100 training episodes, mean of 3 seeds on the v4 tasks (CleanRL's
-#: docs/benchmark/ppo_continuous_action.md; the same numbers as rlexp.reporting.anchors).
+#: docs/benchmark/ppo_continuous_action.md; the same numbers as rlexp.analysis.reporting.anchors).
 ANCHORS = {"half_cheetah": 1442.64, "hopper": 2382.86, "walker2d": 2287.95}
 #: The heading every section of this benchmark starts with (``ppo_throughput.py`` keeps them).
 SECTION = "## Launch to exit: "
@@ -124,9 +124,9 @@ def compose(overrides: list[str]):
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
+    from rlexp.config.paths import CONF_DIR
     from rlexp.config.schema import register_configs
     from rlexp.config.validate import to_root_config
-    from rlexp.paths import CONF_DIR
 
     register_configs()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -136,8 +136,8 @@ def compose(overrides: list[str]):
 def sb3_flags(config, eval_envs: int) -> list[str]:
     """``sb3_ppo.py``'s flags for the job an rlexp config describes; ``ValueError`` naming each
     setting the script cannot mirror."""
-    from rlexp.build import EVAL_SEED_OFFSET
     from rlexp.config.validate import total_frames
+    from rlexp.training.build import EVAL_SEED_OFFSET
 
     e, a, p, t, lg = config.env, config.algorithm, config.policy, config.trainer, config.logger
     problems = [

@@ -33,10 +33,10 @@ def collection_rate(backend: str, num_envs: int, threads: int, frames: int, roun
     """Env-steps/s of rlexp's collector on ``backend`` (median of ``rounds`` rollouts)."""
     import torch
 
-    from rlexp.collector import RolloutCollector
     from rlexp.config.schema import EnvConfig, PolicyConfig
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import policy_for_env
+    from rlexp.training.collector import RolloutCollector
 
     cfg = EnvConfig(name="HalfCheetah-v5", backend=backend, num_envs=num_envs, num_threads=threads)
     torch.manual_seed(0)
@@ -93,7 +93,7 @@ def main() -> None:
     sys.path.insert(0, str(ROOT / "src"))
     import torch
 
-    from rlexp import _speedups
+    from rlexp.common import speedups as _speedups
     from rlexp.config.rules import available_cpus
 
     torch.set_num_threads(1)

@@ -53,11 +53,11 @@ def main() -> None:
 
     import torch
 
-    from rlexp.build import EVAL_SEED_OFFSET
     from rlexp.envs.factory import make_env
-    from rlexp.evaluation import run_episodes
-    from rlexp.loop import one_torch_thread
     from rlexp.policies.actor_critic import make_policy
+    from rlexp.training.build import EVAL_SEED_OFFSET
+    from rlexp.training.evaluation import run_episodes
+    from rlexp.training.loop import one_torch_thread
 
     torch.manual_seed(args.seed)
     config = compose(args.env, args.seed)

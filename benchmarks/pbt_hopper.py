@@ -9,7 +9,7 @@ Three sweeps, one after another (each runs its members side by side, ``--populat
 
 then a markdown table per sweep: the best member's final eval (``status.json``'s final_eval), the
 IQM of the population's final evals, how many members reached CleanRL's Hopper return (2382.86,
-reporting/anchors.py) and the median first eval step at which they did, the exploits, and the
+analysis/reporting/anchors.py) and the median first eval step at which they did, the exploits, and the
 sweep's wall time (launch to exit).
 
     python benchmarks/pbt_hopper.py                               # 4 x 1M steps each: hours on 2 cores
@@ -58,7 +58,7 @@ def first_reach(job: Path, threshold: float) -> int | None:
 
 
 def table(root: Path) -> str:
-    from rlexp.stats import iqm
+    from rlexp.analysis.stats import iqm
 
     rows = ["| sweep | best member final eval | population IQM | reached 2383 | median step "
             "to 2383 | exploits | wall s |", "|---|---|---|---|---|---|---|"]  # fmt: skip

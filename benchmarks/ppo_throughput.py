@@ -82,9 +82,9 @@ def compose(s: Setting, iterations: int, threads: int, seed: int, extra: list[st
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
+    from rlexp.config.paths import CONF_DIR
     from rlexp.config.schema import register_configs
     from rlexp.config.validate import to_root_config
-    from rlexp.paths import CONF_DIR
 
     overrides = [
         f"env={s.env}",
@@ -116,7 +116,7 @@ def compose(s: Setting, iterations: int, threads: int, seed: int, extra: list[st
 def run_rlexp(s: Setting, config, warmup: int, iterations: int) -> list[float]:
     """``rlexp.app.train`` itself; the timestamps are taken after each iteration's ``log_train``."""
     from rlexp.app import train
-    from rlexp.trainer import Trainer
+    from rlexp.training.trainer import Trainer
 
     marks: list[float] = []
     log_train, train_loop = Trainer.log_train, Trainer.train

@@ -60,7 +60,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=2000)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
-    from rlexp import runs
+    from rlexp.analysis import runs
 
     with tempfile.TemporaryDirectory() as tmp:
         make_runs(Path(tmp), args.runs)

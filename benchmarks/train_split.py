@@ -43,11 +43,11 @@ def main() -> None:
 
     from ppo_throughput import SETTINGS, Setting, compose
 
-    from rlexp import _speedups
     from rlexp.algorithms.ppo import make_algorithm
-    from rlexp.collector import RolloutCollector
+    from rlexp.common import speedups as _speedups
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import make_policy
+    from rlexp.training.collector import RolloutCollector
 
     _speedups.apply()
     s = SETTINGS[args.setting]

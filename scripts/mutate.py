@@ -1,6 +1,6 @@
 """Check that tests catch a bug: put the bug into a copy of the tree and run the tests there.
 
-    .venv/bin/python scripts/mutate.py -r src/rlexp/checkpoint.py \\
+    .venv/bin/python scripts/mutate.py -r src/rlexp/checkpoints/files.py \\
         'tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")' 'tmp = path' \\
         -- tests/test_checkpoint_writes.py     # a checkpoint written in place
 

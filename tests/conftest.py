@@ -84,7 +84,7 @@ def rlexp_cli(*args) -> tuple[int, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
-#: What rlexp stops on (rlexp.launch.signals.STOP_SIGNALS).
+#: What rlexp stops on (rlexp.runtime.signals.STOP_SIGNALS).
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 

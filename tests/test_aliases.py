@@ -11,8 +11,8 @@ import pytest
 
 from conftest import REPO
 from rlexp.config.aliases import ALIASES, alias_hint
-from rlexp.config.precheck import check_key
 from rlexp.config.validate import ConfigError
+from rlexp.launch.precheck import check_key
 
 
 @pytest.mark.parametrize(

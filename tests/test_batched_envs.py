@@ -21,7 +21,7 @@ import pytest
 import torch
 
 from conftest import REPO, compose, rlexp_cli, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint, step_checkpoints
 
 TESTS = Path(__file__).resolve().parent
 #: batched_toy.py importable and allowed in the training process
@@ -174,10 +174,10 @@ def test_the_chunked_eval_loop_equals_torchrl_s_loop(monkeypatch):
     steps, none per step), here on the CPU: TorchRL's step-by-step loop's episodes and numbers."""
     from batched_toy import ToyVecEnv
 
-    from rlexp import evaluation
     from rlexp.config.schema import EnvConfig, PolicyConfig
     from rlexp.envs.vecenv import VecEnvAdapter
     from rlexp.policies.actor_critic import policy_for_env
+    from rlexp.training import evaluation
 
     def env_and_policy():
         env = VecEnvAdapter(ToyVecEnv(3, seed=2), "toy")
@@ -248,7 +248,7 @@ def _export_acts_as_the_policy(
     ``eval_tolerance``: a GPU policy and the CPU file differ in the last bits)."""
     from torchrl.data import Unbounded
 
-    from rlexp.checkpoint import select_checkpoint
+    from rlexp.checkpoints.files import select_checkpoint
     from rlexp.config.schema import PolicyConfig
     from rlexp.policies.actor_critic import make_policy
 
@@ -321,8 +321,8 @@ def test_torchrl_env_trains_restarts_after_ctrl_c_evaluates_and_exports(
 
 # -- refusals: one line naming the env -----------------------------------------------------------
 def _config_error(overrides: list[str]) -> str:
-    from rlexp.config.checks import check_buildable
     from rlexp.config.validate import ConfigError, to_root_config
+    from rlexp.launch.checks import check_buildable
 
     with pytest.raises(ConfigError) as err:
         check_buildable(to_root_config(compose(["env=hopper", *overrides])))
@@ -393,9 +393,9 @@ def test_a_registered_name_and_a_plugin_s_allowed_module(monkeypatch):
     """What a plugin does: register a name, or allow its package (no shell variable needed)."""
     from batched_toy import make_vecenv
 
-    from rlexp.config.checks import check_buildable
     from rlexp.config.validate import to_root_config
     from rlexp.envs import batched
+    from rlexp.launch.checks import check_buildable
 
     monkeypatch.delenv("RLEXP_ENV_MODULES", raising=False)
     monkeypatch.setattr(batched, "ENV_FACTORIES", {})
@@ -411,7 +411,7 @@ def test_a_registered_name_and_a_plugin_s_allowed_module(monkeypatch):
 
 def test_auto_device_is_the_env_s_gpu_or_the_cpu_for_a_small_mlp(monkeypatch):
     from rlexp.config.schema import MLPConfig, PolicyConfig
-    from rlexp.devices import auto_device
+    from rlexp.runtime.devices import auto_device
 
     small = PolicyConfig()  # 64x64
     wide = PolicyConfig(critic=MLPConfig(hidden_sizes=[512, 512]))

@@ -24,7 +24,7 @@ import pytest
 import torch
 from torch._utils import _rebuild_tensor_v2
 
-from rlexp.checkpoint_scan import ScanError, scan
+from rlexp.checkpoints.scan import ScanError, scan
 
 
 # -- the checkpoint scan's view bound --------------------------------------------------------------
@@ -129,7 +129,7 @@ def test_an_empty_view_may_sit_at_its_storages_end_not_past_it():
 )
 def test_auto_device_keeps_at_most_256_units_on_the_cpu(monkeypatch, actor, critic, device):
     from rlexp.config.schema import MLPConfig, PolicyConfig
-    from rlexp.devices import auto_device
+    from rlexp.runtime.devices import auto_device
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # as on a GPU machine
     cfg = PolicyConfig(actor=MLPConfig(hidden_sizes=actor), critic=MLPConfig(hidden_sizes=critic))
@@ -142,7 +142,7 @@ def test_auto_device_keeps_at_most_256_units_on_the_cpu(monkeypatch, actor, crit
 
 # -- the stop watchdog's resume point --------------------------------------------------------------
 def _watchdog(tmp_path: Path, newest: Path | None, resumed_from: Path | None):
-    from rlexp.stalls import StopWatchdog
+    from rlexp.run.stalls import StopWatchdog
 
     trainer = SimpleNamespace(last_checkpoint=newest, global_step=1536, last_eval={})
     return StopWatchdog(trainer, tmp_path, resumed_from, grace_s=3.0)
@@ -155,7 +155,7 @@ def test_the_stop_watchdog_names_the_newest_checkpoint_not_the_one_resumed_from(
     and ``status.json`` says so (``expire``, with the exit stubbed)."""
     import json
 
-    from rlexp import stalls
+    from rlexp.run import stalls
 
     ckpts = tmp_path / "checkpoints"
     resumed, newest = ckpts / "x_step_000000512.pt", ckpts / "x_step_000001536.pt"
@@ -192,8 +192,8 @@ def test_the_stop_watchdog_names_the_newest_checkpoint_not_the_one_resumed_from(
 )  # fmt: skip
 def test_an_other_librarys_name_below_two_dots_gets_its_rlexp_key(key, expected):
     from rlexp.config.aliases import alias_hint
-    from rlexp.config.precheck import check_key
     from rlexp.config.validate import ConfigError
+    from rlexp.launch.precheck import check_key
 
     assert alias_hint(key).startswith(expected)
     with pytest.raises(ConfigError) as err:

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import TINY, run_train
 from conftest import rlexp_cli as _cli
-from rlexp.checkpoint import load_checkpoint, select_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import load_checkpoint, select_checkpoint, step_checkpoints
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import torch
 
-import rlexp.checkpoint as ckpt_mod
+import rlexp.checkpoints.files as ckpt_mod
 from conftest import SHORT, compose
-from rlexp.checkpoint import load_checkpoint, save_checkpoint
+from rlexp.checkpoints.files import load_checkpoint, save_checkpoint
 
 
 def _state(step: int) -> dict:
@@ -87,7 +87,7 @@ def test_a_failed_rewrite_of_best_pt_keeps_the_previous_best(tmp_path, monkeypat
     256 and rewritten at step 512; that rewrite fails half-way. The best of step 256 stays."""
     from rlexp.app import RunEnded, train
     from rlexp.config.validate import to_root_config
-    from rlexp.trainer import Trainer
+    from rlexp.training.trainer import Trainer
 
     def improving_round(self, policy):
         return {

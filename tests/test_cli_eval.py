@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from conftest import REPO, TINY, run_train
-from rlexp.checkpoint import load_checkpoint, save_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import load_checkpoint, save_checkpoint, step_checkpoints
 
 
 def _eval(*args: str, cwd=None) -> subprocess.CompletedProcess:
@@ -174,8 +174,8 @@ def test_evaluation_is_deterministic_and_rlexp_eval_agrees_with_the_trainers_eva
     same episodes give the same numbers, every time."""
     import re
 
-    from rlexp.build import EVAL_SEED_OFFSET
     from rlexp.cli import evaluate
+    from rlexp.training.build import EVAL_SEED_OFFSET
 
     ckpts = step_checkpoints(run_dir / "checkpoints")
     assert [load_checkpoint(c)["global_step"] for c in ckpts] == [256, 512]

@@ -11,8 +11,8 @@ from scipy.stats import mannwhitneyu
 from test_runs import make_run, rlexp
 
 from conftest import run_train
-from rlexp import compare
-from rlexp.report import iqm
+from rlexp.analysis import compare
+from rlexp.analysis.report import iqm
 
 
 def curve(final: float, steps: int = 4) -> list[dict]:

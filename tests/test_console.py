@@ -75,7 +75,7 @@ class FakeTerminal(io.StringIO):
 def test_log_records_print_above_the_bar_and_the_bar_ends_at_the_real_count(tmp_path):
     from rich.console import Console
 
-    from rlexp.progress import Progress
+    from rlexp.run.progress import Progress
 
     drawn = io.StringIO()
     console = Console(file=drawn, force_terminal=True, width=150, color_system="standard")
@@ -114,7 +114,7 @@ def test_log_records_print_above_the_bar_and_the_bar_ends_at_the_real_count(tmp_
 
 
 def test_the_bar_is_off_without_a_terminal(monkeypatch):
-    from rlexp.progress import Progress
+    from rlexp.run.progress import Progress
 
     monkeypatch.setattr(sys.stderr, "isatty", lambda: False, raising=False)
     with Progress(100) as progress:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rlexp.report import Job, bootstrap_ci, curve_band, iqm, plot_curves, summarize
+from rlexp.analysis.report import Job, bootstrap_ci, curve_band, iqm, plot_curves, summarize
 
 STEPS = [1000, 2000, 3000, 4000]
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from conftest import PLAIN_PPO, REPO, Children, only_run_dir, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 
 ARGS = [
     "env=inverted_pendulum",
@@ -59,7 +59,7 @@ def test_two_ranks_average_gradients_share_one_run_dir_and_load_single_process(t
     assert ckpt["global_step"] == 512  # 256 per rank, counted over both ranks
 
     # Both ranks ended with the same parameters, and that is what rank 0 saved.
-    from rlexp.loop import parameter_digest
+    from rlexp.training.loop import parameter_digest
 
     digests = []
     for name in ("train.log", "train_rank1.log"):
@@ -236,7 +236,7 @@ from tensordict import TensorDict
 from torchrl.data import Bounded
 from rlexp.algorithms.ppo import make_algorithm
 from rlexp.config.schema import AlgorithmConfig, PolicyConfig
-from rlexp.launch import distributed
+from rlexp.runtime import distributed
 from rlexp.policies.actor_critic import make_policy
 
 distributed.init_in_job()

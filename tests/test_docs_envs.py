@@ -14,7 +14,7 @@ from test_resume import _kill_after_checkpoint
 from test_user_envs import SMALL
 
 from conftest import REPO, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 
 DOC = REPO / "docs" / "envs.md"
 

@@ -18,8 +18,8 @@ KNOBS = ["env=hopper", "env.name=toy_envs:Knobs-v0"]
 
 
 def _check(overrides: list[str]) -> str:
-    from rlexp.config.checks import check_buildable
     from rlexp.config.validate import ConfigError, to_root_config
+    from rlexp.launch.checks import check_buildable
 
     with pytest.raises(ConfigError) as err:
         check_buildable(to_root_config(compose(overrides)))

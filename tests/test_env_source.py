@@ -121,7 +121,7 @@ def test_a_module_the_run_s_folder_no_longer_holds_is_one_line_exit_2(trained, t
 
 def test_an_installed_module_is_never_shadowed_by_a_recorded_folder(tmp_path, monkeypatch):
     """The recorded folder goes at the end of sys.path, and only for a module not importable."""
-    from rlexp.env_source import ensure_env_importable
+    from rlexp.runtime.env_source import ensure_env_importable
 
     (tmp_path / "json.py").write_text("raise SystemExit('shadowed')\n")
     (tmp_path / "provenance.json").write_text(

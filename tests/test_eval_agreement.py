@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 
 TESTS = Path(__file__).resolve().parent
 PYPATH = {"PYTHONPATH": f"{REPO / 'src'}{os.pathsep}{TESTS}"}
@@ -36,8 +36,8 @@ ROUNDS = [
 
 def _agree(run_dir: Path, tmp_path: Path) -> None:
     """The run's last eval == rlexp eval RUN (its defaults) == rlexp eval of its TorchScript export."""
-    from rlexp.export import export_policy
-    from rlexp.policy_eval import evaluate
+    from rlexp.deploy.export import export_policy
+    from rlexp.deploy.policy_eval import evaluate
 
     ckpt = load_checkpoint(latest_checkpoint(run_dir / "checkpoints"))
     logged = ckpt["last_eval"]

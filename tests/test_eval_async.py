@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from conftest import CONF_DIR, REPO, compose
-from rlexp.checkpoint import load_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import load_checkpoint, step_checkpoints
 from rlexp.config.validate import ConfigError, to_root_config
 
 #: Six iterations of 256 steps, an eval round after each (3 episodes on 2 copies: uneven quotas), a
@@ -109,7 +109,7 @@ def sync_run(tmp_path_factory) -> Path:
 
 # -- (a) the same run, sync and async: identical eval rows, best.pt, checkpoints -------------------
 def test_async_evaluation_gives_exactly_the_sync_runs_results(sync_run, tmp_path, monkeypatch):
-    from rlexp.eval_worker import EvalWorker
+    from rlexp.training.eval_worker import EvalWorker
 
     calls: list[tuple[str, int]] = []
     real_submit, real_result = EvalWorker.submit, EvalWorker.result
@@ -137,7 +137,7 @@ def test_async_evaluation_gives_exactly_the_sync_runs_results(sync_run, tmp_path
 # -- (b) a stop while a round is in flight: the resume evaluates it first ---------------------------
 def test_a_round_in_flight_at_a_stop_is_evaluated_first_on_resume(sync_run, tmp_path, monkeypatch):
     from rlexp.app import RunEnded
-    from rlexp.trainer import Trainer
+    from rlexp.training.trainer import Trainer
 
     real_evaluate = Trainer.evaluate
 
@@ -167,7 +167,7 @@ def test_a_sync_resume_evaluates_an_async_runs_round_in_flight_in_process(
     """The resumed run may decide eval_async differently (another machine, auto): the pending
     round then runs in-process, on a copy of the policy with the snapshot's weights."""
     from rlexp.app import RunEnded
-    from rlexp.trainer import Trainer
+    from rlexp.training.trainer import Trainer
 
     real_evaluate = Trainer.evaluate
 
@@ -246,7 +246,7 @@ def test_the_worker_dies_with_a_killed_training_process(tmp_path, children):
         f"sys.path.insert(0, {str(REPO / 'tests')!r})\n"
         "from conftest import compose\n"
         "from rlexp.config.validate import to_root_config\n"
-        "from rlexp.eval_worker import EvalSetup, EvalWorker\n"
+        "from rlexp.training.eval_worker import EvalSetup, EvalWorker\n"
         f"c = to_root_config(compose({RUN!r}))\n"
         "w = EvalWorker(EvalSetup(c.env, c.policy, 1, 1))\n"
         "w.start()\n"
@@ -271,7 +271,7 @@ def test_the_worker_dies_with_a_killed_training_process(tmp_path, children):
 
 # -- (c) at most one in flight ----------------------------------------------------------------------
 def test_a_second_submit_while_a_round_is_in_flight_is_refused():
-    from rlexp.eval_worker import EvalRound, EvalWorker
+    from rlexp.training.eval_worker import EvalRound, EvalWorker
 
     worker = EvalWorker(None)  # type: ignore[arg-type]
     worker.in_flight = EvalRound(256, {})
@@ -282,8 +282,8 @@ def test_a_second_submit_while_a_round_is_in_flight_is_refused():
 # -- (d) eval_every=0: no evaluation at all ---------------------------------------------------------
 def test_eval_every_0_builds_no_eval_env_starts_no_worker_and_logs_no_eval(tmp_path, monkeypatch):
     import rlexp.envs.factory as factory
-    from rlexp.build import build
-    from rlexp.eval_worker import EvalWorker
+    from rlexp.training.build import build
+    from rlexp.training.eval_worker import EvalWorker
 
     config = _config("trainer.eval_every=0", "trainer.eval_async=true")
     built: list[int] = []
@@ -327,7 +327,7 @@ def test_eval_every_0_builds_no_eval_env_starts_no_worker_and_logs_no_eval(tmp_p
 def test_auto_is_on_with_a_spare_core_and_nothing_acting_on_eval_results(
     overrides, cpus, jobs, on, why
 ):
-    from rlexp.eval_worker import decide_eval_async
+    from rlexp.training.eval_worker import decide_eval_async
 
     config = to_root_config(compose(overrides))  # HalfCheetah, 1M steps, eval every 50k: 20 rounds
     total = config.trainer.total_frames
@@ -336,7 +336,7 @@ def test_auto_is_on_with_a_spare_core_and_nothing_acting_on_eval_results(
 
 
 def test_the_launchers_jobs_count_and_the_choice_is_logged_once(tmp_path, caplog):
-    from rlexp.eval_worker import launcher_jobs
+    from rlexp.training.eval_worker import launcher_jobs
 
     assert [launcher_jobs(n, 8) for n in (None, 2, -1, -2, "x", True)] == [1, 2, 8, 7, 1, 1]
     with caplog.at_level("INFO"):
@@ -347,7 +347,7 @@ def test_the_launchers_jobs_count_and_the_choice_is_logged_once(tmp_path, caplog
 
 
 def test_eval_async_true_with_eval_events_is_a_config_error_naming_the_key():
-    from rlexp.config.precheck import precheck
+    from rlexp.launch.precheck import precheck
 
     with pytest.raises(
         ConfigError, match=r"^trainer.eval_async=true: events.eval \(record_video\)"
@@ -365,8 +365,8 @@ def test_eval_async_true_with_eval_events_is_a_config_error_naming_the_key():
 )
 def test_success_rate_only_for_tasks_that_define_success(name, has_success):
     from rlexp.envs.factory import make_env
-    from rlexp.evaluation import eval_line, run_episodes
     from rlexp.policies.actor_critic import make_policy
+    from rlexp.training.evaluation import eval_line, run_episodes
 
     config = to_root_config(compose([f"env={name}", "env.max_episode_steps=20"]))
     env = make_env(config.env, 2, seed=1)

@@ -11,13 +11,13 @@ from pathlib import Path
 import pytest
 import torch
 
-import rlexp.evaluation as evaluation_mod
+import rlexp.training.evaluation as evaluation_mod
 from conftest import compose
 from rlexp.config.validate import to_root_config
 from rlexp.envs.factory import make_env
-from rlexp.evaluation import run_episodes
 from rlexp.events import register_event
 from rlexp.policies.actor_critic import make_policy
+from rlexp.training.evaluation import run_episodes
 
 #: (conf/env, copies, episodes, overrides): uneven quotas, terminations, truncations, success.
 CASES = [
@@ -84,9 +84,9 @@ SMALL = [
 
 def _trainer(tmp_path: Path, overrides: list[str], eval_events: dict | None = None):
     """A Trainer of a small config; ``eval_events``: name -> (func, mode, params) in events.eval."""
-    from rlexp.build import build
     from rlexp.config.native_task import EventTermConfig
-    from rlexp.logging import MetricLogger
+    from rlexp.run.metrics import MetricLogger
+    from rlexp.training.build import build
 
     config = to_root_config(compose([*SMALL, *overrides]))
     for name, (func, mode, params) in (eval_events or {}).items():

@@ -21,8 +21,8 @@ import torch
 
 from conftest import REPO, Children
 from conftest import rlexp_cli as _cli
-from rlexp.checkpoint import load_checkpoint, save_checkpoint, step_checkpoints
-from rlexp.policy_eval import evaluate, metadata_path, open_source
+from rlexp.checkpoints.files import load_checkpoint, save_checkpoint, step_checkpoints
+from rlexp.deploy.policy_eval import evaluate, metadata_path, open_source
 
 #: PPO (actor_critic) on Hopper-v5: two iterations of 256 steps, an eval after each (best.pt).
 HOPPER = [
@@ -114,8 +114,8 @@ def _rollout_observations(checkpoint: Path, steps: int = 40) -> torch.Tensor:
     deterministic actions plus noise (so the states are varied), and a few far outside the
     training statistics (so the normaliser's clip acts)."""
     from rlexp.config.validate import to_root_config
+    from rlexp.deploy.policy_eval import eval_config
     from rlexp.envs.factory import make_env
-    from rlexp.policy_eval import eval_config
 
     source = open_source(checkpoint)
     config = to_root_config(eval_config(source.config))
@@ -139,8 +139,8 @@ def _rlexp_actions(checkpoint: Path, obs: torch.Tensor) -> tuple[torch.Tensor, t
     """The checkpoint's deterministic policy (rlexp's sampler, its normaliser) on ``obs``: the
     raw mean action, and the action the env applies (clipped to the action bounds)."""
     from rlexp.config.validate import to_root_config
+    from rlexp.deploy.policy_eval import eval_config
     from rlexp.envs.factory import make_env
-    from rlexp.policy_eval import eval_config
 
     source = open_source(checkpoint)
     config = to_root_config(eval_config(source.config))
@@ -418,7 +418,7 @@ def test_the_folded_normaliser_matches_the_policy_s_own(normalize):
 
     from conftest import compose
     from rlexp.config.validate import to_root_config
-    from rlexp.export import DeterministicActor
+    from rlexp.deploy.export import DeterministicActor
     from rlexp.policies.actor_critic import make_policy
 
     config = to_root_config(compose(["env=hopper"]))

@@ -25,8 +25,8 @@ from test_docs_envs import _example
 
 from conftest import REPO, Children
 from conftest import rlexp_cli as _cli
-from rlexp.export_obs import helper_name, helper_source
-from rlexp.policy_eval import evaluate, metadata_path
+from rlexp.deploy.export_obs import helper_name, helper_source
+from rlexp.deploy.policy_eval import evaluate, metadata_path
 
 TESTS = Path(__file__).parent
 #: docs/export.md's run dir (the blocks name it; the test trains the corridor run there)
@@ -151,8 +151,8 @@ def _rlexp_env_actions(checkpoint: Path, observations: list) -> tuple[np.ndarray
     the env for them (clipped, rescaled, decoded as its env adapter does)."""
     from tensordict import TensorDict
 
+    from rlexp.deploy.policy_eval import open_source, typed_config
     from rlexp.envs.factory import make_env
-    from rlexp.policy_eval import open_source, typed_config
 
     source = open_source(checkpoint)
     config = typed_config(source.config, str(checkpoint))

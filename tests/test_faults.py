@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from conftest import CONF_DIR, SHORT, Children, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint, step_checkpoints
 from rlexp.config.validate import ConfigError
 
 LONG = [
@@ -199,7 +199,7 @@ def test_an_unwritable_checkpoints_dir_fails_at_once_with_one_line(tmp_path):
 
 # -- every config error: one line, exit 2, nothing written ------------------------------------------
 def _precheck(args: list[str]):
-    from rlexp.config.precheck import precheck
+    from rlexp.launch.precheck import precheck
 
     return precheck(args, CONF_DIR)
 

@@ -27,7 +27,7 @@ from test_batched_envs import (
 )
 
 from conftest import compose, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 
 pytestmark = [
     pytest.mark.gpu,
@@ -48,7 +48,7 @@ def test_vecenv_on_cuda_trains_resumes_exactly_evaluates_and_exports(
 ):
     monkeypatch.setenv("RLEXP_ENV_MODULES", "batched_toy")
     args = [*VECENV, *ON_GPU]
-    with caplog.at_level(logging.INFO, logger="rlexp.build"):
+    with caplog.at_level(logging.INFO, logger="rlexp.training.build"):
         _train_here(args, tmp_path / "whole")
     assert "[device] trainer.device=auto -> cuda:0: the env steps on cuda:0" in caplog.text
     broken = tmp_path / "broken"
@@ -86,8 +86,8 @@ def test_the_lean_eval_loop_on_the_gpu_equals_torchrl_s(backend):
     from rlexp.config.schema import EnvConfig, PolicyConfig
     from rlexp.envs.torchrl_env import TorchRLAdapter
     from rlexp.envs.vecenv import VecEnvAdapter
-    from rlexp.evaluation import run_episodes
     from rlexp.policies.actor_critic import policy_for_env
+    from rlexp.training.evaluation import run_episodes
 
     def env_and_policy():
         if backend == "vecenv":
@@ -109,7 +109,7 @@ def test_the_lean_eval_loop_on_the_gpu_equals_torchrl_s(backend):
 def test_auto_keeps_a_cpu_gymnasium_env_with_a_small_mlp_on_the_cpu(tmp_path, caplog):
     tiny = ["env=gym_cartpole", "trainer.total_frames=256", "trainer.frames_per_batch=128",
             "trainer.eval_every=0", "algorithm.num_epochs=1", "trainer.progress=false"]  # fmt: skip
-    with caplog.at_level(logging.INFO, logger="rlexp.build"):
+    with caplog.at_level(logging.INFO, logger="rlexp.training.build"):
         _train_here([*tiny, "trainer.device=auto"], tmp_path / "auto")
     assert "[device] trainer.device=auto -> cpu: a CPU env and a small MLP" in caplog.text
     saved = load_checkpoint(latest_checkpoint(tmp_path / "auto" / "checkpoints"))

@@ -18,7 +18,7 @@ import torch
 from omegaconf import OmegaConf
 
 from conftest import REPO, only_run_dir, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 from rlexp.config.validate import to_root_config
 
 EXAMPLES = REPO / "examples" / "json"

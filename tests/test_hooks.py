@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from conftest import compose, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 from rlexp.config.validate import ConfigError, to_root_config
 from rlexp.hooks import HookControl, HookState, register_hook
 
@@ -57,8 +57,8 @@ class Recorder:
 
 
 def _trainer(tmp_path: Path, overrides: list[str]):
-    from rlexp.build import build
-    from rlexp.logging import MetricLogger, make_logger
+    from rlexp.run.metrics import MetricLogger, make_logger
+    from rlexp.training.build import build
 
     config = to_root_config(compose([*TINY, *overrides]))
     run_dir = tmp_path / "run"

@@ -33,7 +33,7 @@ from torch._utils import _rebuild_tensor_v2
 
 from conftest import REPO, SHORT, Children, run_train
 from conftest import rlexp_cli as _cli
-from rlexp.checkpoint import latest_good_checkpoint, load_checkpoint, save_checkpoint
+from rlexp.checkpoints.files import latest_good_checkpoint, load_checkpoint, save_checkpoint
 
 #: The tensor the item-7 files lie about, and its real shape (InvertedPendulum: 4 observations).
 WEIGHT = "actor_net.mlp.0.weight"
@@ -292,8 +292,8 @@ def test_export_refuses_a_float64_normaliser_count_cast_to_float32(run_dir, tmp_
 
 def test_optimiser_state_of_another_dtype_is_refused_on_resume(run_dir, tmp_path):
     from conftest import CONF_DIR
-    from rlexp.config.precheck import precheck
     from rlexp.config.validate import ConfigError
+    from rlexp.launch.precheck import precheck
 
     state = _state(run_dir)
     state["algorithm"]["optimizer"]["state"][1]["exp_avg"] = state["algorithm"]["optimizer"][
@@ -486,7 +486,7 @@ def test_the_real_checkpoints_pass_every_check_and_the_files_torch_writes_too(ru
 def test_pruning_counts_and_deletes_only_files(tmp_path):
     """Not in the issue's text: a directory with the newest checkpoint's name neither crashes the
     pruning after a save (``unlink`` of a directory) nor takes the place of a kept checkpoint."""
-    from rlexp.checkpoint import prune_checkpoints
+    from rlexp.checkpoints.files import prune_checkpoints
 
     files = [tmp_path / f"run_step_{s:09d}.pt" for s in (256, 512, 768)]
     for f in files:

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO
-from rlexp import compare, runs, stats
+from rlexp.analysis import compare, runs, stats
 
 HOST = socket.gethostname()
 T0 = "2026-11-20T10:00:00+0000"
@@ -482,7 +482,7 @@ REPORT_CASES = {
 
 @pytest.mark.parametrize("case", sorted(REPORT_CASES))
 def test_report_counts_the_good_jobs_and_names_the_bad_one_once(tmp_path, caplog, case):
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     damage, words = REPORT_CASES[case]
     sweep_with_a_bad_job(tmp_path, damage)
@@ -524,7 +524,7 @@ def test_a_multirun_yaml_alias_bomb_leaves_the_plan_unknown(tmp_path, children):
 
 
 def test_a_2_gb_metrics_line_is_skipped_without_reading_it_into_memory(tmp_path, caplog):
-    from rlexp.reporting.jobs import read_job
+    from rlexp.analysis.reporting.jobs import read_job
 
     d = write_run(tmp_path / "0")
     with open(d / "metrics.jsonl", "ab") as f:  # 64 MB of one line, no newline (a sparse file)
@@ -716,7 +716,7 @@ def test_compare_follows_symlinked_run_dirs_once_each(tmp_path, capsys, monkeypa
 
 
 def test_report_follows_symlinked_job_dirs_once_each(tmp_path):
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     sweep = tmp_path / "sweep"
     sweep_with_a_bad_job(sweep, lambda d: None)

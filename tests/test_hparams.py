@@ -125,7 +125,7 @@ def test_the_metrics_are_each_jobs_final_values_and_best_eval(sweep):
 
 def test_hparams_of_lists_term_tables_by_name_and_gives_overridden_keys_a_column():
     from rlexp.config.validate import to_dict, to_root_config
-    from rlexp.logging import hparams_of
+    from rlexp.run.metrics import hparams_of
 
     overrides = ["env=push_cube", "env.native.rewards.success_bonus.weight=5", "hooks=[lr_anneal]"]
     config = to_dict(to_root_config(compose(overrides)))
@@ -144,7 +144,7 @@ def test_hparams_of_lists_term_tables_by_name_and_gives_overridden_keys_a_column
 
 
 def test_a_resumed_run_keeps_its_best_and_an_unfinished_one_has_no_end_status(tmp_path):
-    from rlexp.logging import TensorBoardBackend
+    from rlexp.run.metrics import TensorBoardBackend
 
     config = {"seed": 3, "algorithm": {"clip_epsilon": 0.3}}
     first = TensorBoardBackend(tmp_path, config)
@@ -175,7 +175,7 @@ def test_a_resumed_run_keeps_its_best_and_an_unfinished_one_has_no_end_status(tm
 
 def test_the_carried_best_is_read_with_tensorboards_loader_up_to_a_torn_record(tmp_path):
     """A crash mid-write leaves a torn last record: the best before it is the one carried over."""
-    from rlexp.logging import BEST_EVAL_RETURN, TensorBoardBackend, _last_logged
+    from rlexp.run.metrics import BEST_EVAL_RETURN, TensorBoardBackend, _last_logged
 
     first = TensorBoardBackend(tmp_path, {"seed": 1})
     first.log({"eval/episode_return": 5.0}, 100)

@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 from conftest import REPO, only_run_dir, run_train
-from rlexp.checkpoint import load_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import load_checkpoint, step_checkpoints
 
 BASE = [
     "env=inverted_pendulum",
@@ -168,7 +168,7 @@ def _repo(path, files: dict[str, str]):
 def test_provenance_records_the_checkouts_commit_and_whether_it_is_dirty(tmp_path, monkeypatch):
     """rlexp's checkout (a stand-in repository) and the working dir's project: commit = rev-parse
     HEAD, git_dirty and git.diff follow a change to a tracked file."""
-    from rlexp import provenance
+    from rlexp.run import provenance
 
     checkout = _repo(tmp_path / "rlexp", {"pyproject.toml": "", "src/rlexp/__init__.py": "x = 1\n"})
     project = _repo(tmp_path / "project", {"train.py": "print(1)\n"})

@@ -50,7 +50,7 @@ def evals(job: Path) -> list[tuple[int, float]]:
 def check_median_sweep(sweep: Path, proc: subprocess.CompletedProcess) -> None:
     """The two lr=0 jobs stopped early by the median rule, with a checkpoint at the stop; the two
     others finished; the summary line counts all four as done."""
-    from rlexp.checkpoint import checkpoint_path, latest_checkpoint
+    from rlexp.checkpoints.files import checkpoint_path, latest_checkpoint
 
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out

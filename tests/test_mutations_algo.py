@@ -416,9 +416,9 @@ TINY = [
 
 def _trainer(tmp_path: Path, overrides: list[str]):
     """A Trainer built as ``train.py`` builds it (the real config wiring), logging nowhere."""
-    from rlexp.build import build
     from rlexp.config.validate import to_root_config
-    from rlexp.logging import MetricLogger
+    from rlexp.run.metrics import MetricLogger
+    from rlexp.training.build import build
 
     config = to_root_config(compose([*TINY, *overrides]))
     run_dir = tmp_path / "run"

@@ -29,10 +29,10 @@ import numpy as np
 import pytest
 from scipy.stats import binom, trim_mean
 
-from rlexp import compare, stats
-from rlexp.reporting.jobs import Job
-from rlexp.reporting.results import over_seeds
-from rlexp.reporting.summary import summarize
+from rlexp.analysis import compare, stats
+from rlexp.analysis.reporting.jobs import Job
+from rlexp.analysis.reporting.results import over_seeds
+from rlexp.analysis.reporting.summary import summarize
 
 # ------------------------------------------------------------------------------- references
 

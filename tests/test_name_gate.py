@@ -1,4 +1,4 @@
-"""What a name may import (docs/envs.md, "Security: what a name may import"; rlexp.registry.reach):
+"""What a name may import (docs/envs.md, "Security: what a name may import"; rlexp.common.registry.reach):
 every name a config or an exported file gives is refused in one line, exit 2, when it reaches past
 what it may: an allowed module's own imports (``os``, ``subprocess``, ``importlib``), private and
 dunder paths, a submodule reached by attribute, a prefix without its ``.`` boundary, the standard
@@ -24,7 +24,7 @@ TESTS = Path(__file__).resolve().parent
 
 def _build_check(overrides: list[str]) -> str:
     """The config check of ``python train.py`` on ``overrides`` (env=hopper first): its one line."""
-    from rlexp.config.checks import check_buildable
+    from rlexp.launch.checks import check_buildable
 
     config = to_root_config(compose(["env=hopper", *overrides]))
     with pytest.raises(ConfigError) as err:
@@ -78,7 +78,7 @@ def _reaching(marker: Path) -> list[tuple[str, str, list[str]]]:
         ("torchrl", "torchrl.envs:VC1Transform", []),  # a class, but not an env
         (
             "vecenv",
-            "rlexp.fsutil:atomic_write_text",
+            "rlexp.files.fsutil:atomic_write_text",
             [f"+env.kwargs.path='{marker}'", "+env.kwargs.text=x"],
         ),  # fmt: skip
         ("vecenv", "os:system", [touch]),
@@ -158,8 +158,8 @@ def test_an_allowed_prefix_admits_only_its_own_modules(module, shell, tmp_path, 
 
 
 def test_the_boundary_itself_and_an_exact_shell_prefix(tmp_path, monkeypatch):
+    from rlexp.common.registry import under
     from rlexp.envs.batched import resolve_env_factory
-    from rlexp.registry import under
 
     assert under("torchrl.envs", ["torchrl.envs."]) and under("torchrl.envs.libs", ["torchrl.envs"])
     assert not under("torchrl.envsx", ["torchrl.envs"]) and not under("torchrl", ["torchrl.envs."])
@@ -176,7 +176,7 @@ def test_the_boundary_itself_and_an_exact_shell_prefix(tmp_path, monkeypatch):
     [
         ("hook", "rlexp.hooks_evil.f"),
         ("hook", "rlexp.hooksx.f"),
-        ("hook", "rlexp.hooks.base.resolve"),  # imported there from rlexp.registry
+        ("hook", "rlexp.hooks.base.resolve"),  # imported there from rlexp.common.registry
         ("hook", "rlexp.hooks.base.__builtins__"),
         ("hook", "rlexp.hooks.__init__.x"),
         ("event", "rlexp.events_evil.f"),
@@ -201,7 +201,7 @@ def test_events_and_hooks_resolve_through_the_same_gate(kind, name):
 @pytest.mark.parametrize(
     "path",
     ["subprocess.run", "os.system", "builtins.eval", "importlib.import_module", "this.s",
-     "rlexp.registry._IDENT", "rlexp.registry.importlib", "rlexp.registry.reach.__globals__"],
+     "rlexp.common.registry._IDENT", "rlexp.common.registry.importlib", "rlexp.common.registry.reach.__globals__"],
 )  # fmt: skip
 def test_the_sweeper_s_custom_search_space_resolves_through_the_same_gate(path):
     from rlexp.launch.optuna_sweeper import check_spec
@@ -231,12 +231,12 @@ def test_optuna_sampler_targets_reach_only_optuna_s_own_classes(target, tmp_path
 @pytest.mark.parametrize(
     "target",
     ["shutil.copyfile", "subprocess.run", "hydra.utils.instantiate", "hydra.utils.os.system",
-     "hydra_evil.cb.Callback", "rlexp.registry.importlib"],
+     "hydra_evil.cb.Callback", "rlexp.common.registry.importlib"],
 )  # fmt: skip
 def test_hydra_callbacks_resolve_through_the_same_gate(target, tmp_path):
     """Hydra calls each ``hydra.callbacks`` ``_target_`` at start-up: ``shutil.copyfile`` would
     write the marker before the run (Hydra's own blocklist misses it)."""
-    from rlexp.config.precheck import precheck
+    from rlexp.launch.precheck import precheck
 
     marker = tmp_path / "pwned"
     cb = [f"+hydra.callbacks.x._target_={target}", "+hydra.callbacks.x.src=/etc/hostname",
@@ -275,7 +275,7 @@ def test_hydra_callbacks_resolve_through_the_same_gate(target, tmp_path):
 )
 def test_hydra_logging_classes_are_logging_s_own(overrides, tmp_path):
     """dictConfig builds each handler ``class`` with the config's keywords at start-up."""
-    from rlexp.config.precheck import precheck
+    from rlexp.launch.precheck import precheck
 
     marker = tmp_path / "pwned"
     args = [o.replace("{m}", str(marker)) for o in overrides]
@@ -307,7 +307,7 @@ def test_module_env_ids_never_import_the_standard_library_or_private_modules(ove
 
 def test_a_user_module_on_the_command_line_is_gymnasium_s_own_semantics(tmp_path, monkeypatch):
     """The rule's other half: the user's own module, named on the command line, is imported."""
-    from rlexp.config.checks import check_buildable
+    from rlexp.launch.checks import check_buildable
 
     marker = tmp_path / "imported"
     (tmp_path / "lab_gym.py").write_text(
@@ -342,7 +342,7 @@ class _Left(torch.nn.Module):
 
 def _export(tmp_path: Path, overrides: list[str], **fields) -> Path:
     """A TorchScript file and its metadata, as rlexp export writes them, with ``fields`` changed."""
-    from rlexp.policy_eval import EXPORT_SCHEMA
+    from rlexp.deploy.policy_eval import EXPORT_SCHEMA
 
     path = tmp_path / "shared" / "policy.pt"
     path.parent.mkdir(exist_ok=True)
@@ -454,7 +454,7 @@ def test_exported_metadata_fields_are_what_an_export_writes(fields, key, tmp_pat
     ],
 )
 def test_a_preset_applied_to_another_env_id_is_refused(overrides, preset):
-    from rlexp.config.precheck import precheck
+    from rlexp.launch.precheck import precheck
 
     with pytest.raises(ConfigError) as err:
         precheck([*overrides, "trainer.total_frames=256"], CONF_DIR)
@@ -473,7 +473,7 @@ def test_a_preset_applied_to_another_env_id_is_refused(overrides, preset):
     ],
 )
 def test_a_preset_on_its_own_env_id_passes(overrides, tmp_path):
-    from rlexp.config.precheck import precheck
+    from rlexp.launch.precheck import precheck
 
     precheck([*overrides, "trainer.total_frames=256", f"hydra.run.dir={tmp_path / 'r'}",
               f"hydra.sweep.dir={tmp_path / 's'}"], CONF_DIR)  # fmt: skip

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-from rlexp.next_steps import done_message
+from rlexp.run.next_steps import done_message
 
 
 def _trainer(**kw):

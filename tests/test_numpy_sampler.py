@@ -98,10 +98,10 @@ def test_a_rollouts_noise_is_one_block_drawn_from_torch_at_its_start():
     Catches: blocks out of step with rollouts (a resumed run would draw other noise), noise from
     another generator, env and step axes swapped."""
     from conftest import compose
-    from rlexp.collector import RolloutCollector
     from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
     from rlexp.policies.numpy_sampler import NoiseStream
+    from rlexp.training.collector import RolloutCollector
 
     env = make_env(to_root_config(compose(["env=hopper"])).env, 2, seed=4)
     pol = make_policy(PolicyConfig(init_log_std=-0.4), 11, 3, env.action_spec)

@@ -314,8 +314,8 @@ def test_a_study_of_another_direction_is_refused_in_one_line(tmp_path, caplog):
 
 
 def test_a_bad_sweeper_config_is_refused_before_the_sweep_starts(tmp_path):
-    from rlexp.config.precheck import precheck
     from rlexp.config.validate import ConfigError
+    from rlexp.launch.precheck import precheck
 
     base = ["-m", "hydra/sweeper=optuna", f"hydra.sweep.dir={tmp_path / 's'}", "seed=0"]
     for extra, message in [

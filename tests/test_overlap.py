@@ -19,7 +19,7 @@ import torch
 
 from conftest import REPO, Children, compose
 from rlexp.config.validate import ConfigError, to_root_config
-from rlexp.overlap import OverlapCollector
+from rlexp.training.overlap import OverlapCollector
 
 SMALL = [
     "env=hopper",
@@ -40,8 +40,8 @@ SMALL = [
 def _run_recording(tmp_path: Path, overlap: bool) -> tuple[list[dict], list, int | None]:
     """Train SMALL; per update, the policy's state as the update starts and the rollout it learns
     from; the collection child's PID (None: synchronous)."""
-    from rlexp.build import build
-    from rlexp.logging import MetricLogger
+    from rlexp.run.metrics import MetricLogger
+    from rlexp.training.build import build
 
     config = to_root_config(compose([*SMALL, f"algorithm.overlap={str(overlap).lower()}"]))
     torch.manual_seed(0)
@@ -74,7 +74,7 @@ def _loc(policy, state: dict, obs: torch.Tensor) -> torch.Tensor:
 def test_each_rollout_is_collected_by_the_policy_one_update_behind(tmp_path, overlap):
     states, batches, _ = _run_recording(tmp_path, overlap)
     assert len(batches) == 3
-    from rlexp.build import build
+    from rlexp.training.build import build
 
     config = to_root_config(compose(SMALL))
     policy = build(config, tmp_path / "probe", "cpu", 256).policy
@@ -164,7 +164,7 @@ def test_settings_overlap_cannot_run_with_are_refused_naming_the_key(tmp_path):
         to_root_config(compose(["env=hopper", "env.backend=envpool", "algorithm.overlap=true"]))
     with pytest.raises(ConfigError, match=r"events.train \(observation_noise, action_noise\)"):
         to_root_config(compose(["env=push_cube", "events=noise", "algorithm.overlap=true"]))
-    from rlexp.build import build
+    from rlexp.training.build import build
 
     config = to_root_config(compose(["env=hopper", "algorithm.overlap=true"]))
     with pytest.raises(ConfigError, match="device 'cuda'.*trainer.device=cpu"):

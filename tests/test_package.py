@@ -25,7 +25,8 @@ import pytest
 import torch
 
 from conftest import CONF_DIR, REPO
-from rlexp import paths, plugins
+from rlexp import plugins
+from rlexp.config import paths
 from rlexp.config.validate import ConfigError
 
 pytestmark = pytest.mark.package  # in the default suite; alone: make test-package
@@ -231,7 +232,7 @@ _REFERENCE = textwrap.dedent(
     from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
     from rlexp.plugins import load_plugins
-    from rlexp.policy_eval import eval_config, open_source
+    from rlexp.deploy.policy_eval import eval_config, open_source
 
     checkpoint, data, out = sys.argv[1:4]
     load_plugins()  # GridReach-v0 is the plugin's id
@@ -353,7 +354,7 @@ def _user_conf(root: Path) -> Path:
 
 
 def test_precheck_honours_the_users_config_dir(tmp_path):
-    from rlexp.config.precheck import precheck
+    from rlexp.launch.precheck import precheck
 
     conf = _user_conf(tmp_path)
     run_dir = f"hydra.run.dir={tmp_path / 'run'}"
@@ -443,9 +444,9 @@ def test_a_broken_plugin_stops_rlexp_train_in_one_line(tmp_path):
 def test_a_missing_extra_is_named(monkeypatch):
     from conftest import compose
     from rlexp import extras
-    from rlexp.config.precheck import precheck
+    from rlexp.config.paths import CONF_DIR
     from rlexp.config.validate import to_root_config
-    from rlexp.paths import CONF_DIR
+    from rlexp.launch.precheck import precheck
 
     missing = ("wandb", "optuna", "hydra_plugins.hydra_submitit_launcher")
     monkeypatch.setattr(extras, "_installed", lambda module: module not in missing)

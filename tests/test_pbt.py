@@ -132,7 +132,7 @@ def test_a_source_is_a_better_top_member_with_a_snapshot():
 
 # -- snapshots and pruning ---------------------------------------------------------------------------
 def test_pruning_never_removes_a_source_in_use(tmp_path):
-    from rlexp.checkpoint import prune_checkpoints
+    from rlexp.checkpoints.files import prune_checkpoints
     from rlexp.pbt.population import Ready, publish, read_ready, ready_name, take
 
     source = tmp_path / "sweep" / "0"
@@ -215,9 +215,9 @@ def test_a_dead_member_is_dropped_after_the_sync_timeout(tmp_path, caplog, monke
 
 # -- exploit: the full state, in process ---------------------------------------------------------------
 def _trainer(run_dir: Path, seed: int):
-    from rlexp.build import build
     from rlexp.config.validate import to_dict, to_root_config
-    from rlexp.logging import MetricLogger
+    from rlexp.run.metrics import MetricLogger
+    from rlexp.training.build import build
 
     config = to_root_config(compose([*TINY, f"seed={seed}", "trainer.eval_every=0",
                                      "algorithm.num_epochs=1", "+hooks.s.func=stop_at",
@@ -228,7 +228,7 @@ def _trainer(run_dir: Path, seed: int):
 
 
 def test_exploit_copies_the_full_training_state_then_the_member_diverges(tmp_path):
-    from rlexp.checkpoint import save_checkpoint
+    from rlexp.checkpoints.files import save_checkpoint
 
     source, member = _trainer(tmp_path / "0", seed=7), _trainer(tmp_path / "1", seed=8)
     try:
@@ -399,7 +399,7 @@ def test_killed_member_resumes_with_its_own_hyperparameters(tmp_path, children):
     import signal
     import sys
 
-    from rlexp.checkpoint import latest_good_checkpoint
+    from rlexp.checkpoints.files import latest_good_checkpoint
 
     sweep = tmp_path / "k"
     args = ["-m", *POP, "hooks.pbt.params.mode=sync", "trainer.total_frames=16384",

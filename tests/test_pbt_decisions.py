@@ -162,9 +162,9 @@ def test_a_resume_at_a_ready_point_decides_it_once_and_a_later_one_not_again(tmp
 @pytest.fixture(scope="module")
 def snapshots(tmp_path_factory):
     """Real checkpoints of one tiny run at steps 256 .. 1024 (what a sibling's snapshots are)."""
-    from rlexp.build import build
     from rlexp.config.validate import to_dict, to_root_config
-    from rlexp.logging import MetricLogger
+    from rlexp.run.metrics import MetricLogger
+    from rlexp.training.build import build
 
     root = tmp_path_factory.mktemp("snap")
     config = to_root_config(compose([*TINY, "trainer.eval_every=0", "algorithm.num_epochs=1"]))

@@ -35,9 +35,9 @@ PARAMS = {
 def snaps(tmp_path_factory):
     """Checkpoints at step 256 of three tiny runs: the population's own kind, another env
     (Pendulum), the same env with another policy width."""
-    from rlexp.build import build
     from rlexp.config.validate import to_dict, to_root_config
-    from rlexp.logging import MetricLogger
+    from rlexp.run.metrics import MetricLogger
+    from rlexp.training.build import build
 
     root = tmp_path_factory.mktemp("snaps")
     out = {}

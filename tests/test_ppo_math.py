@@ -112,9 +112,9 @@ def test_fast_collector_gives_the_same_batches_as_torchrl_loop(env_name, monkeyp
     from torchrl.collectors import Collector
 
     from conftest import compose
-    from rlexp.collector import RolloutCollector
     from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
+    from rlexp.training.collector import RolloutCollector
 
     def batches(cls):
         torch.manual_seed(0)
@@ -364,9 +364,9 @@ def test_advantages_equal_torchrl_gae_with_its_own_value_network(env_name):
     advantages and targets are those of TorchRL's GAE evaluating V(s) and V(s') itself."""
     from conftest import compose
     from rlexp.algorithms.ppo import make_algorithm
-    from rlexp.collector import RolloutCollector
     from rlexp.config.validate import to_root_config
     from rlexp.envs.factory import make_env
+    from rlexp.training.collector import RolloutCollector
 
     torch.manual_seed(0)
     env = make_env(to_root_config(compose([f"env={env_name}"])).env, 4, seed=0)

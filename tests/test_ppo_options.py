@@ -19,7 +19,7 @@ from conftest import PLAIN_PPO, REPO, compose, run_train
 from rlexp.algorithms import normalize
 from rlexp.algorithms.normalize import RewardNormalizer
 from rlexp.algorithms.ppo import PPO, adaptive_learning_rate, gaussian_kl
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 from rlexp.config.schema import AlgorithmConfig, PolicyConfig
 from rlexp.policies.actor_critic import make_policy
 
@@ -364,7 +364,7 @@ _WORKER = """
 import sys
 import torch
 from rlexp.algorithms.ppo import PPO
-from rlexp.launch import distributed
+from rlexp.runtime import distributed
 sys.path.insert(0, sys.argv[2])
 from test_ppo_options import _cfg, _policy, _rollout
 

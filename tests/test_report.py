@@ -63,7 +63,7 @@ def finished(step: int = 512) -> dict:
 
 
 def test_metrics_lines_of_the_wrong_shape_are_skipped_and_named(tmp_path):
-    from rlexp.report import find_jobs, report
+    from rlexp.analysis.report import find_jobs, report
 
     metrics = (
         rows(
@@ -97,7 +97,7 @@ def test_metrics_lines_of_the_wrong_shape_are_skipped_and_named(tmp_path):
 
 
 def test_status_json_of_the_wrong_shape_is_an_unfinished_job_with_the_reason(tmp_path):
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     good = rows({"step": 512, "eval/episode_return": 5.0})
     job(tmp_path, 0, ["seed=0"], finished(), good)
@@ -127,7 +127,7 @@ def test_status_json_of_the_wrong_shape_is_an_unfinished_job_with_the_reason(tmp
 
 
 def test_other_files_of_the_wrong_shape(tmp_path):
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     d = job(tmp_path, 0, ["seed=0"], finished())
     (d / "metrics.jsonl").write_bytes(b"\xff\xfe\x00garbage\n")  # not UTF-8 at all
@@ -144,7 +144,7 @@ def test_other_files_of_the_wrong_shape(tmp_path):
 
 
 def test_jobs_expected_from_multirun_yaml_but_never_started_are_listed(tmp_path):
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     # The grid as Hydra expands it: a sweeper preset's params, then the command line (which wins).
     sweeper = {
@@ -170,7 +170,7 @@ def test_jobs_expected_from_multirun_yaml_but_never_started_are_listed(tmp_path)
 
 
 def test_a_glob_over_a_config_group_is_expanded_with_rlexp_configs(tmp_path):
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     multirun_yaml(tmp_path, ["env=glob(inverted_*)", "seed=0"])
     job(tmp_path, 0, ["env=inverted_double_pendulum", "seed=0"], finished(), "")
@@ -180,7 +180,7 @@ def test_a_glob_over_a_config_group_is_expanded_with_rlexp_configs(tmp_path):
 
 
 def test_optuna_trials_that_never_started(tmp_path):
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     sweeper = {"_target_": "hydra_plugins.hydra_optuna_sweeper.optuna_sweeper.OptunaSweeper"}
     multirun_yaml(tmp_path, ["env=hopper"], {**sweeper, "n_trials": 3})
@@ -298,7 +298,7 @@ NAN = float("nan")
     ],
 )
 def test_steps_to_threshold(points, first, three):
-    from rlexp.report import IN_A_ROW, steps_to_threshold
+    from rlexp.analysis.report import IN_A_ROW, steps_to_threshold
 
     assert IN_A_ROW == 3
     assert steps_to_threshold(points, 475.0) == first
@@ -306,14 +306,14 @@ def test_steps_to_threshold(points, first, three):
 
 
 def test_steps_to_threshold_refuses_an_empty_run():
-    from rlexp.report import steps_to_threshold
+    from rlexp.analysis.report import steps_to_threshold
 
     with pytest.raises(ValueError, match="in_a_row must be at least 1, got 0"):
         steps_to_threshold([(1, 1.0)], 0.0, in_a_row=0)
 
 
 def test_reached_stats_leave_seeds_that_never_reached_out_and_count_them():
-    from rlexp.report import reached_stats
+    from rlexp.analysis.report import reached_stats
 
     k, median, iqm = reached_stats([400, None, 100, 300, 200, None, 10_000, 250])
     assert k == 6 and median == 275.0
@@ -332,14 +332,14 @@ def test_reached_stats_leave_seeds_that_never_reached_out_and_count_them():
     ],
 )
 def test_parse_threshold(text, parsed):
-    from rlexp.report import parse_threshold
+    from rlexp.analysis.report import parse_threshold
 
     assert parse_threshold(text) == parsed
 
 
 @pytest.mark.parametrize("text", ["", "high", "nan", "inf", "=475", "eval/success_rate=", "a=b"])
 def test_parse_threshold_refuses_what_is_not_a_finite_level(text):
-    from rlexp.report import parse_threshold
+    from rlexp.analysis.report import parse_threshold
 
     with pytest.raises(ValueError, match="is not VALUE or METRIC=VALUE with a finite number"):
         parse_threshold(text)
@@ -348,7 +348,7 @@ def test_parse_threshold_refuses_what_is_not_a_finite_level(text):
 def grid_jobs(sweep: Path, task: list[str], curve_of) -> None:
     """A finished job dir for each job of the basic sweeper's grid over ``task`` (the overrides in
     the order Hydra writes them), and its multirun.yaml; ``curve_of(overrides)`` gives its rows."""
-    from rlexp.report import plan_from_config
+    from rlexp.analysis.report import plan_from_config
 
     multirun_yaml(sweep, task)
     plan = plan_from_config(OmegaConf.load(sweep / "multirun.yaml"))
@@ -358,7 +358,7 @@ def grid_jobs(sweep: Path, task: list[str], curve_of) -> None:
 
 
 def test_a_sweep_over_config_group_choices_has_one_row_per_choice_with_seeds_pooled(tmp_path):
-    from rlexp.report import find_jobs, report, summarize
+    from rlexp.analysis.report import find_jobs, report, summarize
 
     def curve(overrides: list[str]) -> list[dict]:
         seed = int(dict(o.split("=") for o in overrides)["seed"])
@@ -451,7 +451,7 @@ def test_rlexp_report_threshold_counts_the_seeds_that_reached_it(tmp_path):
 
 
 def test_no_threshold_leaves_the_report_as_it_was(tmp_path):
-    from rlexp.report import CSV_FIELDS, report
+    from rlexp.analysis.report import CSV_FIELDS, report
 
     job(tmp_path, 0, ["seed=0"], finished(), rows({"step": 512, "eval/episode_return": 500.0}))
     multirun_yaml(tmp_path, ["seed=0"])
@@ -524,7 +524,7 @@ def median_sweep(tmp_path) -> Path:
 def test_jobs_stopped_early_are_results_listed_apart_with_the_budget_they_saved(median_sweep):
     import csv
 
-    from rlexp.report import budget_saved, find_jobs, report
+    from rlexp.analysis.report import budget_saved, find_jobs, report
 
     jobs = find_jobs(median_sweep)
     assert [j.budget for j in jobs] == [8192] * 5 + [4096]
@@ -565,7 +565,7 @@ def test_jobs_stopped_early_are_results_listed_apart_with_the_budget_they_saved(
 
 
 def test_the_budget_of_a_job_stopped_early_without_a_readable_config_is_not_counted(tmp_path):
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     multirun_yaml(tmp_path, ["seed=0,1,2"])
     budget_config(job(tmp_path, 0, ["seed=0"], finished(8192), curve(100)), total_frames=8192)
@@ -583,7 +583,7 @@ def test_the_budget_of_a_job_stopped_early_without_a_readable_config_is_not_coun
 
 
 def test_a_job_stopped_early_before_any_eval_counts_as_stopped_not_as_a_seed(tmp_path):
-    from rlexp.report import find_jobs, report, summarize
+    from rlexp.analysis.report import find_jobs, report, summarize
 
     multirun_yaml(tmp_path, ["seed=0,1"])
     job(tmp_path, 0, ["seed=0"], finished(), curve(100))
@@ -600,7 +600,7 @@ def test_a_job_stopped_early_before_any_eval_counts_as_stopped_not_as_a_seed(tmp
 
 
 def test_a_sweep_without_jobs_stopped_early_reads_as_before(tmp_path):
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     multirun_yaml(tmp_path, ["seed=0,1"])
     for num in (0, 1):

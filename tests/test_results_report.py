@@ -20,7 +20,7 @@ import pytest
 from omegaconf import OmegaConf
 from test_report import multirun_yaml, rlexp_report
 
-from rlexp.report import (
+from rlexp.analysis.report import (
     RESULT_METRICS,
     add_histories,
     anchors_for,
@@ -158,7 +158,7 @@ def results_of(sweep: Path):
 
 
 def iqm_cell(values: list[float]) -> str:
-    """``IQM [low, high]`` as the table shows it, from rlexp.stats' own functions."""
+    """``IQM [low, high]`` as the table shows it, from rlexp.analysis.stats' own functions."""
     x = np.array(values)
     low, high = bootstrap_ci(x, iqm)
     return f"{float(iqm(x)):.0f} [{low:.0f}, {high:.0f}]"
@@ -515,7 +515,7 @@ def test_a_job_still_training_is_not_called_dead(tmp_path):
     import socket
     import time
 
-    from rlexp.reporting.jobs import read_job
+    from rlexp.analysis.reporting.jobs import read_job
 
     multirun_yaml(tmp_path, ["env=hopper", "seed=0,1"])
     live = write_job(tmp_path, 0, ["env=hopper", "seed=0"], 1.0, 1.0, state="running")

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from conftest import Children, needs_compiler, run_train
-from rlexp.checkpoint import (
+from rlexp.checkpoints.files import (
     latest_checkpoint,
     latest_good_checkpoint,
     load_checkpoint,

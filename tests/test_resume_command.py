@@ -20,9 +20,9 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
 from conftest import REPO, _live_descendants
-from rlexp import runs
-from rlexp.launch import relaunch
-from rlexp.launch.relaunch import hydra_quote, resume_command
+from rlexp.analysis import runs
+from rlexp.runtime import relaunch
+from rlexp.runtime.relaunch import hydra_quote, resume_command
 
 PY = "/opt/venv/bin/python"
 

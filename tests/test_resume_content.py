@@ -1,4 +1,4 @@
-"""Resume trusts content, not status.json (#29 item 2; rlexp.run_proof, docs/runs.md): a run dir
+"""Resume trusts content, not status.json (#29 item 2; rlexp.run.proof, docs/runs.md): a run dir
 whose run trained but whose checkpoints are gone or unloadable is refused, not restarted into the
 same metrics.jsonl; a dir that says finished skips only for the config its config.yaml proves
 (a sweep dir that lost its multirun.yaml included), and Optuna takes a finished job's result only
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from conftest import SWEEP_TINY, compose, run_train
-from rlexp.checkpoint import step_checkpoints
+from rlexp.checkpoints.files import step_checkpoints
 from rlexp.config.validate import ConfigError, to_root_config
 
 #: A run with two checkpoints (256, 512) and an eval at each: status.json has a final eval.
@@ -118,7 +118,7 @@ def test_a_checkpoint_of_another_config_is_refused_when_config_yaml_is_gone(fini
 def test_a_run_that_failed_in_its_first_rollout_is_not_a_run(tmp_path):
     """The NaN guard on the first batch: status failed at step 256 (its steps counted), nothing
     learned or logged past step 0; the corrected config may start in that dir."""
-    from rlexp.run_proof import trained_without_checkpoint
+    from rlexp.run.proof import trained_without_checkpoint
 
     (tmp_path / "metrics.jsonl").write_text('{"step": 0, "eval/episode_return": 5.0}\n')
     (tmp_path / "status.json").write_text('{"state": "failed", "global_step": 256}')

@@ -13,7 +13,12 @@ import pytest
 import torch
 
 from conftest import SHORT, compose, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import (
+    latest_checkpoint,
+    load_checkpoint,
+    save_checkpoint,
+    step_checkpoints,
+)
 from rlexp.config.validate import ConfigError, to_root_config
 
 
@@ -74,7 +79,7 @@ def _train(config, run_dir: Path):
 def test_a_full_disk_at_a_checkpoint_fails_with_the_reason_and_keeps_the_last_good_one(
     tmp_path, monkeypatch
 ):
-    import rlexp.checkpoint as ckpt_mod
+    import rlexp.checkpoints.files as ckpt_mod
     from rlexp.app import RunEnded
 
     real_save, calls = torch.save, []
@@ -100,7 +105,7 @@ def test_a_full_disk_at_a_checkpoint_fails_with_the_reason_and_keeps_the_last_go
 
 
 def test_a_full_disk_for_metrics_keeps_training_and_never_tears_a_line(tmp_path, monkeypatch):
-    import rlexp.logging as logging_mod
+    import rlexp.run.metrics as logging_mod
 
     real_write, calls = logging_mod.os.write, []
 
@@ -121,7 +126,7 @@ def test_a_full_disk_for_metrics_keeps_training_and_never_tears_a_line(tmp_path,
 
 
 def test_a_torn_last_line_from_an_older_crash_is_cut_before_appending(tmp_path):
-    from rlexp.logging import JsonlBackend
+    from rlexp.run.metrics import JsonlBackend
 
     (tmp_path / "metrics.jsonl").write_text('{"step": 1, "a": 1.0}\n{"step": 2, "a"')
     backend = JsonlBackend(tmp_path)
@@ -133,7 +138,7 @@ def test_a_torn_last_line_from_an_older_crash_is_cut_before_appending(tmp_path):
 
 def test_a_failure_after_an_update_saves_that_update_and_says_why(tmp_path, monkeypatch):
     from rlexp.app import RunEnded
-    from rlexp.trainer import Trainer
+    from rlexp.training.trainer import Trainer
 
     def broken_eval(self):
         raise RuntimeError("the renderer died")
@@ -180,7 +185,7 @@ def test_a_really_full_disk(tmp_path):
 # -- a resumed checkpoint must fit ---------------------------------------------------------------------
 def test_checkpoints_that_do_not_fit_are_refused_naming_the_part(tmp_path):
     from conftest import CONF_DIR
-    from rlexp.config.precheck import precheck
+    from rlexp.launch.precheck import precheck
 
     run_dir = tmp_path / "src"
     run_train([*SHORT, f"hydra.run.dir={run_dir}"], cwd=tmp_path)
@@ -250,7 +255,7 @@ def test_strings_that_look_like_interpolations_stay_data_in_config_yaml_and_chec
     """A JSON file's "${oc.env:SECRET}" is escaped when loaded; it must stay those characters in
     everything the run writes (config.yaml, checkpoints, W&B's config), never become the secret."""
     from rlexp.config.validate import to_dict
-    from rlexp.rundir import check_same_experiment, write_run_files
+    from rlexp.run.rundir import check_same_experiment, write_run_files
 
     monkeypatch.setenv("RLEXP_SECRET", "hunter2")
     config = _config("events=record_rollouts")

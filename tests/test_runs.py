@@ -13,8 +13,8 @@ import time
 from pathlib import Path
 
 from conftest import REPO, run_train
-from rlexp import runs
-from rlexp.rundir import (
+from rlexp.analysis import runs
+from rlexp.run.rundir import (
     HEARTBEAT_INTERVAL_S,
     Heartbeat,
     process_start_ticks,
@@ -282,7 +282,7 @@ def test_two_thousand_runs_list_reading_four_small_files_each(tmp_path, monkeypa
     reads none again."""
     import collections
 
-    from rlexp import dirwalk, safe_read
+    from rlexp.files import dirwalk, safe_read
 
     _two_thousand_runs(tmp_path)
     opened, parsed, listed = collections.Counter(), collections.Counter(), []

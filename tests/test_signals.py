@@ -19,7 +19,7 @@ import torch
 from torch.optim.optimizer import register_optimizer_step_post_hook
 
 from conftest import SHORT, compose
-from rlexp.checkpoint import load_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import load_checkpoint, step_checkpoints
 
 #: Four updates of 256 env steps, four optimiser steps each (256 / mini_batch_size 64, one epoch).
 RUN = [

@@ -67,7 +67,7 @@ def test_signal_only_requests_a_stop_and_remembers_submitits_handler(usr2, monke
 def test_launcher_requeues_only_jobs_stopped_by_the_signal(usr2, monkeypatch):
     from hydra.core.utils import JobReturn, JobStatus
 
-    from rlexp.trainer import StopRequested
+    from rlexp.training.trainer import StopRequested
 
     class SignalHandler:  # stands in for submitit's, whose requeue ends with sys.exit
         def checkpoint_and_try_requeue(self, signum, frame):

@@ -320,10 +320,10 @@ def test_fast_collector_equals_torchrl_loop_with_a_categorical_policy(env_id):
     import toy_envs  # noqa: F401  (registers DictGoal-v0)
     from torchrl.collectors import Collector
 
-    from rlexp.collector import RolloutCollector
     from rlexp.config.schema import EnvConfig
     from rlexp.envs.factory import make_env
     from rlexp.policies.actor_critic import policy_for_env
+    from rlexp.training.collector import RolloutCollector
 
     def batches(cls):
         torch.manual_seed(0)

@@ -20,10 +20,10 @@ from types import SimpleNamespace
 import pytest
 
 from conftest import REPO, _live_descendants
-from rlexp import runs
-from rlexp.eval_worker import EvalRound, EvalSetup, EvalWorker
-from rlexp.liveness import Here, liveness
-from rlexp.rundir import Heartbeat, read_heartbeat
+from rlexp.analysis import runs
+from rlexp.analysis.liveness import Here, liveness
+from rlexp.run.rundir import Heartbeat, read_heartbeat
+from rlexp.training.eval_worker import EvalRound, EvalSetup, EvalWorker
 
 TESTS = Path(__file__).resolve().parent
 HERE = Here(socket.gethostname(), None, None, 100)
@@ -70,7 +70,7 @@ def test_a_live_process_on_this_host_whose_loop_is_stuck_is_stalled_not_running(
 def test_the_heartbeat_records_when_the_step_last_moved_and_beats_when_the_bound_is_crossed(
     tmp_path, monkeypatch
 ):
-    monkeypatch.setattr("rlexp.rundir.STEP_POLL_S", 0.05)
+    monkeypatch.setattr("rlexp.run.rundir.STEP_POLL_S", 0.05)
     step = {"n": 0}
     beat = Heartbeat(tmp_path, lambda: {"global_step": step["n"]}, 3600.0, stall_timeout_s=0.3)
     beat.start()  # writes now, then only every hour: what comes next is the stall's own beat
@@ -118,7 +118,7 @@ class _SilentPipe:
 def test_an_eval_worker_that_never_answers_fails_within_the_bound_naming_it(monkeypatch):
     import types
 
-    import rlexp.eval_worker as eval_worker
+    import rlexp.training.eval_worker as eval_worker
 
     pipe = _SilentPipe()
     monkeypatch.setattr(eval_worker, "time", types.SimpleNamespace(monotonic=lambda: pipe.now))
@@ -136,7 +136,7 @@ def test_an_eval_worker_that_never_answers_fails_within_the_bound_naming_it(monk
     )
     assert worker.in_flight is not None  # still in flight: the checkpoint records it for a resume
     # Its start-up (spawn, imports, its env) gets at least STARTUP_TIMEOUT_MIN_S, said so.
-    monkeypatch.setattr("rlexp.eval_worker.STARTUP_TIMEOUT_MIN_S", 1.5)
+    monkeypatch.setattr("rlexp.training.eval_worker.STARTUP_TIMEOUT_MIN_S", 1.5)
     pipe.polls.clear()
     start = pipe.now
     with pytest.raises(RuntimeError, match=re.escape(
@@ -242,7 +242,7 @@ def test_a_run_stuck_in_an_env_step_is_stalled_and_a_stop_signal_still_ends_it(
 def test_the_stop_watchdog_waits_exactly_the_grace_then_expires(tmp_path, monkeypatch):
     """The countdown's length, recorded rather than timed: the watchdog waits ``stop_grace_s`` on
     its cancel event, then expires with the signal; disarmed in time, it does not."""
-    from rlexp.stalls import StopWatchdog
+    from rlexp.run.stalls import StopWatchdog
 
     trainer = SimpleNamespace(last_checkpoint=None, global_step=0, last_eval={})
     dog = StopWatchdog(trainer, tmp_path, None, grace_s=4.5)
@@ -263,7 +263,7 @@ def test_set_timeout_hands_the_configs_bound_to_the_process_group(monkeypatch):
 
     import torch.distributed as dist
 
-    from rlexp.launch import distributed
+    from rlexp.runtime import distributed
 
     given = []
     monkeypatch.setattr(distributed, "_INFO", SimpleNamespace(enabled=True, rank=0))
@@ -277,7 +277,7 @@ def test_set_timeout_hands_the_configs_bound_to_the_process_group(monkeypatch):
 # -- collectives -----------------------------------------------------------------------------------
 _RANK = """
 import os, sys, time, torch
-from rlexp.launch import distributed
+from rlexp.runtime import distributed
 distributed._join("test", 600.0)  # an all-reduce left at this bound outlasts the test's 120 s
 distributed.set_timeout(2.0)
 if distributed.info().rank == 1:

@@ -162,8 +162,8 @@ def test_a_sweep_dir_that_cannot_be_created_or_a_read_only_job_dir_is_refused_be
     tmp_path,
 ):
     """Not only run dirs: the sweep dir Hydra creates, and the job dir a re-run writes into."""
-    from rlexp.config.precheck import precheck
     from rlexp.config.validate import ConfigError
+    from rlexp.launch.precheck import precheck
 
     (tmp_path / "afile").write_text("x")
     sweep = ["-m", *SWEEP_TINY, "logger=none", "seed=1,2"]
@@ -345,8 +345,8 @@ def test_ctrl_c_in_the_first_seconds_of_start_up_is_one_line_and_exit_130(
 
 _SLOW_CLOSE = """
 import sys, time
-import rlexp.trainer
-close = rlexp.trainer.Trainer.close
+import rlexp.training.trainer
+close = rlexp.training.trainer.Trainer.close
 calls = []
 def slow_close(self):  # the first job's shut-down, after its final status.json
     close(self)
@@ -354,7 +354,7 @@ def slow_close(self):  # the first job's shut-down, after its final status.json
     if len(calls) == 1:
         print("FINAL-STATUS-WRITTEN", flush=True)
         time.sleep(6)
-rlexp.trainer.Trainer.close = slow_close
+rlexp.training.trainer.Trainer.close = slow_close
 from rlexp.cli import train
 train(sys.argv[1:], prog="train.py")
 """
@@ -431,9 +431,9 @@ def test_sigterm_after_the_final_status_leaves_exit_0_and_finished_in_agreement(
 
 _RACE = """
 import sys
-import rlexp.rundir
+import rlexp.run.rundir
 # The race: the winner takes the run dir's lock just after this launch's early probe of it.
-rlexp.rundir.RunDirLock.check = lambda self: None
+rlexp.run.rundir.RunDirLock.check = lambda self: None
 from rlexp.cli import train
 train(sys.argv[1:], prog="train.py")
 """
@@ -442,7 +442,7 @@ train(sys.argv[1:], prog="train.py")
 def test_a_refused_launch_writes_nothing_in_the_winners_dir_not_even_its_train_log(
     tmp_path, children, finished_run
 ):
-    from rlexp.rundir import RunDirLock
+    from rlexp.run.rundir import RunDirLock
 
     (tmp_path / "race.py").write_text(_RACE)
     run_dir = _copy_run(finished_run, tmp_path / "run")
@@ -543,7 +543,7 @@ def test_a_ctrl_c_that_surfaces_as_a_librarys_error_still_ends_as_a_ctrl_c():
 
     Catches: a Ctrl-C at start-up ending as 'config error: ...' with exit 2."""
     from rlexp.config.validate import ConfigError
-    from rlexp.launch.outside_run import reraise_if_interrupted
+    from rlexp.runtime.outside_run import reraise_if_interrupted
 
     def library():
         try:

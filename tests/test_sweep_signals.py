@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from conftest import Children, run_train
-from rlexp.checkpoint import load_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import load_checkpoint, step_checkpoints
 
 #: 32 iterations of 256 env steps: the jobs are still training when the signal comes; no eval and
 #: no periodic checkpoint, so the only checkpoint of an interrupted job is the one of its stop.

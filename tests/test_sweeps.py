@@ -33,7 +33,7 @@ def rows(job: Path) -> list[dict]:
 
 
 def final_eval(job: Path) -> float:
-    """The last eval/episode_return in a job's metrics.jsonl, read independently of rlexp.report."""
+    """The last eval/episode_return in a job's metrics.jsonl, read independently of rlexp.analysis.report."""
     return [r["eval/episode_return"] for r in rows(job) if "eval/episode_return" in r][-1]
 
 
@@ -145,7 +145,7 @@ def test_rerun_skips_finished_jobs_and_resumes_unfinished_ones(grid_sweep, tmp_p
 
 def test_report_lists_unfinished_failed_and_missing_jobs(tmp_path):
     """Synthetic sweep: 4 finished seeds (IQM by hand), a failed job, a job without status.json."""
-    from rlexp.report import report
+    from rlexp.analysis.report import report
 
     def job(
         num: int, overrides: list[str], state: str | None, evals: list[tuple[int, float]]

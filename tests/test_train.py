@@ -12,7 +12,7 @@ import time
 import torch
 
 from conftest import REPO, TINY, only_run_dir, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 
 
 def test_train_writes_tensorboard_metrics_and_checkpoints_and_eval_reloads(tmp_path):
@@ -163,7 +163,7 @@ def test_collection_and_eval_run_one_torch_thread_and_the_update_torch_threads(
 
 def test_best_pt_keeps_the_better_eval_when_a_later_one_is_worse(tmp_path, monkeypatch):
     """Three eval rounds scoring 1, 5, 2: best.pt is the step-512 state, not the last one."""
-    import rlexp.evaluation as evaluation_mod  # the Trainer's in-process rounds run_episodes
+    import rlexp.training.evaluation as evaluation_mod  # the Trainer's in-process rounds run_episodes
     from conftest import compose
     from rlexp.app import train
     from rlexp.config.validate import to_root_config
@@ -213,11 +213,11 @@ def test_the_gc_is_off_while_a_run_builds_and_walks_only_what_training_creates(
     run in the same process unfreezes what the earlier one froze, and the GC is on again after."""
     import gc
 
-    import rlexp.build as build_mod
+    import rlexp.training.build as build_mod
     from conftest import compose
     from rlexp.app import train
     from rlexp.config.validate import to_root_config
-    from rlexp.trainer import Trainer
+    from rlexp.training.trainer import Trainer
 
     seen: list[tuple[str, bool, int]] = []
     real_build, real_train = build_mod.build, Trainer.train
@@ -280,7 +280,8 @@ def test_a_sweeps_own_loop_keeps_the_gc_and_a_single_run_starts_without_it(monke
 
     import hydra
 
-    from rlexp import _speedups, app
+    from rlexp import app
+    from rlexp.common import speedups as _speedups
 
     seen: list[bool] = []
 

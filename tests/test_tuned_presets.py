@@ -274,7 +274,7 @@ def _orthogonal(weight: torch.Tensor, gain: float) -> bool:
 
 
 def _built(config: RootConfig, tmp_path):
-    from rlexp.build import build
+    from rlexp.training.build import build
 
     return build(config, tmp_path, "cpu", config.trainer.total_frames)
 
@@ -359,8 +359,8 @@ def test_an_env_without_a_preset_is_one_line_and_exit_2(tmp_path, group):
 
 @pytest.mark.parametrize("group", ["tuned", "rl_zoo"])
 def test_a_config_json_run_with_a_task_preset_is_one_line_and_exit_2(tmp_path, group):
-    from rlexp.config.precheck import JSON_ENV_OPTION
     from rlexp.launch.json_entry import ENV_NODE
+    from rlexp.launch.precheck import JSON_ENV_OPTION
 
     assert JSON_ENV_OPTION == ENV_NODE
     path = REPO / "examples/json/cart_pole/train_config.json"
@@ -376,7 +376,7 @@ def test_a_config_json_run_with_a_task_preset_is_one_line_and_exit_2(tmp_path, g
 def test_the_missing_preset_message_names_the_env_and_the_tasks():
     from hydra.errors import MissingConfigException
 
-    from rlexp.config.precheck import missing_tuned_preset
+    from rlexp.launch.precheck import missing_tuned_preset
 
     exc = MissingConfigException("In 'config': Could not find 'tuned/my_env'", "tuned/my_env")
     message = missing_tuned_preset(exc)
@@ -470,9 +470,9 @@ def test_a_sweep_over_an_env_without_a_preset_is_refused_before_any_job(tmp_path
 def test_the_suites_envs_pass_the_sweep_check():
     from hydra.core.global_hydra import GlobalHydra
 
-    from rlexp.config.precheck import check_tuned_sweep
+    from rlexp.config.paths import initialize_hydra
     from rlexp.config.schema import register_configs
-    from rlexp.paths import initialize_hydra
+    from rlexp.launch.precheck import check_tuned_sweep
 
     register_configs()  # the schemas the configs name (also when this test runs alone)
     GlobalHydra.instance().clear()

@@ -152,7 +152,7 @@ def test_an_eval_episode_that_never_ends_is_cut_at_the_bound_and_counted():
     copy 1 never does and is cut at its 4th step. By hand: returns [2, 2, 8], lengths [2, 2, 4]."""
     import numpy as np
 
-    from rlexp.evaluation import EpisodeTally
+    from rlexp.training.evaluation import EpisodeTally
 
     tally = EpisodeTally(2, 3, max_steps=4)
     for step in range(1, 5):
@@ -166,7 +166,7 @@ def test_an_eval_episode_that_never_ends_is_cut_at_the_bound_and_counted():
 def test_a_run_and_rlexp_eval_of_an_env_without_end_finish_with_one_warning(tmp_path):
     """fault_envs:Endless-v0 (no time limit, episodes never end): the run's eval rounds and
     ``rlexp eval`` end after MAX_EPISODE_STEPS steps per episode, each with one warning."""
-    from rlexp.evaluation import MAX_EPISODE_STEPS
+    from rlexp.training.evaluation import MAX_EPISODE_STEPS
 
     args = ["env.name=fault_envs:Endless-v0", "trainer.total_frames=256", "trainer.eval_every=256",
             "trainer.eval_episodes=1", "env.num_eval_envs=1", "trainer.eval_async=false"]  # fmt: skip

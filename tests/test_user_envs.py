@@ -18,7 +18,7 @@ import torch
 from test_resume import _kill_after_checkpoint
 
 from conftest import REPO, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 
 TESTS = Path(__file__).resolve().parent
 #: toy_envs.py importable in the training process (``env.name=toy_envs:<Id>``)
@@ -159,8 +159,8 @@ def test_what_cannot_run_is_one_line_at_the_config_check(name, words):
     """The check ``train.py`` runs before the run dir exists (the subprocess test above shows the
     exit code and the missing run dir for one of them)."""
     from conftest import compose
-    from rlexp.config.checks import check_buildable
     from rlexp.config.validate import ConfigError, to_root_config
+    from rlexp.launch.checks import check_buildable
 
     config = to_root_config(compose(["env=hopper", f"env.name={name}"]))
     with pytest.raises(ConfigError) as err:

@@ -21,7 +21,7 @@ import torch
 from test_resume import _kill_after_checkpoint
 
 from conftest import REPO, compose, rlexp_cli, run_train
-from rlexp.checkpoint import latest_checkpoint, load_checkpoint, step_checkpoints
+from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint, step_checkpoints
 
 envpool = pytest.importorskip("envpool")
 TESTS = Path(__file__).resolve().parent
@@ -131,8 +131,8 @@ def test_envpool_threads_are_the_config_bounded_by_cpus_and_envs(monkeypatch):
 
 def test_a_missing_envpool_extra_is_one_line_naming_it(monkeypatch):
     from rlexp import extras
-    from rlexp.config.checks import check_buildable
     from rlexp.config.validate import ConfigError, to_root_config
+    from rlexp.launch.checks import check_buildable
 
     installed = extras._installed
     monkeypatch.setattr(extras, "_installed", lambda m: m != "envpool" and installed(m))
@@ -161,8 +161,8 @@ def test_a_missing_envpool_extra_is_one_line_naming_it(monkeypatch):
     ],
 )
 def test_bad_names_and_what_cannot_run_are_one_line_at_the_config_check(overrides, words):
-    from rlexp.config.checks import check_buildable
     from rlexp.config.validate import ConfigError, to_root_config
+    from rlexp.launch.checks import check_buildable
 
     config = to_root_config(compose(["env=hopper", *overrides]))
     with pytest.raises(ConfigError) as err:
@@ -378,7 +378,7 @@ def test_the_eval_worker_evaluates_an_async_run_in_process():
     builds the in-process backend, whose episodes are the same value for value."""
     from rlexp.config.schema import EnvConfig, PolicyConfig
     from rlexp.envs.gym import GymnasiumEnv
-    from rlexp.eval_worker import EvalSetup
+    from rlexp.training.eval_worker import EvalSetup
 
     cfg = EnvConfig(name="Hopper-v5", backend="gymnasium_async", num_eval_envs=2)
     env, _ = EvalSetup(cfg, PolicyConfig(), seed=3, episodes=2).build()

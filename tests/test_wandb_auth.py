@@ -15,7 +15,7 @@ from conftest import REPO
 KEY = "k" * 40
 PROBE = (
     "import logging, sys; logging.basicConfig(stream=sys.stderr, format='%(message)s');"
-    "from rlexp.logging import _wandb_mode; print(_wandb_mode('auto'))"
+    "from rlexp.run.metrics import _wandb_mode; print(_wandb_mode('auto'))"
 )
 
 

@@ -1,7 +1,7 @@
 """Entry point: Hydra composes ``conf/``, ``train(config, run_dir)`` builds the objects and runs.
 
 ``main()`` is what ``python train.py`` and ``rlexp train`` call. The command line is checked first
-(``rlexp.config.precheck``): a bad override or a config that cannot be built prints one line and
+(``rlexp.launch.precheck``): a bad override or a config that cannot be built prints one line and
 exits 2 before Hydra creates a run dir. A run then locks its dir, builds everything, and only then
 writes ``config.yaml``, provenance and logs. How each way of ending shows up (status, exit code):
 docs/faults.md.
@@ -20,19 +20,17 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from rlexp import _speedups, run_end
-from rlexp.build import seed_everything
+from rlexp.common import speedups as _speedups
+from rlexp.config.paths import CONF_DIR, with_user_config_dir  # CONF_DIR: package's or checkout's
 from rlexp.config.rules import first_line
 from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
-from rlexp.launch import entry, job_log, outside_run
-from rlexp.launch.job_dir import job_dir
-from rlexp.launch.signals import sweep_worker
-from rlexp.next_steps import done_message
-from rlexp.paths import CONF_DIR, with_user_config_dir  # CONF_DIR: the package's or the checkout's
+from rlexp.launch import job_log
 from rlexp.plugins import load_plugins
-from rlexp.run_proof import check_continuation, finished_before_building, finished_result
-from rlexp.rundir import (
+from rlexp.run import end as run_end
+from rlexp.run.next_steps import done_message
+from rlexp.run.proof import check_continuation, finished_before_building, finished_result
+from rlexp.run.rundir import (
     EXIT_CONFIG,
     EXIT_FAILED,
     EXIT_NONFINITE,
@@ -49,14 +47,18 @@ from rlexp.rundir import (
     write_run_files,
     write_status,
 )
-from rlexp.user_code import user_code_exits
+from rlexp.runtime import entry, outside_run
+from rlexp.runtime.job_dir import job_dir
+from rlexp.runtime.signals import sweep_worker
+from rlexp.runtime.user_code import user_code_exits
+from rlexp.training.build import seed_everything
 
 log = logging.getLogger(__name__)
 
 
 class RunEnded(Exception):
     """The run stopped before finishing; ``exit_code`` is what ``python train.py`` exits with
-    (``rlexp.rundir``: 1 failed, 3 non-finite values, 128 + N interrupted by signal N)."""
+    (``rlexp.run.rundir``: 1 failed, 3 non-finite values, 128 + N interrupted by signal N)."""
 
     def __init__(self, message: str, exit_code: int) -> None:
         super().__init__(message)
@@ -71,8 +73,8 @@ def train(
     ``jobs``: the sweep's jobs running side by side on this machine (``trainer.eval_async=auto``)."""
     import torch
 
-    from rlexp.launch import distributed
-    from rlexp.launch.signals import stop_on_signals
+    from rlexp.runtime import distributed
+    from rlexp.runtime.signals import stop_on_signals
 
     dist = distributed.info()
     distributed.set_timeout(config.trainer.stall_timeout_s)  # the longest wait for another rank
@@ -100,7 +102,7 @@ _AGREED: dict[int, bool] = {}
 def _agree(failed: bool) -> None:
     """Distributed, once: a rank that failed before training tells the others, so that no rank
     waits in a collective for one that has exited."""
-    from rlexp.launch import distributed
+    from rlexp.runtime import distributed
 
     dist = distributed.info()
     if not dist.enabled or _AGREED.get(id(dist)):
@@ -121,19 +123,19 @@ def _train_locked(
 ) -> dict[str, float]:
     import torch
 
-    from rlexp.checkpoint import check_checkpoint_fits, latest_good_checkpoint
-    from rlexp.config.checks import check_resume_checkpoint
-    from rlexp.launch import distributed
+    from rlexp.checkpoints.files import check_checkpoint_fits, latest_good_checkpoint
+    from rlexp.launch.checks import check_resume_checkpoint
     from rlexp.launch.slurm import install_preemption_handler
-    from rlexp.logging import MetricLogger, make_logger
-    from rlexp.provenance import versions
+    from rlexp.run.metrics import MetricLogger, make_logger
+    from rlexp.run.provenance import versions
+    from rlexp.runtime import distributed
 
     t = config.trainer
     dist = distributed.info()
-    from rlexp.build import resolve_device
+    from rlexp.training.build import resolve_device
 
     # auto is decided by build() once the env exists (the env's GPU, or the CPU for a CPU env and
-    # a small MLP: rlexp.devices.auto_device); a device named outright is resolved here
+    # a small MLP: rlexp.runtime.devices.auto_device); a device named outright is resolved here
     device = t.device if t.device == "auto" else resolve_device(t.device, t.strict_device)
     if dist.enabled and device.startswith("cuda"):
         device = f"cuda:{dist.local_rank}"  # each rank on its own GPU
@@ -144,7 +146,7 @@ def _train_locked(
     if t.resume == "auto":  # a re-run of a job that finished this config: its result, no training
         done = finished_result(
             run_dir, to_dict(config), total
-        )  # rlexp.run_proof: proven or refused
+        )  # rlexp.run.proof: proven or refused
         if done is not None:
             return done
     if dist.is_main:
@@ -159,7 +161,7 @@ def _train_locked(
     job_log.release()  # the dir is this run's: its train.log is written from here (launch/job_log)
 
     # -- build: a failure here is a config error (one line, exit 2, no config.yaml) ---------------
-    from rlexp.build import build
+    from rlexp.training.build import build
 
     try:
         with user_code_exits("the run's build"):
@@ -207,7 +209,7 @@ def _train_locked(
 def _load(trainer: Any, ckpt: dict, run_dir: Path) -> None:
     """Continue from ``ckpt``; the env's ``set_state`` raising is one line, exit 2, and
     ``status.json`` says ``failed`` with it (it must not keep saying the run finished)."""
-    from rlexp.loop import EnvRestoreError
+    from rlexp.training.loop import EnvRestoreError
 
     try:
         trainer.load_state_dict(ckpt)
@@ -221,11 +223,11 @@ def _run(
     trainer: Any, run_dir: Path, total: int, stops: Any, ckpt: dict | None
 ) -> dict[str, float]:
     """Train; every way out leaves ``status.json`` saying how the run ended and why."""
-    from rlexp import stalls
     from rlexp.algorithms.ppo import NonFiniteError
     from rlexp.launch.slurm import stop_requested_by_signal
-    from rlexp.trainer import StopRequested
-    from rlexp.writable import check_checkpoints_writable
+    from rlexp.run import stalls
+    from rlexp.run.writable import check_checkpoints_writable
+    from rlexp.training.trainer import StopRequested
 
     def last_good() -> str:
         path = trainer.last_checkpoint or (ckpt and ckpt["path"])
@@ -311,8 +313,8 @@ def _run(
 def _eval_async(config: RootConfig, total: int, jobs: int) -> bool:
     """``trainer.eval_async`` as a bool (``auto`` decided here, once, and logged with why)."""
     from rlexp.config.rules import available_cpus
-    from rlexp.eval_worker import decide_eval_async
-    from rlexp.launch import distributed
+    from rlexp.runtime import distributed
+    from rlexp.training.eval_worker import decide_eval_async
 
     dist = distributed.info()
     if not dist.is_main:  # rank 0 alone evaluates
@@ -352,7 +354,7 @@ def _task(cfg: DictConfig) -> float | None:
         if (done := finished_before_building(config, run_dir)) is not None:
             return done.get("eval/episode_return")  # a re-run sweep's finished job, before torch
         if not _PRECHECKED.get("config"):
-            from rlexp.config.checks import check_buildable
+            from rlexp.launch.checks import check_buildable
 
             check_buildable(config)
         if os.environ.get("RLEXP_DISTRIBUTED") == "1":
@@ -360,7 +362,7 @@ def _task(cfg: DictConfig) -> float | None:
         jobs = 1  # the joblib launcher runs n_jobs of a sweep's jobs at once on this machine
         if multirun:
             from rlexp.config.rules import available_cpus
-            from rlexp.eval_worker import launcher_jobs
+            from rlexp.training.eval_worker import launcher_jobs
 
             jobs = launcher_jobs(hc.launcher.get("n_jobs"), available_cpus())
         metrics: dict[str, Any] = train(config, run_dir, sweep_group, jobs)
@@ -382,7 +384,7 @@ def _task(cfg: DictConfig) -> float | None:
     except OSError as exc:  # the run dir before training (training's own end: RunEnded, exit 1)
         return _failed(run_dir, entry.run_dir_error(run_dir, exc), EXIT_CONFIG, multirun, exc)
     except Exception as exc:
-        from rlexp.trainer import StopRequested
+        from rlexp.training.trainer import StopRequested
 
         if not multirun or isinstance(exc, StopRequested):
             raise  # StopRequested: SLURM preemption, the launcher requeues the job (launch/slurm.py)
@@ -392,7 +394,7 @@ def _task(cfg: DictConfig) -> float | None:
 
 
 def _join_distributed() -> None:
-    from rlexp.launch import distributed
+    from rlexp.runtime import distributed
 
     if not distributed.info().enabled:
         try:
@@ -406,7 +408,7 @@ def _exit(code: int) -> None:
     its gloo threads can abort the interpreter's teardown ("terminate called without an active
     exception", exit -6 instead of the code), seen on a loaded 2-core machine after a failure and
     after a finished run alike."""
-    from rlexp.launch import distributed
+    from rlexp.runtime import distributed
 
     if not distributed.info().enabled:
         sys.exit(code)
@@ -418,7 +420,7 @@ def _exit(code: int) -> None:
 
 def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Exception) -> None:
     """One line; a single run exits with ``code``, a sweep job records it and returns None."""
-    from rlexp.rundir import RunDirBusy
+    from rlexp.run.rundir import RunDirBusy
 
     job_log.drop()  # stopped before the run owned the dir: its train.log stays as it was
     log.error("%s", message)
@@ -437,9 +439,9 @@ def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Excepti
 def main() -> None:
     """``python train.py [--distributed] [overrides]``: check the command line, then compose
     ``conf/`` with Hydra and train."""
-    from rlexp.config.precheck import precheck
     from rlexp.extras import hint
-    from rlexp.launch import distributed
+    from rlexp.launch.precheck import precheck
+    from rlexp.runtime import distributed
 
     register_configs()
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -466,7 +468,7 @@ def main() -> None:
     sys.argv = [sys.argv[0], *rest]
     if multirun:
         _speedups.sweep_gc()
-    os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # its errors reach rlexp.launch.entry's guard
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # its errors reach rlexp.runtime.entry's guard
     hydra.main(config_path=str(CONF_DIR), config_name="config", version_base="1.3")(_task)()
     if not multirun:
         _prompt_exit()

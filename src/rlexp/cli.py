@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 # rlexp eval's work (re-exported: ``from rlexp.cli import evaluate``); a light import, torch-free
-from rlexp.policy_eval import evaluate
+from rlexp.deploy.policy_eval import evaluate
 
 log = logging.getLogger("rlexp")
 
@@ -64,8 +64,8 @@ def _at_least_1(text: str) -> int:
 
 
 def _threshold(text: str) -> tuple[str | None, float]:
-    """``rlexp report --threshold``: VALUE or METRIC=VALUE (rlexp.report.parse_threshold)."""
-    from rlexp.report import parse_threshold
+    """``rlexp report --threshold``: VALUE or METRIC=VALUE (rlexp.analysis.report.parse_threshold)."""
+    from rlexp.analysis.report import parse_threshold
 
     try:
         return parse_threshold(text)
@@ -93,7 +93,7 @@ def _load_plugins_or_exit(prog: str) -> None:
 def train(argv: list[str], prog: str = "rlexp train") -> None:
     """``rlexp train`` / ``python train.py``, under the entry guard: a deleted working directory,
     Ctrl-C before a run trains, an unwritable path are one line, not a traceback (docs/faults.md)."""
-    from rlexp.launch.entry import entry_guard
+    from rlexp.runtime.entry import entry_guard
 
     with entry_guard(prog):
         _train(argv, prog)
@@ -102,8 +102,8 @@ def train(argv: list[str], prog: str = "rlexp train") -> None:
 def _train(argv: list[str], prog: str) -> None:
     """Plugins first (a JSON file may name a plugin's task), then ``--config-json`` /
     ``--distributed`` and Hydra (``rlexp.launch.json_entry``)."""
-    from rlexp import _speedups
-    from rlexp.launch.relaunch import record_launch
+    from rlexp.common import speedups as _speedups
+    from rlexp.runtime.relaunch import record_launch
 
     record_launch(argv)  # as typed, for the resume command of `rlexp runs`
     with _speedups.startup_gc():  # the GC is back on once the run is built (app._run)
@@ -189,11 +189,11 @@ def _sort_values_joined(argv: list[str]) -> list[str]:
 
 def _runs_commands(args: argparse.Namespace) -> None:
     """Run ``rlexp runs`` / ``rlexp compare``; bad input is one line on stderr, exit 2."""
-    from rlexp.runs import RunsError
+    from rlexp.analysis.runs import RunsError
 
     try:
         if args.command == "runs":
-            from rlexp.runs import main as runs_main
+            from rlexp.analysis.runs import main as runs_main
 
             runs_main(args.dirs, args.metric, args.sort, args.where, args.status, args.json)
             return
@@ -203,7 +203,7 @@ def _runs_commands(args: argparse.Namespace) -> None:
             require("report", "rlexp compare", None if args.plot else ("scipy",))
         except MissingExtra as exc:
             raise RunsError(str(exc)) from None
-        from rlexp.compare import main as compare_main
+        from rlexp.analysis.compare import main as compare_main
 
         threshold_metric, threshold = args.threshold or (None, None)
         compare_main(
@@ -229,8 +229,8 @@ def _version() -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """``rlexp COMMAND ...`` under the entry guard (``rlexp.launch.entry``)."""
-    from rlexp.launch.entry import entry_guard
+    """``rlexp COMMAND ...`` under the entry guard (``rlexp.runtime.entry``)."""
+    from rlexp.runtime.entry import entry_guard
 
     argv = list(sys.argv[1:] if argv is None else argv)
     command = argv[0] if argv and not argv[0].startswith("-") else ""
@@ -332,8 +332,8 @@ def _main(argv: list[str]) -> None:
         _runs_commands(args)
         return
     if args.command == "report":
+        from rlexp.analysis.report import report
         from rlexp.extras import MissingExtra, require
-        from rlexp.report import report
 
         try:
             plots = not args.no_plot or args.results_plot is not None
@@ -357,7 +357,7 @@ def _main(argv: list[str]) -> None:
         _pbt_export(args)
         return
     if args.command in ("eval", "export"):
-        from rlexp import _speedups
+        from rlexp.common import speedups as _speedups
 
         # The cyclic GC off, as train's start-up has it: the imports alone (torch, tensordict,
         # TorchRL, through the plugins too) trigger dozens of full collections; a short command
@@ -370,7 +370,7 @@ def _eval_or_export(args: argparse.Namespace) -> None:
     """``rlexp eval`` / ``rlexp export``: the result printed, or one line and exit 2 (3: NaN)."""
     _check_gl()
     _load_plugins_or_exit(f"rlexp {args.command}")  # the checkpoint's task may be a plugin's
-    from rlexp.user_code import UserCodeExit, user_code_exits
+    from rlexp.runtime.user_code import UserCodeExit, user_code_exits
 
     try:
         with user_code_exits(f"rlexp {args.command}"):  # sys.exit() in the env: exit 1, one line
@@ -387,7 +387,7 @@ def _check_gl() -> None:
     """A ``MUJOCO_GL`` that makes ``import mujoco`` fail (an unknown value, egl or osmesa without
     its library): one line naming it now, not PyOpenGL's traceback when the env is built."""
     from rlexp.envs.native.render import GL_FIX, gl_problem
-    from rlexp.launch.entry import EntryError
+    from rlexp.runtime.entry import EntryError
 
     problem = gl_problem(rendering=False)
     if problem is not None:
@@ -458,7 +458,7 @@ def _add_export_parser(sub: Any) -> None:
 
 
 def _add_checkpoint_option(parser: argparse.ArgumentParser) -> None:
-    """``--checkpoint`` of eval and export: one rule (``rlexp.checkpoint.select_checkpoint``)."""
+    """``--checkpoint`` of eval and export: one rule (``rlexp.checkpoints.files.select_checkpoint``)."""
     parser.add_argument(
         "--checkpoint",
         default=None,
@@ -484,7 +484,7 @@ def _eval(args: argparse.Namespace) -> str:
 
 def _export(args: argparse.Namespace) -> str:
     """``rlexp export``: what was written, from which checkpoint and why that one."""
-    from rlexp.export import export_policy
+    from rlexp.deploy.export import export_policy
 
     res = export_policy(args.path, args.format, args.out, args.checkpoint)
     return (

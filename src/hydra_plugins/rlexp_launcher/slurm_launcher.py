@@ -105,7 +105,7 @@ class RlexpSlurmLauncher(RequeueOnPreemption, SlurmLauncher):
     def record_lost_job(self, idx: int, overrides: Sequence[str], reason: str) -> None:
         """``status.json`` ``failed`` with ``reason`` in the job's run dir, where the job began one
         and left it ``running`` (or no status): a status the job wrote itself is kept."""
-        from rlexp.rundir import read_status, write_status
+        from rlexp.run.rundir import read_status, write_status
 
         if self.hydra_context is None or self.config is None:
             return

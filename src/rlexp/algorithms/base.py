@@ -190,7 +190,7 @@ def what_was_non_finite(
 
     mine = [k for k, v in terms.items() if not torch.isfinite(v).all()]
     if synced and dist.is_available() and dist.is_initialized():
-        from rlexp.launch.distributed import all_gather_object
+        from rlexp.runtime.distributed import all_gather_object
 
         seen = [
             f"{', '.join(keys)} on rank {rank}"

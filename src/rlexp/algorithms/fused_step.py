@@ -301,7 +301,7 @@ class FusedStep:
     def _first_step(self, batch, hyper, lr, where) -> torch.Tensor:
         """The first compiled step compiles: its random draws undone (a resumed run compiles at
         another point), a backend failure falls back to eager unless ``algorithm.compile=true``."""
-        from rlexp.checkpoint import rng_state, set_rng_state
+        from rlexp.checkpoints.files import rng_state, set_rng_state
 
         self._first = False
         t0 = time.perf_counter()

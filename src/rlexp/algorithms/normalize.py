@@ -19,7 +19,7 @@ import torch
 
 log = logging.getLogger(__name__)
 
-#: Sums a tensor over ranks (``rlexp.launch.distributed.all_reduce_sum``): all ranks then agree.
+#: Sums a tensor over ranks (``rlexp.runtime.distributed.all_reduce_sum``): all ranks then agree.
 ReduceSum = Callable[[torch.Tensor], torch.Tensor]
 
 #: RunningMeanStd's starting count (Gymnasium, SB3): the prior variance of 1 weighs this much.

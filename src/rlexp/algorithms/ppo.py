@@ -196,7 +196,7 @@ class PPO(MutableHyperparameters):
         # Reward scaling: statistics of this learner's (and, distributed, all ranks') returns.
         self.reward_normalizer = RewardNormalizer(cfg.gamma) if cfg.normalize_rewards else None
         if reduce_sum is None and grad_sync is not None:
-            from rlexp.launch.distributed import all_reduce_sum
+            from rlexp.runtime.distributed import all_reduce_sum
 
             reduce_sum = all_reduce_sum
         self.reduce_sum = reduce_sum
@@ -412,7 +412,7 @@ class PPO(MutableHyperparameters):
         compiled = torch.compile(self.loss, dynamic=False)
 
         def first_call(minibatch: TensorDictBase) -> TensorDictBase:
-            from rlexp.checkpoint import rng_state, set_rng_state
+            from rlexp.checkpoints.files import rng_state, set_rng_state
 
             # Compiling (forward, and backward at the first backward) draws random numbers, and a
             # resumed run compiles at a different point than the run it continues: compile on a

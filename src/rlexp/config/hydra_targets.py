@@ -12,7 +12,7 @@ import logging
 import re
 from typing import Any
 
-from rlexp.registry import reach, under
+from rlexp.common.registry import reach, under
 
 #: Where a ``hydra.callbacks.<name>._target_`` may point: Hydra's own and plugins' callbacks, rlexp's.
 CALLBACK_MODULES = ("hydra.", "hydra_plugins.", "rlexp.")

@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-#: The preset groups (rlexp.config.precheck.PRESET_GROUPS; repeated: that module imports this one).
+#: The preset groups (rlexp.launch.precheck.PRESET_GROUPS; repeated: that module imports this one).
 GROUPS = ("tuned", "rl_zoo")
 
 

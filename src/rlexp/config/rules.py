@@ -5,7 +5,7 @@ docs/config_rules.md is :func:`rules_markdown` (a test keeps the two equal, and 
 every field of the schema has a rule). Types are the schema's job (Hydra refuses a string for an
 int); these rules say which values of the right type make sense. Sections whose contents depend on
 another choice (``env.kwargs``, ``env.native``, ``events.*``) are checked by building them once
-before the run writes anything (``rlexp.config.checks``).
+before the run writes anything (``rlexp.launch.checks``).
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ def launch_time(pattern: str = "%Y-%m-%d/%H-%M-%S.%f") -> str:
     (Hydra's ``now`` reads the clock at each first use of a pattern: a date and a time read
     apart can straddle midnight). The default run and sweep dirs end in microseconds, so
     launches in the same second (a shell loop of ``&``) get dirs of their own, which still sort
-    by time. ``--distributed`` broadcasts rank 0's (``rlexp.launch.distributed``)."""
+    by time. ``--distributed`` broadcasts rank 0's (``rlexp.runtime.distributed``)."""
     if not _LAUNCHED:
         _LAUNCHED.append(datetime.now())
     return _LAUNCHED[0].strftime(pattern)
@@ -328,7 +328,7 @@ def register_configs() -> None:
     """Register the root and group schemas in Hydra's ConfigStore (idempotent)."""
     from hydra.core.config_store import ConfigStore
 
-    from rlexp.launch.job_dir import register_resolver
+    from rlexp.runtime.job_dir import register_resolver
 
     register_resolver()  # ${rlexp_job_dir:}: conf/config.yaml's log file
     cs = ConfigStore.instance()

@@ -25,9 +25,16 @@ from typing import Any
 
 from torchrl.envs import EnvBase
 
+from rlexp.common.registry import (
+    check_module_name,
+    choices_hint,
+    module_of,
+    reach,
+    strings_in,
+    under,
+)
 from rlexp.config.rules import first_line
 from rlexp.config.schema import EnvConfig
-from rlexp.registry import check_module_name, choices_hint, module_of, reach, strings_in, under
 
 log = logging.getLogger(__name__)
 
@@ -104,8 +111,8 @@ def resolve_env_device(device: str) -> str:
     """``env.device`` as a torch device string: ``auto`` -> ``cuda`` where a GPU is visible
     (``cuda:<local rank>`` in a distributed run); ``cuda`` on a machine without one -> ``cpu`` with
     one warning (a run's saved config still evaluates and exports there)."""
-    from rlexp.devices import resolve_device
-    from rlexp.launch import distributed
+    from rlexp.runtime import distributed
+    from rlexp.runtime.devices import resolve_device
 
     resolved = resolve_device(device, key="env.device")
     dist = distributed.info()

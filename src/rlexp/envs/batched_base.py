@@ -22,10 +22,10 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
-from rlexp.devices import same_device
 from rlexp.envs.env_state import plain_state
 from rlexp.envs.spaces import ActionCoding, ObsLayout, ObsPart
 from rlexp.envs.specs import set_specs
+from rlexp.runtime.devices import same_device
 
 log = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ def check_gym_id(env_id: str) -> None:
         module, name = env_id.split(":", 1)
         import importlib
 
-        from rlexp.registry import check_module_name
+        from rlexp.common.registry import check_module_name
 
         try:  # before importing: no private part, no standard-library module ("this", "os")
             check_module_name(module, f"env.name={env_id!r}", None)

@@ -21,7 +21,7 @@ import numpy as np
 from rlexp.envs.env_state import copy_state, env_state_kind, restore_copy
 from rlexp.envs.gym_ids import mujoco_build_warnings
 from rlexp.envs.spaces import obs_layout
-from rlexp.user_code import describe
+from rlexp.runtime.user_code import describe
 
 #: Blocked while the workers start (``gym_async.signals_held``), unblocked in each worker.
 HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)

@@ -31,12 +31,12 @@ from typing import Any
 
 import numpy as np
 
+from rlexp.common.registry import choices_hint, resolve
 from rlexp.config.native_task import EventTermConfig, ParamRule, Unchecked, check_params, plain
-from rlexp.registry import choices_hint, resolve
 
 MODES = ("startup", "reset", "interval", "step", "trigger")
 #: The modes each manager fires (the evaluation manager has no startup) and the trigger signals it
-#: sends (rlexp.trainer): an event that can never fire is a config error.
+#: sends (rlexp.training.trainer): an event that can never fire is a config error.
 MANAGER_MODES = {"train": MODES, "eval": ("reset", "interval", "step", "trigger")}
 TRIGGER_SIGNALS = {"train": ("eval_end", "checkpoint", "new_best"), "eval": ("eval_end",)}
 

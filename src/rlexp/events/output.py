@@ -14,7 +14,7 @@ from typing import Any
 
 from rlexp.config.native_task import Flag, OrNull, SavePath
 from rlexp.events.manager import EventContext
-from rlexp.fsutil import atomic_write
+from rlexp.files.fsutil import atomic_write
 
 
 def save_params(default: str) -> dict[str, Any]:

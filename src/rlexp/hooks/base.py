@@ -31,8 +31,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from rlexp.common.registry import resolve
 from rlexp.config.native_task import ParamRule, Unchecked, check_params, plain
-from rlexp.registry import resolve
 
 #: The hook points, in the order the Trainer fires them.
 POINTS = ("train_start", "rollout_end", "update_end", "log", "eval_end", "checkpoint", "train_end")

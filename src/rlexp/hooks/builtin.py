@@ -11,8 +11,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-from rlexp import safe_read
 from rlexp.config.native_task import Flag, Number, ParamRule, Text
+from rlexp.files import safe_read
 from rlexp.hooks.base import HookControl, HookState, register_hook
 
 _METRIC = Text()
@@ -273,7 +273,7 @@ class MedianStop(_MetricHook):
         """The sibling's metric at its last logged step <= ``step``, if it has logged the metric at
         ``step`` or later (it reached this step); reads each file's new lines only."""
         offset, points = self._offsets.get(path, (0, []))
-        try:  # a sibling's dir is another job's: read bounded (rlexp.safe_read), never trusted
+        try:  # a sibling's dir is another job's: read bounded (rlexp.files.safe_read), never trusted
             with safe_read.open_regular(path) as opened:
                 if opened is None:
                     return None

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from rlexp.fsutil import atomic_write_text
+from rlexp.files.fsutil import atomic_write_text
 from rlexp.hooks.base import HookControl, HookState, register_hook
 from rlexp.pbt import population as pop
 from rlexp.pbt.config import PARAMS, PBTConfig
@@ -176,7 +176,7 @@ class PopulationBasedTraining:
         """The source's snapshot, linked into this run's ``pbt/incoming.pt`` and checked against
         this member's own checkpoint ``own`` (same env, algorithm and policy tensors); None
         (logged) when it cannot be had or does not fit: skipped like an unreadable one."""
-        from rlexp.checkpoint import load_checkpoint_file
+        from rlexp.checkpoints.files import load_checkpoint_file
         from rlexp.pbt.exploit import misfit
 
         incoming = run_dir / pop.PBT_DIR / pop.INCOMING
@@ -234,7 +234,7 @@ def _score(state: HookState, key: str) -> float | None:
 
 
 def _step_checkpoints(run_dir: Path) -> list[Path]:
-    from rlexp.checkpoint import step_checkpoints
+    from rlexp.checkpoints.files import step_checkpoints
 
     return step_checkpoints(run_dir / "checkpoints")
 

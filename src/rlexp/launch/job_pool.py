@@ -56,7 +56,7 @@ def _job_main(payload: bytes, conn: Any, parent: int) -> None:
     """A job process: take the stop signals, run the job, send its ``JobReturn`` back."""
     import cloudpickle  # (a requirement of joblib, which hydra/launcher=local needs)
 
-    from rlexp.launch.signals import become_sweep_worker
+    from rlexp.runtime.signals import become_sweep_worker
 
     become_sweep_worker()
     _die_with_parent(parent)
@@ -109,8 +109,8 @@ def exit_code_of(code: int | None) -> int:
 
 def record_died(job: Job) -> None:
     """Write ``failed`` into a dead job's ``status.json`` (never over a final state it wrote)."""
-    from rlexp.checkpoint import latest_good_checkpoint
-    from rlexp.rundir import read_status, write_status
+    from rlexp.checkpoints.files import latest_good_checkpoint
+    from rlexp.run.rundir import read_status, write_status
 
     code = job.process.exitcode
     if job.run_dir is None:

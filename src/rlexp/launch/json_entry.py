@@ -108,7 +108,7 @@ def check_no_tuned_preset(overrides: Sequence[str]) -> None:
     """``+experiment=tuned`` (or ``rl_zoo``) picks ``conf/<group>/<env>.yaml`` by the env chosen in
     ``conf/``; a JSON file's env is none of those (and the run is already
     ``+experiment=json_experiment``): one line, not Hydra's "Multiple values for experiment"."""
-    from rlexp.config.precheck import PRESET_GROUPS
+    from rlexp.launch.precheck import PRESET_GROUPS
 
     for o in overrides:
         key, _, group = o.lstrip("+~").partition("=")
@@ -157,8 +157,8 @@ def compose_json_experiment(exp: JsonExperiment, overrides: Sequence[str] = ()) 
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
+    from rlexp.config.paths import CONF_DIR
     from rlexp.config.validate import to_root_config
-    from rlexp.paths import CONF_DIR
 
     register_json_experiment(exp)
     GlobalHydra.instance().clear()

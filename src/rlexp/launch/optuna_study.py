@@ -97,8 +97,10 @@ def _check_targets(key: str, node: Any) -> None:
                 f"{key}._target_={target!r}: must be inside {list(ALLOWED_TARGETS)} "
                 "(a config may not import arbitrary code)"
             )
-        if target is not None:  # and reach only a class Optuna defines there (rlexp.registry)
-            from rlexp.registry import reach
+        if (
+            target is not None
+        ):  # and reach only a class Optuna defines there (rlexp.common.registry)
+            from rlexp.common.registry import reach
 
             module, _, name = str(target).rpartition(".")
             try:

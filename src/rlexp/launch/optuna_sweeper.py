@@ -42,7 +42,7 @@ from typing import Any
 from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import DictConfig, OmegaConf
 
-from rlexp.fsutil import HolderBusy, HolderLock
+from rlexp.files.fsutil import HolderBusy, HolderLock
 from rlexp.launch import optuna_space, optuna_study
 from rlexp.launch.optuna_space import SearchSpaceError
 from rlexp.launch.optuna_study import JOB_ATTR, RETRY_ATTR, StudyConfigError, job_of
@@ -86,7 +86,7 @@ class SweepSpec:
 
 class SweepLock:
     """An exclusive ``flock`` on ``<sweep dir>/optuna.lock`` for the life of the sweep (a
-    ``rlexp.fsutil.HolderLock``)."""
+    ``rlexp.files.fsutil.HolderLock``)."""
 
     def __init__(self, sweep_dir: Path) -> None:
         self.path = sweep_dir / LOCK_FILE
@@ -159,7 +159,7 @@ def finished_value(job_dir: Path, overrides: Sequence[str] = ()) -> float | None
     """The final :data:`OBJECTIVE` of a job dir whose ``status.json`` says it ran to its end
     (finished, or stopped early by a hook) with ``overrides`` (its trial's parameters) among its
     ``.hydra/overrides.yaml``; None otherwise: then the trial is run again in its dir, where the
-    job skips only if its ``config.yaml`` proves the same config (``rlexp.run_proof``)."""
+    job skips only if its ``config.yaml`` proves the same config (``rlexp.run.proof``)."""
     try:
         status = json.loads((job_dir / "status.json").read_text())
     except (OSError, ValueError):
@@ -218,7 +218,7 @@ def check_spec(sweeper: Any, arguments: Sequence[str]) -> SweepSpec:
         spec.grid = {k: optuna_space.grid_choices(k, d) for k, d in dists.items()}
     custom = get("custom_search_space")
     if custom:
-        from rlexp.registry import reach
+        from rlexp.common.registry import reach
 
         module, _, name = str(custom).rpartition(".")
         where = f"hydra.sweeper.custom_search_space={custom!r}"

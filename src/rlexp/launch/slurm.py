@@ -132,7 +132,7 @@ class RequeueOnPreemption:
 
     def __call__(self, *args: Any, **kwargs: Any) -> JobReturn:
         ret = super().__call__(*args, **kwargs)  # type: ignore[misc]
-        from rlexp.trainer import StopRequested
+        from rlexp.training.trainer import StopRequested
 
         if (
             stop_requested_by_signal()

@@ -4,7 +4,7 @@ exit code.
 A Hydra callback, registered in ``conf/config.yaml`` (``hydra.callbacks.rlexp_sweep``). A sweep job
 that fails records ``failed`` and its reason in its own ``status.json`` and returns, so the launcher
 goes on with the other jobs (``rlexp.app._task``). When the sweeper is done, ``on_multirun_end``
-reads the job dirs against the jobs the sweep was to run (``rlexp.report``: the basic sweeper's
+reads the job dirs against the jobs the sweep was to run (``rlexp.analysis.report``: the basic sweeper's
 grid, Optuna's ``n_trials``), logs one line, and exits with :data:`EXIT_JOBS_FAILED` when a job
 failed or never started. A job a hook ended early (``stopped_early``, e.g. the median stopping
 rule) is a result, not a failure: the line counts it as done, with its reason and the budget
@@ -23,7 +23,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
-from rlexp.fsutil import HolderLock, atomic_write
+from rlexp.files.fsutil import HolderLock, atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,7 @@ def _named(items: Sequence[Any], name: Callable[[Any], str]) -> str:
 
 def summarize_sweep(sweep_dir: Path, config: DictConfig) -> tuple[str, bool]:
     """(one line on how the sweep's jobs ended, whether none failed or went missing)."""
-    from rlexp.report import budget_saved, plan_from_config, read_sweep
+    from rlexp.analysis.report import budget_saved, plan_from_config, read_sweep
 
     plan = plan_from_config(config, _config_loader())
     sweep = read_sweep(sweep_dir, metric=None, plan=plan)

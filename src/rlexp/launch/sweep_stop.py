@@ -36,8 +36,8 @@ import threading
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from rlexp.launch.signals import STOP_SIGNALS, SWEEP_STOPPING_ENV
-from rlexp.rundir import EXIT_SIGNAL_BASE
+from rlexp.run.rundir import EXIT_SIGNAL_BASE
+from rlexp.runtime.signals import STOP_SIGNALS, SWEEP_STOPPING_ENV
 
 log = logging.getLogger(__name__)
 

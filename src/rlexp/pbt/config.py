@@ -1,6 +1,6 @@
 """Population Based Training's settings: the typed schema of ``hooks.pbt.params`` (conf/sweep/pbt.yaml)
 and the checks of a PBT sweep's command line (launcher, population size), each one line naming
-the key, the value and the file (exit 2 through ``rlexp.config.precheck``)."""
+the key, the value and the file (exit 2 through ``rlexp.launch.precheck``)."""
 
 from __future__ import annotations
 

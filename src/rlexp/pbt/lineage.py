@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rlexp import safe_read
+from rlexp.files import safe_read
 from rlexp.pbt.population import (
     LINEAGE,
     PBT_DIR,

@@ -9,7 +9,7 @@ the sweep's own jobs 0 .. ``population_size - 1``, each known by its dir (named 
 the sweep dir (an earlier sweep's job, a copied or symlinked run) is a stray: ignored, and named. A member that exploits links the source's ready file
 into its own ``pbt/incoming.pt`` before reading it: from then on no pruning on the source's side
 (its ``checkpoints/`` keep_last, or its own ``keep_ready``) can take the bytes away. A sibling's
-files are another job's: read bounded (``rlexp.safe_read``), never trusted.
+files are another job's: read bounded (``rlexp.files.safe_read``), never trusted.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from rlexp import safe_read
-from rlexp.fsutil import atomic_write
+from rlexp.files import safe_read
+from rlexp.files.fsutil import atomic_write
 from rlexp.pbt.config import PBTConfig, log_uniform
 
 log = logging.getLogger(__name__)

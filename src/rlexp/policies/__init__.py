@@ -1,0 +1,5 @@
+"""Layer 2, policies: the Gaussian actor-critic (``actor_critic``), its heads (``heads``), the fast
+numpy sampler (``numpy_sampler``).
+
+May import: layers 0-1 and the other pieces.
+"""

@@ -67,7 +67,7 @@ def _task_spec(task: str) -> tuple[tuple[str, ...], int | None]:
 
 
 def _conf_dir() -> Path:
-    from rlexp.paths import CONF_DIR
+    from rlexp.config.paths import CONF_DIR
 
     return CONF_DIR
 

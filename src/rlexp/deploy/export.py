@@ -1,0 +1,442 @@
+"""``rlexp export``: a checkpoint's deterministic policy as one self-contained file, TorchScript or
+ONNX, and a metadata JSON beside it (``<file>.json``; docs/export.md).
+
+The file maps a float32 ``observation`` [batch, obs_dim] (the env's observation flattened as the
+metadata's ``observation_layout`` says) to the ``action`` [batch, act_dim] that ``rlexp eval``
+applies to the env: for Box actions the Gaussian's mean, i.e. the actor MLP on the normalised
+observation; for categorical actions (Discrete, MultiDiscrete, MultiBinary) the most likely value of
+each component as an int64 in the env's own range (``start`` added; metadata ``action_space``).
+Folded in:
+
+- the observation normaliser. rlexp normalises inside the policy (``ObservationNormalizer``, whose
+  statistics are checkpointed), not with a TorchRL transform on the env: ``(x - mean) / sqrt(var +
+  eps)`` as the ``_scale`` / ``_shift`` buffers hold it, clipped to +-``env.clip_observations``;
+  with ``env.normalize_observations=false`` it is the identity (and nothing is clipped);
+- the clipping of the action to the action bounds, which rlexp's envs (gymnasium, native, the
+  batched torch envs: vecenv, torchrl) apply before acting; ``env.backend=torchrl_gym`` hands
+  actions on unclipped, and so does its export. An unbounded side (a batched env's Box without
+  bounds) clips nothing; the metadata writes it as null.
+
+Only the actor is exported (PPO's critic is not); actor-critic and actor-only policies alike.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from rlexp.checkpoints.files import select_checkpoint
+from rlexp.deploy.export_meta import json_safe
+from rlexp.deploy.policy_eval import (
+    EXPORT_SCHEMA,
+    EXPORT_SUFFIXES,
+    check_policy_finite,
+    load_exported,
+    metadata_path,
+    quiet,
+    typed_config,
+)
+from rlexp.files.fsutil import atomic_write, atomic_write_text, temp_path
+
+#: The exported file's input and output names (ONNX graph names; the metadata states them).
+INPUT_NAME, OUTPUT_NAME = "observation", "action"
+#: Backends whose envs clip actions to the action bounds before applying them.
+CLIPPING_BACKENDS = ("gymnasium", "gymnasium_async", "envpool", "native", "vecenv", "torchrl")
+
+
+class DeterministicActor(nn.Module):
+    """observation [batch, obs_dim] float32 -> the deterministic action, the normaliser folded in.
+
+    Box actions: the Gaussian's mean [batch, act_dim] float32, (``clamp_actions``) clipped to the
+    action bounds as the env does. Categorical actions (``nvec``): the most likely value of each
+    component, plus its ``start``: int64 [batch, K], the values of the env's own action space
+    (``Discrete``: column 0; ``MultiDiscrete`` / ``MultiBinary``: reshape to the space's shape)."""
+
+    # TorchScript: fixed branches
+    __constants__ = [
+        "normalize", "clip", "clamp_actions", "rescale", "categorical", "uniform", "k", "n"
+    ]  # fmt: skip
+
+    def __init__(
+        self,
+        policy: nn.Module,
+        low: torch.Tensor,
+        high: torch.Tensor,
+        clamp_actions: bool,
+        start: list[int] | None = None,
+        rescale: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> None:
+        super().__init__()
+        norm = policy.actor_net.normalizer
+        self.normalize = bool(norm.enabled)
+        self.clip = float(norm.clip)
+        self.clamp_actions = clamp_actions
+        # the same float32 buffers and ops as ObservationNormalizer.forward: the same numbers
+        self.register_buffer("obs_scale", norm._scale.detach().clone().float())
+        self.register_buffer("obs_shift", norm._shift.detach().clone().float())
+        self.mlp = copy.deepcopy(policy.actor_net.mlp).float().requires_grad_(False)
+        # (an env on a GPU has its bounds there; the file runs on the CPU)
+        self.register_buffer("action_low", low.detach().cpu().clone().float())
+        self.register_buffer("action_high", high.detach().cpu().clone().float())
+        self.categorical = policy.categorical
+        nvec = list(policy.nvec) if policy.categorical else [1]
+        self.nvec = nvec  # TorchScript infers List[int] from the value (no annotation: no warning)
+        self.uniform = len(set(nvec)) == 1
+        self.k, self.n = len(nvec), nvec[0]
+        self.register_buffer("action_start", torch.tensor(start or [0] * self.k, dtype=torch.int64))
+        # env.rescale_actions: [-1, 1] (the clamp's bounds) onto the env's (low, (high - low) / 2)
+        self.rescale = rescale is not None
+        low0, half = rescale if rescale is not None else (torch.zeros(1), torch.ones(1))
+        self.register_buffer("rescale_low", low0.detach().cpu().clone().float())
+        self.register_buffer("rescale_half", half.detach().cpu().clone().float())
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        x = observation
+        if self.normalize:
+            x = torch.clamp(torch.addcmul(self.obs_shift, x, self.obs_scale), -self.clip, self.clip)
+        out = self.mlp(x)
+        if self.categorical:
+            if self.uniform:
+                index = out.reshape(-1, self.k, self.n).argmax(-1)
+            else:
+                index = torch.stack([b.argmax(-1) for b in torch.split(out, self.nvec, -1)], -1)
+            return index + self.action_start
+        if self.clamp_actions:
+            out = torch.clamp(out, self.action_low, self.action_high)
+        if self.rescale:
+            out = (out + 1.0) * self.rescale_half + self.rescale_low
+        return out
+
+
+@dataclass
+class Exported:
+    """What ``export_policy`` wrote and from which checkpoint."""
+
+    path: Path
+    metadata: Path
+    checkpoint: str
+    chosen: str  # why this checkpoint: given, best.pt, the newest step checkpoint
+    global_step: int
+    #: the observation helper (export_obs.py) where the env's observation is not a flat Box
+    helper: Path | None = None
+
+
+def out_path(out: str | Path | None, checkpoint: str | Path, fmt: str) -> Path:
+    """Where to write: ``out`` (a file; a folder gets the default name; the format's suffix is
+    added when missing), by default ``<run_dir>/exported/<checkpoint stem>.pt|.onnx``."""
+    suffix = EXPORT_SUFFIXES[fmt]
+    ckpt = Path(checkpoint)
+    name = ckpt.stem + suffix
+    if out is None:
+        home = ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent
+        return home / "exported" / name
+    p = Path(out)
+    if p.is_dir():
+        return p / name
+    if not p.suffix:
+        return p.with_suffix(suffix)
+    if p.suffix != suffix:
+        raise ValueError(f"--out {str(p)!r}: a {fmt} file ends in {suffix}, not {p.suffix}")
+    return p
+
+
+def export_policy(
+    path: str | Path, fmt: str, out: str | Path | None = None, which: str | None = None
+) -> Exported:
+    """Export the deterministic actor of the checkpoint at ``path`` (a file or a run dir) as
+    ``fmt`` (torchscript | onnx), with its metadata JSON; the file is checked against the policy."""
+    if fmt not in EXPORT_SUFFIXES:
+        raise ValueError(f"--format {fmt!r}; choose from {list(EXPORT_SUFFIXES)}")
+    if fmt == "onnx":
+        from rlexp.extras import require
+
+        require("export", "rlexp export --format onnx", ("onnx", "onnxscript", "onnxruntime"))
+    ckpt, chosen = select_checkpoint(path, which)  # rlexp eval's rule too
+    check_policy_finite(ckpt)
+    target = out_path(out, ckpt["path"], fmt)
+    if target.exists() and not metadata_path(target).is_file():  # a checkpoint, someone's file
+        raise ValueError(
+            f"--out {str(target)!r} exists and is not an rlexp export (no "
+            f"{metadata_path(target).name!r} beside it); rlexp export does not overwrite it"
+        )
+    _check_writable(target)  # a read-only run dir fails now, naming the path
+    actor, config, info, samples = _actor_of(ckpt)
+    if not target.parent.is_dir():
+        target.parent.mkdir(parents=True)
+    helper = _write_helper(target, config, info, samples)  # numpy-only flattening, beside the file
+    try:
+        # the exporters choose the format by the suffix: the temporary file keeps it
+        atomic_write(target, lambda tmp: _WRITERS[fmt](actor, tmp), keep_suffix=True)
+    except (RuntimeError, TypeError, ValueError, ImportError) as exc:  # the exporters' own kinds
+        text = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ValueError(f"writing the {fmt} file {str(target)!r} failed: {text}") from exc
+    meta = {
+        "schema": EXPORT_SCHEMA,
+        "format": fmt,
+        "file": target.name,
+        **_io_fields(info),
+        **info,
+        # the env's own observation in, its own action out, with numpy only (export_obs.py)
+        "observation_helper": helper,
+        **_source_fields(ckpt, chosen, config),
+    }
+    try:
+        _check_file(target, meta, actor)
+    except ValueError:
+        target.unlink()  # a file that does not act as the policy is worse than none
+        raise
+    meta_file = metadata_path(target)
+    atomic_write_text(meta_file, json.dumps(meta, indent=2) + "\n")
+    plain = (info["observation_layout"] or {}).get("space") == "Box" and len(
+        info["observation_layout"]["parts"][0]["shape"]
+    ) == 1  # the observation is the input vector already: the helper is there, not worth a line
+    shown = None if helper is None or plain else target.parent / helper
+    return Exported(target, meta_file, ckpt["path"], chosen, int(ckpt["global_step"]), shown)
+
+
+def _actor_of(
+    ckpt: dict[str, Any],
+) -> tuple[DeterministicActor, Any, dict[str, Any], list[tuple[Any, Any]]]:
+    """The checkpoint's policy rebuilt on one copy of its env (as ``rlexp eval`` builds it) -> the
+    deterministic actor, the typed config, what the metadata says about the env, and a few
+    observations of its space (Gymnasium envs; they check the observation helper)."""
+    from rlexp.checkpoints.files import check_checkpoint_fits, check_policy_before_building
+    from rlexp.envs.factory import make_env
+    from rlexp.policies.actor_critic import policy_for_env
+    from rlexp.runtime.env_source import ensure_env_importable, env_name_in, run_dir_of
+
+    name = env_name_in(ckpt["config"])
+    ensure_env_importable(name, run_dir_of(ckpt["path"]))
+    config = typed_config(ckpt["config"], f"checkpoint {ckpt['path']!r}")
+    e = config.env
+    try:
+        env = make_env(e, 1, config.seed)
+    except KeyError as exc:  # check_gym_id: the id, or its module's own failure, in one line
+        raise ValueError(exc.args[0] if exc.args else str(exc)) from None
+    try:
+        check_policy_before_building(ckpt, lambda: policy_for_env(config.policy, e, env))
+        policy = policy_for_env(config.policy, e, env)
+        obs_dim = int(env.observation_spec["observation"].shape[-1])
+        act_dim = int(env.action_spec.shape[-1])
+        from rlexp.envs.spaces import check_layout
+
+        check_layout(ckpt.get("observation_layout"), env, f"checkpoint {ckpt.get('path')!r}")
+        check_checkpoint_fits(ckpt, config, policy)  # loads the weights; ValueError if they don't
+        base = env
+        while hasattr(base, "base_env"):  # under TorchRL transforms
+            base = base.base_env
+        coding = getattr(base, "action_coding", None)  # rlexp's Gymnasium adapter
+        layout = getattr(base, "obs_layout", None)
+        if policy.categorical:
+            low = high = torch.zeros(act_dim)
+            start = list(coding.start) if coding is not None else [0] * act_dim
+            actor = DeterministicActor(policy, low, high, False, start).eval()
+        else:
+            space = env.action_spec.space
+            low = space.low.reshape(-1, act_dim)[0]
+            high = space.high.reshape(-1, act_dim)[0]
+            clamp = e.backend in CLIPPING_BACKENDS
+            scaled = getattr(base, "_rescale", None)  # env.rescale_actions: the env's own bounds
+            rescale = None if scaled is None else tuple(torch.as_tensor(v) for v in scaled)
+            actor = DeterministicActor(policy, low, high, clamp, rescale=rescale).eval()
+            if scaled is not None:  # the file's output lies in the env's bounds
+                low = torch.as_tensor(coding.low, dtype=torch.float64)
+                high = torch.as_tensor(coding.high, dtype=torch.float64)
+        samples = _sample_observations(base) if layout is not None else []
+        info = {
+            "observation_dim": obs_dim,
+            "action_dim": act_dim,
+            **_names(env, config),
+            # how the env's observation became the input vector (Dict / Tuple / Discrete parts)
+            "observation_layout": layout.record() if layout is not None else None,
+            # what the output is and how it becomes the env's action (docs/export.md)
+            "action_space": json_safe(coding.record()) if coding is not None else None,
+            "action_dtype": "int64" if policy.categorical else "float32",
+            "action_low": None if policy.categorical else _finite_or_none(low),
+            "action_high": None if policy.categorical else _finite_or_none(high),
+            "actions_clamped": actor.clamp_actions,
+            # env.rescale_actions: the policy acted in [-1, 1]; the file maps it onto the bounds
+            "actions_rescaled": actor.rescale,
+            "observation_normalizer": {
+                "enabled": actor.normalize,
+                "clip": actor.clip if actor.normalize else None,
+                "count": float(policy.normalizer.count),
+            },
+        }
+    finally:
+        env.close()
+    return actor, config, info, samples
+
+
+def _sample_observations(base: Any, n: int = 8) -> list[tuple[Any, Any]]:
+    """``n`` observations drawn from the Gymnasium observation space of ``base`` (seeded: every
+    export draws the same), each with rlexp's flattening of it; [] where the backend does not show
+    the space."""
+    space = None
+    if getattr(base, "_envs", None):
+        space = base._envs[0].observation_space
+    elif getattr(base, "_vec", None) is not None:
+        space = base._vec.single_observation_space
+    if space is None:
+        return []
+    space.seed(0)
+    samples = [space.sample() for _ in range(n)]
+    return [(obs, base.obs_layout.flatten(obs)) for obs in samples]
+
+
+def _write_helper(
+    target: Path, config: Any, info: dict[str, Any], samples: list[tuple[Any, Any]]
+) -> str | None:
+    """Write the observation helper beside ``target`` (Gymnasium envs: those with an observation
+    layout), checked against rlexp's own flattening; its file name, or None."""
+    layout, action = info["observation_layout"], info["action_space"]
+    if layout is None or action is None:
+        return None
+    from rlexp.deploy.export_obs import check_helper, helper_name, helper_source
+
+    path = target.parent / helper_name(target)
+    atomic_write_text(path, helper_source(target, config.env.name, layout, action))
+    if samples:
+        try:
+            check_helper(path, samples)
+        except ValueError:
+            path.unlink()
+            raise
+    return path.name
+
+
+def _names(env: Any, config: Any) -> dict[str, Any]:
+    """Observation and action names where the env knows them (native tasks: term names, one per
+    element, and each observation term's slice); null for Gymnasium tasks."""
+    base = env
+    while hasattr(base, "base_env"):  # under TorchRL transforms
+        base = base.base_env
+    layout = getattr(base, "observation_layout", None)
+    terms = getattr(base, "_action_terms", None)
+    native = config.env.native
+    if layout is None or terms is None or native is None:
+        return {"observation_names": None, "observation_terms": None, "action_names": None}
+    obs_names = [
+        _element(n, i, stop - start) for n, start, stop, _ in layout for i in range(stop - start)
+    ]
+    action_names = [
+        _element(key, i, part.stop - part.start)
+        for key, (part, _) in zip(native.actions, terms, strict=True)
+        for i in range(part.stop - part.start)
+    ]
+    return {
+        "observation_names": obs_names,
+        "observation_terms": [
+            {"name": n, "start": start, "stop": stop, "shape": list(shape)}
+            for n, start, stop, shape in layout
+        ],
+        "action_names": action_names,
+    }
+
+
+def _element(name: str, i: int, size: int) -> str:
+    return name if size == 1 else f"{name}[{i}]"
+
+
+def _finite_or_none(values: torch.Tensor) -> list[float | None]:
+    """Bounds as JSON numbers; an unbounded side (+-inf, which JSON cannot hold) as null."""
+    return [float(v) if torch.isfinite(v) else None for v in values]
+
+
+def _io_fields(info: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "input_name": INPUT_NAME,
+        "output_name": OUTPUT_NAME,
+        "input_shape": ["batch", info["observation_dim"]],
+        "output_shape": ["batch", info["action_dim"]],
+        "dtype": "float32",  # the input's; the output's is action_dtype
+    }
+
+
+def _source_fields(ckpt: dict[str, Any], chosen: str, config: Any) -> dict[str, Any]:
+    from rlexp import __version__
+
+    return {
+        "env_id": config.env.name,
+        "env_backend": config.env.backend,
+        "native_task": config.env.native.task if config.env.native is not None else None,
+        "algorithm": config.algorithm.name,
+        "policy": config.policy.name,
+        "source_checkpoint": str(Path(ckpt["path"]).resolve()),
+        "checkpoint_choice": chosen,
+        "global_step": int(ckpt["global_step"]),
+        "rlexp_version": __version__,
+        "torch_version": torch.__version__,
+        "config": ckpt["config"],  # the run's config: `rlexp eval FILE` rebuilds its env from it
+    }
+
+
+def _check_writable(target: Path) -> None:
+    """``ValueError`` (one line: the path, why, the fix) when the exported file's folder cannot be
+    created or written: before the policy is built, not halfway through the export."""
+    from rlexp.run.writable import probe_dir
+
+    longest = len(temp_path(target, keep_suffix=True).name)  # what atomic_write writes through
+    try:
+        probe_dir(target.parent, longest)  # and removes the folders it made
+    except OSError as exc:
+        from rlexp.runtime.entry import os_error_line
+
+        raise ValueError(
+            f"cannot write {str(target)!r}: {os_error_line(exc)}; give --out a path in a "
+            "writable folder"
+        ) from None
+
+
+def _write_torchscript(actor: DeterministicActor, path: Path) -> None:
+    with warnings.catch_warnings():  # torch.jit.script is deprecated in favour of torch.export
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.jit.save(torch.jit.script(actor), str(path))
+
+
+def _write_onnx(actor: DeterministicActor, path: Path) -> None:
+    """torch.export-based exporter (torch's default and future; the TorchScript-based one is
+    deprecated), a dynamic batch axis, weights inside the file (no ``.data`` beside it)."""
+    example = torch.zeros(2, actor.obs_scale.shape[0])
+    with warnings.catch_warnings(), quiet("torch.onnx"), quiet("torch.export"):
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            actor,
+            (example,),
+            str(path),
+            dynamo=True,
+            external_data=False,
+            verbose=False,
+            input_names=[INPUT_NAME],
+            output_names=[OUTPUT_NAME],
+            dynamic_shapes={"observation": {0: torch.export.Dim("batch")}},
+        )
+
+
+_WRITERS = {"torchscript": _write_torchscript, "onnx": _write_onnx}
+
+
+def _check_file(path: Path, meta: dict[str, Any], actor: DeterministicActor) -> None:
+    """Load the written file as a user would and compare it with the actor on a probe batch
+    (observations around the normaliser's mean, some far out so the clips act)."""
+    gen = torch.Generator().manual_seed(0)
+    probe = torch.randn(16, meta["observation_dim"], generator=gen) * 3.0
+    if actor.normalize:  # x = (probe - shift) / scale: normalised values of about +-3
+        probe = (probe - actor.obs_shift) / actor.obs_scale
+    with torch.no_grad():
+        want = actor(probe)
+        got = load_exported(path, meta)(probe)
+    if got.shape != want.shape or not torch.allclose(
+        got.double(), want.double(), rtol=1e-5, atol=1e-5
+    ):
+        raise ValueError(
+            f"the exported {meta['format']} file {str(path)!r} does not reproduce the policy "
+            f"(max difference {float((got - want).abs().max()):.3g}); please report it"
+        )

@@ -1,0 +1,127 @@
+"""An exported policy's metadata JSON is data: what ``rlexp eval FILE`` may take from it, checked
+before anything is built from it (docs/export.md, docs/envs.md "Security: what a name may import").
+
+A file people share must never be a route to code: every field has the type ``rlexp export``
+writes, the env names in its config import nothing outside the allowlist (``module:EnvId`` and
+``module:callable`` alike: an allowed module, or one a plugin already imported), and the action
+space it was made for is the env's own, so the file's outputs mean the same actions.
+
+Only the standard library is imported at module level (``rlexp.deploy.policy_eval`` loads this early).
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+#: The action kinds an export writes (rlexp.envs.spaces.ActionCoding.kind).
+ACTION_KINDS = ("box", "discrete", "multi_discrete", "multi_binary")
+
+
+def _int(value: Any, low: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+def _ints(value: Any, low: int | None = None) -> bool:
+    return isinstance(value, list) and all(
+        isinstance(v, int) and not isinstance(v, bool) and (low is None or v >= low) for v in value
+    )
+
+
+def check_fields(meta: dict[str, Any], where: str) -> None:
+    """A ValueError of one line naming the field when a field is not what an export writes."""
+
+    def bad(key: str, want: str) -> ValueError:
+        return ValueError(
+            f"{where}: {key}={meta.get(key)!r} is not {want} (export metadata is data)"
+        )
+
+    if not _int(meta.get("global_step"), 0):
+        raise bad("global_step", "a whole number >= 0")
+    for key in ("observation_dim", "action_dim"):
+        if not _int(meta.get(key), 1):
+            raise bad(key, "a whole number >= 1")
+    for key in ("input_name", "output_name"):
+        if meta["format"] == "onnx" and not isinstance(meta.get(key), str):
+            raise bad(key, "a string")
+    if meta.get("source_checkpoint") is not None and not isinstance(meta["source_checkpoint"], str):
+        raise bad("source_checkpoint", "a path or null")
+    if meta.get("observation_layout") is not None and not isinstance(
+        meta["observation_layout"], dict
+    ):
+        raise bad("observation_layout", "an object or null")
+    space = meta.get("action_space")
+    if space is None:
+        return
+    if not isinstance(space, dict) or space.get("kind") not in ACTION_KINDS:
+        raise bad("action_space", f"an object whose kind is one of {list(ACTION_KINDS)}")
+    if space["kind"] != "box":
+        nvec, start = space.get("nvec"), space.get("start")
+        if not (_ints(nvec, 1) and _ints(start) and len(nvec) == len(start) == meta["action_dim"]):
+            raise bad("action_space", f"categorical with {meta['action_dim']} nvec and start ints")
+
+
+def check_env_names(env: Any, where: str) -> None:
+    """The data rule: ``env.name`` and every string in ``env.kwargs`` that names a module (``a:B``)
+    import nothing: the module is under the env allowlist (rlexp.envs.batched.allowed_modules: rlexp's,
+    a plugin's, the shell's ``RLEXP_ENV_MODULES``) or already imported (a plugin's). The callable
+    of a batched backend is checked again when the env is built (rlexp.common.registry.reach)."""
+    from rlexp.common.registry import check_module_name, module_of, strings_in, under
+    from rlexp.envs.batched import ENV_MODULES_VAR, allowed_modules
+
+    if env.backend in ("vecenv", "torchrl"):  # the callable: through the gate, nothing called
+        from rlexp.envs.batched import resolve_env_factory
+
+        try:
+            resolve_env_factory(env.name, env.backend)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+    named = [("env.name", env.name)]
+    named += [(f"env.kwargs.{k}", v) for k, v in strings_in(env.kwargs or {})]
+    for key, value in named:
+        module = module_of(value)
+        if module is None:
+            continue
+        line = f"{where}: {key}={value!r}"
+        check_module_name(module, line, None)
+        if under(module, allowed_modules()) or module in sys.modules:
+            continue
+        raise ValueError(
+            f"{line} would import module {module!r}, which is not allowed: an exported file's "
+            f"metadata never imports code; if you trust it, allow the module from the shell "
+            f"({ENV_MODULES_VAR}={module.split('.')[0]}) or install the plugin that registers the env"
+        )
+
+
+def check_action_space(meta: dict[str, Any], env: Any, where: str) -> None:
+    """A ValueError of one line when the env's actions are not the ones the file was made for
+    (another ``start``, ``nvec``, kind or bounds): its outputs would be other actions."""
+    dim = int(env.action_spec.shape[-1])
+    if dim != meta["action_dim"]:
+        raise ValueError(
+            f"{where} outputs {meta['action_dim']} action values; the env of its config takes {dim}"
+        )
+    base = env
+    while hasattr(base, "base_env"):  # under TorchRL transforms
+        base = base.base_env
+    coding = getattr(base, "action_coding", None)
+    if coding is None:
+        return
+    now, saved = json_safe(coding.record()), meta.get("action_space")
+    if saved != now:
+        diff = sorted(k for k in {*now, *(saved or {})} if (saved or {}).get(k) != now.get(k))
+        said = {k: (saved or {}).get(k) for k in diff}
+        raise ValueError(
+            f"{where} was made for another action space: its metadata says {said}, the env has "
+            f"{ {k: now.get(k) for k in diff} }; re-export the policy from its checkpoint"
+        )
+
+
+def json_safe(record: dict[str, Any]) -> dict[str, Any]:
+    """An action coding's record with unbounded sides (+-inf: a batched torch env's Box) as null,
+    as the metadata holds it."""
+    return {
+        k: [None if isinstance(x, float) and x in (float("inf"), float("-inf")) else x for x in v]
+        if k in ("low", "high") else v
+        for k, v in record.items()
+    }  # fmt: skip

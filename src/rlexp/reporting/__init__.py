@@ -1,5 +1,0 @@
-"""The parts of ``rlexp report`` (``rlexp.report`` is its entry point and re-exports them): job
-dirs (``jobs``), the sweep's plan (``plan``), statistics per configuration (``summary``),
-``report.md`` / ``report.csv`` (``render``), the results per env of a sweep over envs
-(``results``) and the published numbers shown next to them (``anchors``), Optuna trials
-(``trials``) and ``curves.png`` / ``results.png`` (``plot``)."""
