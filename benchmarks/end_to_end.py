@@ -539,7 +539,7 @@ def main() -> None:
     if args.dry_run:
         print("\n".join(c.shown() for c in contenders))
         return
-    from ppo_throughput import machine_note
+    from machine import machine_note
 
     machine = machine_note()
     started = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")

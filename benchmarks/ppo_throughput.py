@@ -33,7 +33,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -466,28 +465,6 @@ def measure_startup(repeats: int) -> dict[str, list[float]]:
     return out
 
 
-def machine_note() -> str:
-    import torch
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    vers = [f"torch {torch.__version__}"]
-    for mod in ("torchrl", "stable_baselines3", "gymnasium", "mujoco"):
-        try:
-            vers.append(f"{mod} {__import__(mod).__version__}")
-        except ImportError:
-            vers.append(f"{mod} (not installed)")
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    return f"{cpu}, {cores} cores, load average {load:.1f} at the start; " + ", ".join(vers)
-
-
 def reference(physics: float, network: float) -> float:
     """The reference loop's env-steps/s: physics and network work back to back, no overlap and no
     overhead. Not a bound: it runs eager, without GAE, normaliser updates or buffer writes, so a
@@ -506,6 +483,8 @@ def report(
     started: str,
     first: dict | None = None,
 ) -> str:
+    from machine import machine_note
+
     first = first or {}
     lines = [
         f"# PPO throughput ({started})",

@@ -9,7 +9,7 @@ terms, task rules and parameter rules see the env as a ``SimState``; ``NativeEnv
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -17,9 +17,6 @@ import numpy as np
 from rlexp.config.native_task import Vector
 from rlexp.envs.native.kinematics import SerialChainFK
 from rlexp.envs.native.registry import unknown_name_message
-
-if TYPE_CHECKING:
-    from rlexp.envs.native.tasks import TaskSpec
 
 
 class _StepVars:
@@ -39,7 +36,7 @@ class SimState:
 
     # set by NativeEnv before _setup_indices / _setup_state
     model: mujoco.MjModel
-    task_spec: TaskSpec
+    task_spec: Any  # the task's TaskSpec: tasks.py imports this module (its rules take a SimState)
     num_envs: int
     max_episode_steps: int  # the time limit (truncation)
     extensions: dict[str, Any]  # env.extensions: the task's defaults and the config's values
