@@ -2,8 +2,9 @@
 
 ``main()`` is what ``python train.py`` and ``rlexp train`` call. The command line is checked first
 (``rlexp.launch.precheck``): a bad override or a config that cannot be built prints one line and
-exits 2 before Hydra creates a run dir. A run then locks its dir, builds everything, and only then
-writes ``config.yaml``, provenance and logs. How each way of ending shows up (status, exit code):
+exits 2 before Hydra creates a run dir. A run then claims its dir (``rlexp.run.lifecycle``: lock, status,
+heartbeat, how it ended and its exit code), builds everything, and only then writes ``config.yaml``,
+provenance and logs. How each way of ending shows up (status, exit code):
 docs/faults.md.
 """
 
@@ -12,7 +13,6 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -27,25 +27,18 @@ from rlexp.config.schema import RootConfig, register_configs
 from rlexp.config.validate import ConfigError, to_dict, to_root_config, total_frames
 from rlexp.launch import job_log
 from rlexp.plugins import load_plugins
-from rlexp.run import end as run_end
-from rlexp.run.next_steps import done_message
-from rlexp.run.proof import check_continuation, finished_before_building, finished_result
+from rlexp.run.lifecycle import RunEnded, RunLifecycle, record_job_failure
+from rlexp.run.proof import finished_before_building
 from rlexp.run.rundir import (
     EXIT_CONFIG,
     EXIT_FAILED,
-    EXIT_NONFINITE,
     EXIT_SIGNAL_BASE,
     HYDRA_JOB,
     RESUME_MAY_CHANGE,
-    Heartbeat,
-    RunDirLock,
     check_run_dir,
     clean_temp_files,
     config_differences,
-    read_status,
-    write_hydra_files,
     write_run_files,
-    write_status,
 )
 from rlexp.runtime import entry, outside_run
 from rlexp.runtime.job_dir import job_dir
@@ -56,84 +49,39 @@ from rlexp.training.build import seed_everything
 log = logging.getLogger(__name__)
 
 
-class RunEnded(Exception):
-    """The run stopped before finishing; ``exit_code`` is what ``python train.py`` exits with
-    (``rlexp.run.rundir``: 1 failed, 3 non-finite values, 128 + N interrupted by signal N)."""
-
-    def __init__(self, message: str, exit_code: int) -> None:
-        super().__init__(message)
-        self.exit_code = exit_code
-
-
 def train(
     config: RootConfig, run_dir: Path, sweep_group: str | None = None, jobs: int = 1
 ) -> dict[str, float]:
-    """Lock the run dir, build envs, policy, PPO, loggers and Trainer from ``config``, train, and
-    return the last eval. Nothing is written into the run dir before the config has built.
+    """Claim the run dir, build envs, policy, algorithm, loggers and Trainer from ``config``, run,
+    close; return the last eval. Nothing is written into the run dir before the config has built.
     ``jobs``: the sweep's jobs running side by side on this machine (``trainer.eval_async=auto``)."""
     import torch
 
+    from rlexp.launch.slurm import stop_requested_by_signal
     from rlexp.runtime import distributed
-    from rlexp.runtime.signals import stop_on_signals
 
-    dist = distributed.info()
     distributed.set_timeout(config.trainer.stall_timeout_s)  # the longest wait for another rank
     _speedups.apply()
     _speedups.release_frozen()  # an earlier run in this process (a sweep's jobs, tests)
     torch.set_num_threads(config.trainer.torch_threads)
-    lock = RunDirLock(run_dir)
-    with _speedups.startup_gc(), stop_on_signals() as stops:
-        try:
-            if dist.is_main:
-                lock.acquire()  # before anything is read or written: one run per dir
-            _agree(failed=False)
-            return _train_locked(config, run_dir, sweep_group, stops, jobs)
-        except ConfigError:
-            _agree(failed=True)
-            raise
-        finally:
-            lock.release()
-            distributed.shutdown()
+    run = RunLifecycle(run_dir, preempted=stop_requested_by_signal)
+    with _speedups.startup_gc(), run.claim():  # stop signals, the lock, the ranks agree
+        device, total, done = _prepare(config, run_dir)
+        if done is not None:  # resume=auto on a run that finished this config: its result
+            return done
+        trainer, ckpt = _build(config, run, device, total, sweep_group, jobs)
+        return run.run(trainer, total, ckpt)  # status, heartbeat, train, how it ended, close
 
 
-_AGREED: dict[int, bool] = {}
-
-
-def _agree(failed: bool) -> None:
-    """Distributed, once: a rank that failed before training tells the others, so that no rank
-    waits in a collective for one that has exited."""
+def _prepare(config: RootConfig, run_dir: Path) -> tuple[str, int, dict[str, float] | None]:
+    """The device, the seed and the frame budget; a re-run of a job that finished this config
+    (``trainer.resume=auto``) gets its result instead of training again."""
+    from rlexp.run.proof import finished_result
     from rlexp.runtime import distributed
-
-    dist = distributed.info()
-    if not dist.enabled or _AGREED.get(id(dist)):
-        return
-    import torch
-
-    _AGREED[id(dist)] = True
-    device = (
-        f"cuda:{dist.local_rank}" if dist.backend == "nccl" else "cpu"
-    )  # nccl: GPU tensors only
-    flag = torch.tensor([float(failed)], device=device)
-    if distributed.all_reduce_sum(flag).item() > 0 and not failed:
-        raise ConfigError("another rank failed before training (see rank 0's log)")
-
-
-def _train_locked(
-    config: RootConfig, run_dir: Path, sweep_group: str | None, stops: Any, jobs: int
-) -> dict[str, float]:
-    import torch
-
-    from rlexp.checkpoints.files import check_checkpoint_fits, latest_good_checkpoint
-    from rlexp.launch.checks import check_resume_checkpoint
-    from rlexp.launch.slurm import install_preemption_handler
-    from rlexp.run.metrics import MetricLogger, make_logger
-    from rlexp.run.provenance import versions
-    from rlexp.runtime import distributed
+    from rlexp.training.build import resolve_device
 
     t = config.trainer
     dist = distributed.info()
-    from rlexp.training.build import resolve_device
-
     # auto is decided by build() once the env exists (the env's GPU, or the CPU for a CPU env and
     # a small MLP: rlexp.runtime.devices.auto_device); a device named outright is resolved here
     device = t.device if t.device == "auto" else resolve_device(t.device, t.strict_device)
@@ -141,14 +89,36 @@ def _train_locked(
         device = f"cuda:{dist.local_rank}"  # each rank on its own GPU
     seed_everything(config.seed + dist.rank)
     total = total_frames(config, dist.world_size)
+    done = None
+    if t.resume == "auto":  # rlexp.run.proof: proven or refused
+        done = finished_result(run_dir, to_dict(config), total)
+    return device, total, done
 
+
+def _build(
+    config: RootConfig,
+    run: RunLifecycle,
+    device: str,
+    total: int,
+    sweep_group: str | None,
+    jobs: int,
+) -> tuple[Any, dict | None]:
+    """The run dir read (what it holds decides what this run does), the objects built, then the
+    run dir written: the Trainer, and the checkpoint it continues from."""
+    import torch
+
+    from rlexp.checkpoints.files import check_checkpoint_fits, latest_good_checkpoint
+    from rlexp.launch.checks import check_resume_checkpoint
+    from rlexp.launch.slurm import install_preemption_handler
+    from rlexp.run.metrics import MetricLogger, make_logger
+    from rlexp.run.proof import check_continuation
+    from rlexp.run.provenance import versions
+    from rlexp.runtime import distributed
+
+    t = config.trainer
+    run_dir = run.run_dir
+    dist = distributed.info()
     # -- the run dir: what it holds decides what this run does (nothing is written here yet) -------
-    if t.resume == "auto":  # a re-run of a job that finished this config: its result, no training
-        done = finished_result(
-            run_dir, to_dict(config), total
-        )  # rlexp.run.proof: proven or refused
-        if done is not None:
-            return done
     if dist.is_main:
         clean_temp_files(run_dir)
     t.device = device  # the saved config records the device actually used
@@ -174,9 +144,11 @@ def _train_locked(
             if diffs:
                 log.warning("resuming %s with a different config (%s)", t.resume, ", ".join(diffs))
     except Exception as exc:
-        if stops.requested:  # a Ctrl-C that broke the build (a worker it reached): a stop, 128+N
-            raise RunEnded(f"interrupted ({stops.reason()}) while the run was built: nothing "
-                           "trained", EXIT_SIGNAL_BASE + (stops.signum or 2)) from None  # fmt: skip
+        if (
+            run.stops.requested
+        ):  # a Ctrl-C that broke the build (a worker it reached): a stop, 128+N
+            raise RunEnded(f"interrupted ({run.stops.reason()}) while the run was built: nothing "
+                           "trained", EXIT_SIGNAL_BASE + (run.stops.signum or 2)) from None  # fmt: skip
         if isinstance(exc, ConfigError):
             raise
         raise ConfigError(f"the run cannot be built from this config: {first_line(exc)}") from None
@@ -200,114 +172,10 @@ def _train_locked(
         logger = MetricLogger([])
     trainer = objects.trainer(logger, config_dict, versions(), _eval_async(config, total, jobs))
     if ckpt is not None:
-        _load(trainer, ckpt, run_dir)
-    stops.attach(trainer)  # SIGINT / SIGTERM / SIGHUP: checkpoint at the end of the iteration
+        run.restore(trainer, ckpt)  # the env's set_state raising: failed, exit 2
+    run.stops.attach(trainer)  # SIGINT / SIGTERM / SIGHUP: checkpoint at the end of the iteration
     install_preemption_handler(trainer)  # under SLURM: the preemption signal checkpoints, requeues
-    return _run(trainer, run_dir, total, stops, ckpt)
-
-
-def _load(trainer: Any, ckpt: dict, run_dir: Path) -> None:
-    """Continue from ``ckpt``; the env's ``set_state`` raising is one line, exit 2, and
-    ``status.json`` says ``failed`` with it (it must not keep saying the run finished)."""
-    from rlexp.training.loop import EnvRestoreError
-
-    try:
-        trainer.load_state_dict(ckpt)
-    except EnvRestoreError as exc:
-        trainer.close()
-        write_status(run_dir, "failed", int(ckpt["global_step"]), reason=str(exc), exit_code=2)
-        raise ConfigError(str(exc)) from None
-
-
-def _run(
-    trainer: Any, run_dir: Path, total: int, stops: Any, ckpt: dict | None
-) -> dict[str, float]:
-    """Train; every way out leaves ``status.json`` saying how the run ended and why."""
-    from rlexp.algorithms.ppo import NonFiniteError
-    from rlexp.launch.slurm import stop_requested_by_signal
-    from rlexp.run import stalls
-    from rlexp.run.writable import check_checkpoints_writable
-    from rlexp.training.trainer import StopRequested
-
-    def last_good() -> str:
-        path = trainer.last_checkpoint or (ckpt and ckpt["path"])
-        return f"the last good checkpoint is {path}" if path else "no checkpoint was written"
-
-    status = partial(write_status, run_dir, env_resume=trainer.env_resume)  # docs/envs.md
-    status("running", trainer.global_step)
-    # heartbeat.json while it trains: how `rlexp runs` tells a killed run from a live one
-    t = trainer.cfg
-    beat = (Heartbeat(run_dir, partial(stalls.progress, trainer, total),
-                      stall_timeout_s=t.stall_timeout_s) if trainer.dist.is_main else None)  # fmt: skip
-    # A loop stuck in user code never reaches its safe point: a signal still ends the process.
-    watchdog = stalls.StopWatchdog(trainer, run_dir, ckpt and ckpt["path"], t.stop_grace_s)
-    stops.watchers.append(watchdog.arm)
-    try:
-        if beat is not None:
-            beat.start()
-        if stops.requested and trainer.global_step == 0:
-            raise StopRequested(stops.reason())  # a signal during the build: nothing to save yet
-        check_checkpoints_writable(trainer.ckpt_dir, trainer.cfg.exp_name)  # not at the 1st save
-        _speedups.training_gc()  # the GC walks only what training creates from here on
-        with user_code_exits("the training loop"):  # sys.exit() in an env: failed (user_code.py)
-            trainer.train(total)
-            if trainer.eval_env is not None and not trainer.last_eval:
-                trainer.eval_once()
-        if trainer.stopped_early is not None:  # a hook ended it: a result, not a failure (exit 0)
-            status(
-                "stopped_early",
-                trainer.global_step,
-                trainer.last_eval,
-                reason=trainer.stopped_early,
-            )
-        else:
-            status("finished", trainer.global_step, trainer.last_eval)
-    except StopRequested as exc:
-        step = trainer.global_step
-        if stop_requested_by_signal():  # SLURM preemption: the launcher requeues the job
-            log.warning(
-                "stopped at step %d (%s): checkpoint %s", step, exc, trainer.last_checkpoint
-            )
-            status("stopped", step, trainer.last_eval, reason=str(exc))
-            raise
-        log.warning("interrupted at step %d (%s): %s", step, exc, last_good())
-        status("interrupted", step, trainer.last_eval, reason=str(exc))
-        raise RunEnded(f"interrupted ({exc})", EXIT_SIGNAL_BASE + (stops.signum or 2)) from None
-    except (
-        KeyboardInterrupt
-    ):  # a second Ctrl-C: no checkpoint mid-iteration (it would not be exact)
-        step = trainer.global_step
-        reason = f"interrupted twice at step {step}: stopped without a checkpoint; {last_good()}"
-        log.warning("%s", reason)
-        status("interrupted", step, trainer.last_eval, reason=reason)
-        raise RunEnded(reason, EXIT_SIGNAL_BASE + 2) from None
-    except NonFiniteError as exc:
-        reason = f"{exc}; {last_good()}"
-        status("failed", trainer.global_step, trainer.last_eval, reason=reason)
-        raise RunEnded(f"stopped: {reason}", EXIT_NONFINITE) from None
-    except OSError as exc:  # an unwritable checkpoints/, a full disk
-        where = f" ({exc.filename})" if exc.filename else ""
-        reason = f"{exc.strerror or exc}{where}; {last_good()}"
-        run_end.try_write_status(run_dir, trainer, reason)
-        raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
-    except Exception as exc:  # a bug or a library failure mid-run: keep what can be kept
-        saved = run_end.save_at_safe_point(trainer)
-        trace = run_end.write_traceback(run_dir)
-        reason = f"{type(exc).__name__}: {first_line(exc)} (traceback in {trace}); {last_good()}"
-        if saved:
-            reason += " (written at the end of the last complete update)"
-        run_end.try_write_status(run_dir, trainer, reason)
-        raise RunEnded(f"failed at step {trainer.global_step}: {reason}", EXIT_FAILED) from None
-    finally:
-        watchdog.ended = True  # status.json says how it ended: past the grace, only exit
-        outside_run.run_ended()  # a stop signal from here on changes neither exit nor status
-        if beat is not None:
-            beat.stop()
-        trainer.close()
-        watchdog.disarm()
-    if trainer.dist.is_main:
-        log.info("%s", done_message(trainer, run_dir))
-    return trainer.last_eval
+    return trainer, ckpt
 
 
 def _eval_async(config: RootConfig, total: int, jobs: int) -> bool:
@@ -420,19 +288,11 @@ def _exit(code: int) -> None:
 
 def _failed(run_dir: Path, message: str, code: int, multirun: bool, exc: Exception) -> None:
     """One line; a single run exits with ``code``, a sweep job records it and returns None."""
-    from rlexp.run.rundir import RunDirBusy
-
     job_log.drop()  # stopped before the run owned the dir: its train.log stays as it was
     log.error("%s", message)
     if not multirun:
         _exit(code)
-    state = read_status(run_dir).get("state")
-    if not isinstance(exc, RunDirBusy) and state in (None, "failed"):  # never another run's status
-        try:
-            write_hydra_files(run_dir)  # the job's overrides, for rlexp report
-            write_status(run_dir, "failed", 0, reason=message, exit_code=code)
-        except OSError as err:
-            log.error("could not record the failure in %s: %s", run_dir, err)
+    record_job_failure(run_dir, message, code, exc)
     return None
 
 

@@ -1,5 +1,5 @@
 """How a failed run keeps what it can: the update before the failure as a checkpoint, the traceback
-in ``error.log``, ``failed`` in ``status.json`` (``rlexp.app._run``)."""
+in ``error.log``, ``failed`` in ``status.json`` (``rlexp.run.lifecycle.RunLifecycle.run``)."""
 
 from __future__ import annotations
 
