@@ -1,6 +1,8 @@
 """docs/api.md is the public API: every name it lists imports, and every import the docs and the
 example user project show is listed there."""
 
+# layout_move.py: written for the new layout (it names old paths on purpose)
+
 from __future__ import annotations
 
 import importlib

@@ -4,6 +4,8 @@ deliberate exceptions are EXCEPTIONS below, each with its reason); no import cyc
 modules, ``if TYPE_CHECKING:`` imports included, and the benchmarks); no module over 500 lines; the
 architecture doc names every module and every module it names exists."""
 
+# layout_move.py: written for the new layout (it names old paths on purpose)
+
 from __future__ import annotations
 
 import ast
