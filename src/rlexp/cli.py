@@ -106,7 +106,7 @@ def _train(argv: list[str], prog: str) -> None:
     from rlexp.runtime.relaunch import record_launch
 
     record_launch(argv)  # as typed, for the resume command of `rlexp runs`
-    with _speedups.startup_gc():  # the GC is back on once the run is built (app._run)
+    with _speedups.startup_gc():  # the GC is back on once the run is built (RunLifecycle.run)
         _load_plugins_or_exit(prog)
         from rlexp.launch.json_entry import main as train_main
 
