@@ -354,3 +354,17 @@ def test_the_architecture_doc_names_every_module():
         if str(rel) not in named:
             missing.append(str(rel))
     assert not missing, f"docs/architecture.md's module map does not name {missing}"
+
+
+def test_every_folder_says_what_it_holds_and_what_it_may_import():
+    """A package's ``__init__`` docstring is its room's sign: what it holds, what it may import."""
+    silent = []
+    for init in sorted(PACKAGE.rglob("__init__.py")):
+        if init.parent == PACKAGE:
+            continue
+        doc = ast.get_docstring(ast.parse(init.read_text())) or ""
+        if "May import" not in doc or len(doc.split("May import")[0].strip()) < 20:
+            silent.append(str(init.parent.relative_to(PACKAGE)))
+    assert not silent, (
+        f"folders whose __init__ docstring does not say what they may import: {silent}"
+    )

@@ -1,6 +1,9 @@
 """Learners, one file each: PPO (``ppo.py``), GRPO (``grpo.py``); what they share is in ``base.py``.
 
 Importing this package is cheap: torch and TorchRL load when ``make_algorithm`` first runs.
+
+Layer 2 (pieces). May import: layers 0-1 (``config``, ``runtime.distributed``) and the other pieces
+(``policies``, ``checkpoints``).
 """
 
 from __future__ import annotations

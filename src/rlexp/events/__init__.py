@@ -2,6 +2,8 @@
 
 Importing the package registers the built-in events (``rlexp.events.builtin``), so the manager
 never has to import them back.
+
+Layer 2 (pieces). May import: layers 0-1 and the other pieces (``envs``).
 """
 
 from rlexp.events import builtin  # noqa: F401  (registers randomize_physics, record_video, ...)

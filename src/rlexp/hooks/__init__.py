@@ -1,5 +1,8 @@
 """Trainer hooks: user code at fixed points of the training loop (see ``rlexp.hooks.base``).
-Importing the package registers the built-in hooks (``rlexp.hooks.builtin``)."""
+Importing the package registers the built-in hooks (``rlexp.hooks.builtin``).
+
+Layer 2 (pieces). May import: layers 0-1 and the other pieces (``pbt``, ``checkpoints``).
+"""
 
 from rlexp.hooks import (
     builtin,  # noqa: F401,E402  (registers stop_at, schedule, ...)

@@ -2,4 +2,8 @@
 dirs (``jobs``), the sweep's plan (``plan``), statistics per configuration (``summary``),
 ``report.md`` / ``report.csv`` (``render``), the results per env of a sweep over envs
 (``results``) and the published numbers shown next to them (``anchors``), Optuna trials
-(``trials``) and ``curves.png`` / ``results.png`` (``plot``)."""
+(``trials``) and ``curves.png`` / ``results.png`` (``plot``).
+
+Part of ``analysis`` (layer 4, tools on run dirs). May import: layers 0-3 (and, lazily,
+``launch.optuna_study``: the one listed exception).
+"""

@@ -28,6 +28,9 @@ The package, one role a module (each imports only modules listed above it):
 - ``convert``: both files mapped onto RootConfig leaves; loading and writing share it
 - ``loading``: ``find_task_file``, the ``rlexp`` section, ``load_json_experiment``
 - ``writing``: ``to_json_experiment``, ``dumps``, ``write_json_experiment``
+
+Part of ``config`` (layer 1). May import: layers 0-1; the events and native-task registries lazily,
+to check names (the exception tests/test_structure.py lists).
 """
 
 from rlexp.config.json_format.leaves import (

@@ -7,6 +7,8 @@ See docs/native_tasks.md.
 Importing this package only chooses the GL backend (``MUJOCO_GL``, before anything imports MuJoCo);
 the names above are imported when first used, so that ``rlexp.envs.native.render`` can be asked
 whether offscreen rendering can work without importing MuJoCo, torch or TorchRL.
+
+Part of ``envs`` (layer 2). May import: layers 0-1 (``config.native_task``) and the other pieces.
 """
 
 from __future__ import annotations
