@@ -21,8 +21,13 @@ def _member(root: Path, name: str, lineage: list[dict]) -> None:
 def test_runs_lists_each_member_s_current_hyperparameters(tmp_path):
     start = {"event": "start", "step": 0, "hyperparameters": {"lr": 0.0003, "clip_epsilon": 0.2}}
     _member(tmp_path, "0", [start])
-    exploit = {"event": "exploit", "step": 2048, "generation": 1, "member": "1", "source": "0",
-               "new": {"lr": 0.00045, "clip_epsilon": 0.16}}  # fmt: skip
+    own, copied = {"lr": 0.0003, "clip_epsilon": 0.2}, {"lr": 0.0006, "clip_epsilon": 0.2}
+    exploit = {  # a whole record, as hooks/pbt.py writes it (the readers check every field)
+        "event": "exploit", "step": 2048, "generation": 1, "member": "1", "score": 10.5,
+        "source": "0", "source_step": 2048, "source_score": 55.0, "old": own, "copied": copied,
+        "new": {"lr": 0.00045, "clip_epsilon": 0.16},
+        "explore": {"lr": "x0.75", "clip_epsilon": "x0.8"},
+    }  # fmt: skip
     _member(tmp_path, "1", [start, exploit])
     code, out, err = rlexp_cli("runs", tmp_path)
     assert code == 0, err
