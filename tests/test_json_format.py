@@ -440,7 +440,7 @@ def test_an_escaped_string_in_a_number_field_of_the_rlexp_section(tmp_path):
     with pytest.raises(ConfigError) as info:
         load_json_experiment(_write(tmp_path / "files", train, gym))
     msg = str(info.value)
-    assert "rlexp.training.trainer.log_every" in msg and "${oc.env:RLEXP_TEST_LOG_EVERY}" in msg
+    assert "rlexp.trainer.log_every" in msg and "${oc.env:RLEXP_TEST_LOG_EVERY}" in msg
     assert "\\$" not in msg and len(msg.splitlines()) == 1
 
 
@@ -750,7 +750,7 @@ BROKEN = [
         "rlexp-section",
         "train",
         ("set", "rlexp", {"trainer": {"log_evry": 2}}),
-        "rlexp.training.trainer.log_evry",
+        "rlexp.trainer.log_evry",
     ),
     (
         "rlexp-event-func",
