@@ -477,3 +477,54 @@ def test_sync_population_on_the_slurm_cluster(cluster, tmp_path, children):  # n
         assert (status["state"], status["global_step"]) == ("finished", 3072)
         assert [r["step"] for r in ready(slurm / job)] == [1024, 2048]
         assert lineage(slurm / job) == lineage(local / job)
+
+
+@pytest.mark.parametrize("state", ["failed", "interrupted", "stopped_early", "finished"])
+def test_sync_does_not_wait_for_a_member_that_has_ended(tmp_path, monkeypatch, state):
+    """A member whose status.json says it is not training (a SIGKILLed job the local launcher
+    recorded ``failed``, an interrupted or stopped one) is dropped at once, named with its state;
+    a running member behind is still waited for until the bound (#43 item 4, PBT)."""
+    import types
+
+    from rlexp.pbt import population
+    from rlexp.pbt.population import Ready, publish, ready_name
+
+    sweep = tmp_path / "sweep"
+    for name in ("0", "1", "2", "3"):
+        (sweep / name / "checkpoints").mkdir(parents=True)
+
+    def ready(name: str, step: int, generation: int) -> None:
+        ckpt = sweep / name / "checkpoints" / f"x_step_{step:09d}.pt"
+        ckpt.write_bytes(b"x")
+        publish(
+            sweep / name, ckpt, Ready(name, step, generation, 1.0, ready_name(step), {}), keep=2
+        )
+
+    def status(name: str, value: str) -> None:
+        (sweep / name / "status.json").write_text(json.dumps({"state": value, "global_step": 512}))
+
+    ready("1", 1024, 2)  # reached generation 2
+    ready("2", 512, 1)  # behind, at generation 1, and ended
+    status("2", state)
+    ready("3", 512, 1)  # behind, at generation 1, running
+    status("3", "running")
+    clock = {"now": 0.0}
+    sleeps: list[float] = []
+
+    def sleep(s: float) -> None:
+        sleeps.append(s)
+        clock["now"] += s
+
+    monkeypatch.setattr(
+        population, "time", types.SimpleNamespace(monotonic=lambda: clock["now"], sleep=sleep)
+    )
+    names = ["0", "1", "2", "3"]
+    # member 3 is running: waited for until the bound (0.2 s polls up to 2 s), member 2 never waited for
+    reached, dropped = population.wait_for_generation(sweep / "0", names, 2, timeout_s=2.0)
+    assert sorted(reached) == ["1"] and dropped == [f"2 ({state})", "3 (at step 512)"], dropped
+    assert set(sleeps) == {0.2} and 2.0 <= sum(sleeps) < 2.2 + 1e-9, sleeps
+    # member 3 reaches the point: nothing left to wait for, no poll at all
+    sleeps.clear()
+    ready("3", 1024, 2)
+    reached, dropped = population.wait_for_generation(sweep / "0", names, 2, timeout_s=600.0)
+    assert sorted(reached) == ["1", "3"] and dropped == [f"2 ({state})"] and sleeps == [], sleeps

@@ -249,22 +249,42 @@ def wait_for_generation(
     size = len(names)
     while True:
         reached = {}
-        behind = []
+        behind, ended = [], []
         for sib in siblings(run_dir, names):
             recs = read_ready(sib)
             if recs and recs[-1].generation >= generation:
                 at = [r for r in recs if r.generation == generation]
                 if at:
                     reached[sib.name] = (sib, at[-1])
+                    continue
+            state = ended_state(sib)
+            if state is not None:  # failed, killed, stopped: it will not reach this point
+                ended.append(f"{sib.name} ({state})")
             elif recs:
                 behind.append(f"{sib.name} (at step {recs[-1].step})")
-        if len(reached) >= size - 1 or time.monotonic() >= deadline:
+        if len(reached) + len(ended) >= size - 1 or time.monotonic() >= deadline:
             break
         time.sleep(poll_s)
     if len(reached) >= size - 1:
         return reached, []
-    unseen = max(0, size - 1 - len(reached) - len(behind))
-    return reached, behind + ["a member never seen"] * unseen
+    unseen = max(0, size - 1 - len(reached) - len(behind) - len(ended))
+    return reached, ended + behind + ["a member never seen"] * unseen
+
+
+#: A member's status.json states that say it is not training now (rlexp.run.lifecycle writes them;
+#: the local launcher's job pool writes ``failed`` for a job that died): not waited for in sync mode.
+ENDED_STATES = ("failed", "interrupted", "stopped_early", "finished")
+
+
+def ended_state(member_dir: Path) -> str | None:
+    """The member's ended state (one of ENDED_STATES), or None: running, not started, unreadable."""
+    try:
+        state = safe_read.read_checked(member_dir / "status.json", safe_read.STATUS_FIELDS).get(
+            "state"
+        )
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return state if state in ENDED_STATES else None
 
 
 def quantiles(ranked: list[str], quantile: float) -> tuple[list[str], list[str]]:
