@@ -258,7 +258,7 @@ def wait_for_generation(
                     reached[sib.name] = (sib, at[-1])
                     continue
             state = ended_state(sib)
-            if state is not None:  # failed, killed, stopped: it will not reach this point
+            if state is not None:  # failed, killed, stopped early: it will not reach this point
                 ended.append(f"{sib.name} ({state})")
             elif recs:
                 behind.append(f"{sib.name} (at step {recs[-1].step})")
@@ -271,9 +271,11 @@ def wait_for_generation(
     return reached, ended + behind + ["a member never seen"] * unseen
 
 
-#: A member's status.json states that say it is not training now (rlexp.run.lifecycle writes them;
-#: the local launcher's job pool writes ``failed`` for a job that died): not waited for in sync mode.
-ENDED_STATES = ("failed", "interrupted", "stopped_early", "finished")
+#: A member's status.json states that say it will not reach another ready point (rlexp.run.lifecycle
+#: writes them; the local launcher's job pool writes ``failed`` for a job that died): not waited for
+#: in sync mode. ``interrupted`` is not one: a stopped or preempted member may be resumed (SLURM
+#: requeues it) and is waited for up to ``sync_timeout_s`` like a running one.
+ENDED_STATES = ("failed", "stopped_early", "finished")
 
 
 def ended_state(member_dir: Path) -> str | None:
