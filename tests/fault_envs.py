@@ -21,6 +21,30 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+#: The tests' tiny run on ``Walk-v0``: 512 steps in 128-step iterations, a checkpoint each, no eval.
+TINY_RUN = {
+    "env": "hopper",
+    "env.name": "fault_envs:Walk-v0",
+    "env.num_envs": "1",
+    "trainer.total_frames": "512",
+    "trainer.frames_per_batch": "128",
+    "trainer.save_every": "128",
+    "trainer.eval_every": "0",
+    "algorithm.num_epochs": "1",
+    "algorithm.compile": "false",
+    "logger": "none",
+    "trainer.progress": "false",
+}
+
+
+def tiny_run(*changes: str) -> list[str]:
+    """TINY_RUN's overrides with ``changes`` (``key=value``) replacing a key's value or added."""
+    run = dict(TINY_RUN)
+    for change in changes:
+        key, value = change.split("=", 1)
+        run[key] = value
+    return [f"{key}={value}" for key, value in run.items()]
+
 
 def _raise(what: str) -> None:
     if what == "exit0":

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import psutil
 import pytest
+from fault_envs import tiny_run
 
 from conftest import REPO, Children, compose, run_train
 from rlexp.config.validate import ConfigError, to_root_config
@@ -21,18 +22,7 @@ TESTS = Path(__file__).resolve().parent
 PYPATH = {"PYTHONPATH": f"{REPO / 'src'}{os.pathsep}{TESTS}"}  # fault_envs, stuck_envs
 FAULT_ENVS = str(TESTS / "fault_envs.py")
 
-RUN = [
-    "env=hopper",
-    "env.name=fault_envs:Walk-v0",
-    "trainer.total_frames=512",
-    "trainer.frames_per_batch=128",
-    "trainer.save_every=128",
-    "trainer.eval_every=0",
-    "algorithm.num_epochs=1",
-    "algorithm.compile=false",
-    "logger=none",
-    "trainer.progress=false",
-]
+RUN = tiny_run()
 
 
 def test_the_worker_processes_of_gymnasium_async_are_capped_at_the_config_check():

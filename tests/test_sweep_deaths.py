@@ -11,23 +11,14 @@ import os
 import signal
 from pathlib import Path
 
+from fault_envs import tiny_run
+
 from conftest import REPO, run_train
 
 TESTS = Path(__file__).resolve().parent
 PYPATH = {"PYTHONPATH": f"{REPO / 'src'}{os.pathsep}{TESTS}"}  # fault_envs importable
 
-JOB = [
-    "env=hopper",
-    "env.name=fault_envs:Walk-v0",
-    "env.num_envs=1",
-    "trainer.total_frames=768",
-    "trainer.frames_per_batch=128",
-    "trainer.save_every=128",
-    "trainer.eval_every=0",
-    "algorithm.num_epochs=1",
-    "algorithm.compile=false",
-    "logger=none",
-]
+JOB = tiny_run("trainer.total_frames=768")
 
 
 def _status(job: Path) -> dict:

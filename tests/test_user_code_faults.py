@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from fault_envs import tiny_run
 
 from conftest import REPO, run_train
 
@@ -18,19 +19,7 @@ TESTS = Path(__file__).resolve().parent
 PYPATH = {"PYTHONPATH": f"{REPO / 'src'}{os.pathsep}{TESTS}"}  # fault_envs importable
 FAULT_ENVS = str(TESTS / "fault_envs.py")
 
-RUN = [
-    "env=hopper",
-    "env.name=fault_envs:Walk-v0",
-    "env.num_envs=1",
-    "trainer.total_frames=512",
-    "trainer.frames_per_batch=128",
-    "trainer.save_every=128",
-    "trainer.eval_every=0",
-    "algorithm.num_epochs=1",
-    "algorithm.compile=false",
-    "logger=none",
-    "trainer.progress=false",
-]
+RUN = tiny_run()
 
 
 def _train(tmp_path: Path, *args: str, run: str = "run") -> tuple[Path, int, str]:
@@ -98,7 +87,7 @@ def test_sys_exit_at_the_env_modules_import_is_a_config_error_naming_it(tmp_path
     (tmp_path / "exits_on_import.py").write_text("import sys\nsys.exit(0)\n")
     run_dir = tmp_path / "run"
     proc = run_train(
-        [*RUN[:1], "env.name=exits_on_import:Walk-v0", *RUN[2:], f"hydra.run.dir={run_dir}"],
+        [*tiny_run("env.name=exits_on_import:Walk-v0"), f"hydra.run.dir={run_dir}"],
         cwd=tmp_path, check=False, timeout=300,
         env_extra={"PYTHONPATH": f"{REPO / 'src'}{os.pathsep}{tmp_path}"},
     )  # fmt: skip
