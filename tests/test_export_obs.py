@@ -100,7 +100,7 @@ def _export_all(root: Path, dirs: dict[str, Path]) -> dict[str, Path]:
 _HARNESS = textwrap.dedent(
     """
     import pickle, sys
-    sys.path = [p for p in sys.path if "rlexp" not in p and "/src" not in p]
+    sys.path = [p for p in sys.path if not p.rstrip("/").endswith("/src")]  # (a checkout's src/)
     class NoRlexp:
         def find_spec(self, name, path=None, target=None):
             if name == "rlexp" or name.startswith("rlexp."):
