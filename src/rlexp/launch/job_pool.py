@@ -163,7 +163,9 @@ class JobPool:
                 waiting = []
             if not self.running:
                 continue
-            handles = [j.process.sentinel for j in self.running] + [j.conn for j in self.running]
+            # a job's pipe only until its result came: a closed pipe is always ready (a busy loop)
+            handles = [j.process.sentinel for j in self.running]
+            handles += [j.conn for j in self.running if j.result is None]
             multiprocessing.connection.wait(handles, timeout=POLL_S)
             for job in list(self.running):
                 self._collect(job)
