@@ -26,6 +26,8 @@ DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")
 #: Activation names the MLP builder accepts (rlexp.policies.actor_critic.ACTIVATIONS; a test keeps
 #: the two in step). Here so that a typo fails before torch is imported.
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "swish", "tanh")
+#: Image encoders (rlexp.policies.encoders.ENCODERS; a test keeps the two in step).
+ENCODERS = ("nature", "impala")
 #: Env backends (rlexp.envs.factory builds them; docs/envs.md). gymnasium: Gymnasium copies stepped
 #: in the training process; gymnasium_async: Gymnasium's AsyncVectorEnv (a worker process per copy);
 #: envpool: EnvPool's C++ thread pool; native: rlexp's batched MuJoCo tasks; vecenv: a batched torch
@@ -124,6 +126,16 @@ def _widths(v: Any) -> bool:
     return isinstance(v, list) and all(isinstance(w, int) and 1 <= w <= 65_536 for w in v)
 
 
+def _names(v: Any) -> bool:
+    return isinstance(v, list) and bool(v) and all(isinstance(n, str) and n.strip() for n in v)
+
+
+def _sizes(low: int, high: int) -> Callable[[Any], bool]:
+    return lambda v: (
+        isinstance(v, list) and bool(v) and all(isinstance(w, int) and low <= w <= high for w in v)
+    )
+
+
 def _tags(v: Any) -> bool:
     return isinstance(v, list) and all(isinstance(t, str) and 0 < len(t) <= 64 for t in v)
 
@@ -184,6 +196,32 @@ FIELD_RULES: dict[str, Rule] = {
     "policy.min_log_std": between(-20.0, 20.0, ", below max_log_std"),
     "policy.max_log_std": between(-20.0, 20.0),
     "policy.ortho_init": FLAG,
+    "policy.actor.observations": optional(
+        Rule(_names, "a non-empty list of observation keys, key prefixes or group names"),
+        "group 'policy'",
+    ),
+    "policy.critic.observations": optional(
+        Rule(_names, "a non-empty list of observation keys, key prefixes or group names"),
+        "every group; actor_critic only",
+    ),
+    "policy.encoder.name": one_of(*ENCODERS),
+    "policy.encoder.channels": optional(
+        Rule(_sizes(1, 4096), "a non-empty list of channel counts in [1, 4096]"),
+        "nature [32, 64, 64], impala [16, 32, 32]",
+    ),
+    "policy.encoder.kernel_sizes": optional(
+        Rule(
+            _sizes(1, 64), "a list of kernel sizes in [1, 64], one per channels entry; nature only"
+        ),
+        "[8, 4, 3]",
+    ),
+    "policy.encoder.strides": optional(
+        Rule(_sizes(1, 64), "a list of strides in [1, 64], one per channels entry; nature only"),
+        "[4, 2, 1]",
+    ),
+    "policy.encoder.num_res_blocks": between(0, 16, " (impala: residual blocks per stage)"),
+    "policy.encoder.features_dim": optional(between(1, 65_536), "nature 512, impala 256"),
+    "policy.share_encoder": FLAG,
     # algorithm
     "algorithm.name": Rule(
         lambda v: v in ("ppo", "grpo"),

@@ -94,10 +94,31 @@ class TrainerConfig:
 
 @dataclass
 class MLPConfig:
-    """A plain Linear/activation stack."""
+    """A plain Linear/activation stack, and what it reads of the observation."""
 
     hidden_sizes: list[int] = field(default_factory=lambda: [64, 64])  # widths of the hidden layers
     activation: str = "tanh"  # relu | elu | tanh | gelu | silu | swish
+    # observation keys, key prefixes ("goal" selects "goal/position") or group names this network
+    # reads (None: the actor reads group "policy", the critic every group; docs/policies.md)
+    observations: list[str] | None = None
+
+
+@dataclass
+class EncoderConfig:
+    """The CNN that turns each image observation into features (one per image key; docs/policies.md).
+    Images are uint8 and scaled by 1/255 inside it; unused when the env has no images."""
+
+    name: str = "nature"  # nature (SB3's / CleanRL's Atari CNN) | impala (Espeholt et al.'s ResNet)
+    # conv channels per layer (nature) or per stage (impala); None: nature [32, 64, 64], impala
+    # [16, 32, 32]
+    channels: list[int] | None = None
+    # nature only: kernel size and stride per conv layer (None: [8, 4, 3] and [4, 2, 1])
+    kernel_sizes: list[int] | None = None
+    strides: list[int] | None = None
+    num_res_blocks: int = 2  # impala only: residual blocks per stage
+    features_dim: int | None = (
+        None  # the Linear layer after the convs (None: nature 512, impala 256)
+    )
 
 
 @dataclass
@@ -113,6 +134,9 @@ class BasePolicyConfig:
     ortho_init: bool = (
         True  # orthogonal init (gain sqrt(2), 0.01 for the action mean, 1 for the value)
     )
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)  # image observations' CNN
+    # actor and critic use the same image encoders (trained by both losses); false: one each
+    share_encoder: bool = True
 
 
 @dataclass

@@ -264,6 +264,7 @@ def validate(config: RootConfig) -> None:
             f"policy.init_log_std={p.init_log_std} must be in [policy.min_log_std={p.min_log_std}, "
             f"policy.max_log_std={p.max_log_std}]"
         )
+    _check_encoder(p)
     if e.backend == "native" and e.native is None:
         raise ConfigError(
             f"env.backend=native needs env.native (env.name={e.name!r}); use env=push_cube or "
@@ -278,6 +279,29 @@ def validate(config: RootConfig) -> None:
     _check_render_mode(e.kwargs)
     _check_events(config)
     _check_hooks(config)
+
+
+def _check_encoder(p: Any) -> None:
+    """The Nature CNN's conv layers: one channel count, kernel size and stride each."""
+    enc = p.encoder
+    if enc.name != "nature":
+        if enc.kernel_sizes is not None or enc.strides is not None:
+            raise ConfigError(
+                f"policy.encoder.kernel_sizes / strides are the nature encoder's; "
+                f"policy.encoder.name={enc.name!r} has fixed 3x3 convs: set them to null"
+            )
+        return
+    lengths = {
+        "channels": len(enc.channels or (32, 64, 64)),
+        "kernel_sizes": len(enc.kernel_sizes or (8, 4, 3)),
+        "strides": len(enc.strides or (4, 2, 1)),
+    }
+    if len(set(lengths.values())) > 1:
+        given = ", ".join(f"policy.encoder.{k}={getattr(enc, k)}" for k in lengths)
+        raise ConfigError(
+            f"{given}: the nature encoder needs one entry per conv layer in each (the defaults "
+            "have 3: [32, 64, 64], [8, 4, 3], [4, 2, 1]); give all three lists the same length"
+        )
 
 
 def _check_async_workers(e: Any) -> None:

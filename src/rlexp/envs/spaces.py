@@ -42,12 +42,15 @@ class ObsPart:
     """One leaf of the observation space and where it lands in the flat vector."""
 
     key: str  # path in the space ("" for a plain Box at the root)
-    kind: str  # box | discrete | multi_binary | multi_discrete
-    shape: tuple[int, ...]  # the space's own shape
-    offset: int  # first index in the flat vector
-    size: int  # width in the flat vector
+    kind: str  # box | discrete | multi_binary | multi_discrete | image
+    shape: tuple[int, ...]  # the space's own shape (image: the uint8 CHW shape the policy sees)
+    offset: int  # first index in the flat vector (image: -1, not in it)
+    size: int  # width in the flat vector (image: 0)
     nvec: tuple[int, ...] = ()  # discrete / multi_discrete: number of values per component
     start: tuple[int, ...] = ()  # discrete / multi_discrete: the smallest value per component
+    group: str = "policy"  # observation group (policy, critic, ...): what a network may select
+    image_key: str = ""  # image: its entry in the observation TensorDict ("pixels" at the root)
+    source_layout: str = ""  # image: how the env gave it (hwc | chw | stack_hwc | ...)
 
     def record(self) -> dict[str, Any]:
         out = {
@@ -59,6 +62,10 @@ class ObsPart:
         }
         if self.nvec:
             out["nvec"], out["start"] = list(self.nvec), list(self.start)
+        if self.group != "policy":  # written only when not the default: old records compare equal
+            out["group"] = self.group
+        if self.kind == "image":
+            out["image_key"], out["source_layout"] = self.image_key, self.source_layout
         return out
 
 
@@ -72,6 +79,16 @@ class ObsLayout:
     #: a 1-D float Box at the root: the observation is the vector (the fast path)
     plain: bool = False
     _encoders: tuple[Callable[[Any], np.ndarray], ...] = field(default=(), compare=False)
+
+    @property
+    def images(self) -> tuple[ObsPart, ...]:
+        """The image parts (uint8 entries of the observation TensorDict, not in the flat vector)."""
+        return tuple(p for p in self.parts if p.kind == "image")
+
+    @property
+    def structured(self) -> bool:
+        """Whether the observation is a TensorDict (``vector`` and images), not one flat vector."""
+        return bool(self.images)
 
     def flatten(self, obs: Any) -> np.ndarray:
         """The observation as a float32 vector [dim]."""
@@ -293,10 +310,16 @@ def check_layout(saved: dict[str, Any] | None, env: Any, what: str) -> None:
     if saved is None or layout is None:
         return
     current = layout.record()
-    if saved.get("parts") != current["parts"]:
+    if _parts_of(saved) != _parts_of(current):
         have = [p["key"] or "(root)" for p in saved.get("parts", [])]
         now = [p["key"] or "(root)" for p in current["parts"]]
         raise ValueError(
             f"{what} was made for observations flattened as {have} ({saved.get('dim')} values); "
             f"the env now gives {now} ({current['dim']} values): the observation space changed"
         )
+
+
+def _parts_of(record: dict[str, Any]) -> list[dict[str, Any]]:
+    """A layout record's parts, a missing ``group`` read as ``"policy"`` (records made before
+    observation groups have none; new ones write it only when it is not ``"policy"``)."""
+    return [{"group": "policy", **p} if isinstance(p, dict) else p for p in record.get("parts", [])]

@@ -1,6 +1,7 @@
 """Policies: an MLP actor with an action head (``heads.py``: Gaussian for Box actions, categorical
 for Discrete / MultiDiscrete / MultiBinary) and an observation normaliser; ``ActorCritic`` (PPO) adds
-an MLP critic, ``ActorOnly`` (GRPO) has none.
+an MLP critic, ``ActorOnly`` (GRPO) has none. Each network reads its own selection of the env's
+observation (groups, keys, images through CNN encoders: ``inputs.py``, ``encoders.py``).
 
 The TorchRL modules (``ProbabilisticActor`` over an ``IndependentNormal`` or a ``MultiCategorical``,
 ``ValueOperator``) are what the loss and evaluation use. Collection uses ``SamplingPolicy``: the same
@@ -25,7 +26,16 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.modules import IndependentNormal, ProbabilisticActor, ValueOperator
 
 from rlexp.config.schema import BasePolicyConfig, EnvConfig, MLPConfig
-from rlexp.policies.heads import CategoricalActorNet, GaussianActorNet, MultiCategorical, Sampler
+from rlexp.envs.spaces import ObsLayout, ObsPart
+from rlexp.policies.encoders import make_encoder
+from rlexp.policies.heads import (
+    CategoricalActorNet,
+    GaussianActorNet,
+    MultiCategorical,
+    ReadsObservation,
+    Sampler,
+)
+from rlexp.policies.inputs import POLICY_GROUP, ObsInput, layout_of, plain_layout, select_parts
 from rlexp.policies.numpy_sampler import NoiseStream, numpy_sampler
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -119,16 +129,18 @@ def _ortho_init(mlp: nn.Sequential, last_gain: float) -> None:
         nn.init.zeros_(lin.bias)
 
 
-class CriticNet(nn.Module):
+class CriticNet(ReadsObservation):
     """obs -> state value."""
 
-    def __init__(self, normalizer: ObservationNormalizer, mlp: nn.Sequential):
+    def __init__(
+        self, normalizer: ObservationNormalizer, mlp: nn.Sequential, inputs: ObsInput | None = None
+    ):
         super().__init__()
-        self.normalizer = normalizer
+        self._set_inputs(normalizer, inputs)
         self.mlp = mlp
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.mlp(self.normalizer(obs))
+    def forward(self, obs: torch.Tensor | TensorDictBase) -> torch.Tensor:
+        return self.mlp(self.features(obs))
 
 
 class SamplingPolicy(TensorDictModuleBase):
@@ -211,7 +223,12 @@ class Policy(nn.Module):
     (``nvec=None``; log-prob and entropy summed over the action dimensions, no squashing), over a
     ``MultiCategorical`` for categorical ones (``nvec``: values per action component).
     ``sampling_policy`` is the fast collection policy; ``critic`` TorchRL's ``ValueOperator`` (None
-    without a critic)."""
+    without a critic).
+
+    ``layout`` (the env's ``ObsLayout``; None: one flat vector of ``obs_dim``) is what the networks
+    select from: ``policy.actor.observations`` (default: group ``policy``) and
+    ``policy.critic.observations`` (default: every group); one CNN encoder per selected image key,
+    shared by actor and critic unless ``policy.share_encoder=false``."""
 
     def __init__(
         self,
@@ -222,16 +239,32 @@ class Policy(nn.Module):
         normalize_observations: bool = True,
         clip_observations: float = 10.0,
         nvec: Sequence[int] | None = None,
+        layout: ObsLayout | None = None,
     ) -> None:
         super().__init__()
         critic_cfg: MLPConfig | None = getattr(cfg, "critic", None)
+        layout = plain_layout(obs_dim) if layout is None else layout
+        if layout.dim != obs_dim:
+            raise ValueError(f"obs_dim={obs_dim}, but the observation layout has {layout.dim}")
+        self.obs_layout = layout
+        actor_parts = select_parts(
+            layout, cfg.actor.observations, "policy.actor.observations", (POLICY_GROUP,)
+        )
+        critic_parts: tuple[ObsPart, ...] = ()
+        if critic_cfg is not None:
+            critic_parts = select_parts(
+                layout, critic_cfg.observations, "policy.critic.observations", None
+            )
+        actor_enc, critic_enc = _encoders(cfg, actor_parts, critic_parts)
+        actor_in = ObsInput(layout, actor_parts, actor_enc)
+        critic_in = ObsInput(layout, critic_parts, critic_enc) if critic_cfg is not None else None
         self.normalizer = ObservationNormalizer(obs_dim, clip_observations, normalize_observations)
         self.nvec = None if nvec is None else tuple(int(n) for n in nvec)
         out_dim = act_dim if self.nvec is None else sum(self.nvec)
-        actor_mlp = make_mlp(obs_dim, out_dim, cfg.actor, "policy.actor")
+        actor_mlp = make_mlp(actor_in.out_dim, out_dim, cfg.actor, "policy.actor")
         critic_mlp = None
-        if critic_cfg is not None:
-            critic_mlp = make_mlp(obs_dim, 1, critic_cfg, "policy.critic")
+        if critic_cfg is not None and critic_in is not None:
+            critic_mlp = make_mlp(critic_in.out_dim, 1, critic_cfg, "policy.critic")
         if cfg.ortho_init:
             _ortho_init(actor_mlp, 0.01)
             if critic_mlp is not None:
@@ -245,10 +278,11 @@ class Policy(nn.Module):
                 cfg.init_log_std,
                 cfg.min_log_std,
                 cfg.max_log_std,
+                actor_in,
             )
             dist: dict = {"distribution_class": IndependentNormal}
         else:
-            self.actor_net = CategoricalActorNet(self.normalizer, actor_mlp, self.nvec)
+            self.actor_net = CategoricalActorNet(self.normalizer, actor_mlp, self.nvec, actor_in)
             dist = {
                 "distribution_class": MultiCategorical,
                 "distribution_kwargs": {"nvec": self.nvec},
@@ -266,8 +300,23 @@ class Policy(nn.Module):
         self.critic_net: CriticNet | None = None
         self.critic: ValueOperator | None = None
         if critic_mlp is not None:
-            self.critic_net = CriticNet(self.normalizer, critic_mlp)
+            self.critic_net = CriticNet(self.normalizer, critic_mlp, critic_in)
             self.critic = ValueOperator(self.critic_net, in_keys=["observation"])
+
+    @property
+    def obs_structured(self) -> bool:
+        """Whether the observation is a TensorDict (``vector`` and uint8 images), not a vector."""
+        return self.obs_layout.structured
+
+    @property
+    def actor_input_parts(self) -> list[dict]:
+        """The observation parts the actor reads, as the layout records them (export, eval)."""
+        return self.actor_net.inputs.records()
+
+    @property
+    def critic_input_parts(self) -> list[dict]:
+        """The observation parts the critic reads ([] without a critic)."""
+        return [] if self.critic_net is None else self.critic_net.inputs.records()
 
     @property
     def categorical(self) -> bool:
@@ -313,14 +362,35 @@ def make_policy(
     normalize_observations: bool = True,
     clip_observations: float = 10.0,
     nvec: Sequence[int] | None = None,
+    layout: ObsLayout | None = None,
 ) -> Policy:
     """Build the configured policy for an env with ``obs_dim`` observations and ``act_dim`` actions
-    (``nvec``: categorical actions with these numbers of values per component)."""
+    (``nvec``: categorical actions with these numbers of values per component; ``layout``: the
+    env's observation layout, None for one flat vector)."""
     if cfg.name not in POLICIES:
         raise ValueError(f"policy.name={cfg.name!r}; choose from {sorted(POLICIES)}")
     return POLICIES[cfg.name](
-        cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations, nvec
+        cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations, nvec, layout
     )
+
+
+def _encoders(
+    cfg: BasePolicyConfig, actor_parts: Sequence[ObsPart], critic_parts: Sequence[ObsPart]
+) -> tuple[dict[str, nn.Module], dict[str, nn.Module]]:
+    """One encoder per image key each network reads: the same module for both where
+    ``policy.share_encoder`` (the default), separate ones otherwise."""
+    actor: dict[str, nn.Module] = {}
+    critic: dict[str, nn.Module] = {}
+    for parts, own, other in ((actor_parts, actor, critic), (critic_parts, critic, actor)):
+        for p in parts:
+            if p.kind != "image":
+                continue
+            if cfg.share_encoder and p.image_key in other:
+                own[p.image_key] = other[p.image_key]
+            else:
+                where = f" {p.image_key!r}"
+                own[p.image_key] = make_encoder(cfg.encoder, p.shape, cfg.ortho_init, where)
+    return actor, critic
 
 
 def action_nvec(action_spec: TensorSpec) -> tuple[int, ...] | None:
@@ -341,13 +411,16 @@ def action_nvec(action_spec: TensorSpec) -> tuple[int, ...] | None:
 def policy_for_env(cfg: BasePolicyConfig, env_cfg: EnvConfig, env: EnvBase) -> Policy:
     """The configured policy for a built env: its observation and action sizes, bounds and kind
     from the env's specs, the observation normaliser as ``env_cfg`` says (training, eval, export,
-    checks)."""
+    checks). What each network reads comes from the env's observation layout (``layout_of``);
+    a selection naming nothing the env has is a one-line ValueError (exit 2 at the pre-check)."""
+    layout = layout_of(env)
     return make_policy(
         cfg,
-        int(env.observation_spec["observation"].shape[-1]),
+        layout.dim,
         int(env.action_spec.shape[-1]),
         env.action_spec,
         env_cfg.normalize_observations,
         env_cfg.clip_observations,
         action_nvec(env.action_spec),
+        layout,
     )

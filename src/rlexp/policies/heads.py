@@ -18,6 +18,7 @@ import math
 from collections.abc import Callable, Sequence
 
 import torch
+from tensordict import TensorDictBase
 from torch import distributions as D
 from torch import nn
 
@@ -98,7 +99,35 @@ def categorical_kl(
     return (kl.sum(-1) if old._uniform else kl).mean()
 
 
-class GaussianActorNet(nn.Module):
+class ReadsObservation(nn.Module):
+    """What a network does with the env's observation before its MLP: normalise it, and, with an
+    ``inputs`` module (``inputs.ObsInput``), select groups or keys of it and encode images."""
+
+    normalizer: nn.Module
+    inputs: nn.Module | None
+    _gathers: bool
+
+    def _set_inputs(self, normalizer: nn.Module, inputs: nn.Module | None) -> None:
+        self.normalizer = normalizer
+        self.inputs = inputs
+        # a selection of groups or keys, or images: more than the normalised observation
+        self._gathers = inputs is not None and not inputs.trivial
+
+    def features(self, obs: torch.Tensor | TensorDictBase) -> torch.Tensor:
+        """The MLP's input: the normalised observation, or what the network selects of it."""
+        if self._gathers:
+            return self.inputs(obs, self.normalizer)
+        return self.normalizer(obs)
+
+    def input_function(self) -> Callable:
+        """``obs -> the MLP's input`` for a collection sampler (the normaliser itself when the
+        network reads the whole flat vector: the path and numbers of a policy without groups)."""
+        if self._gathers:
+            return self.inputs.function(self.normalizer)
+        return self.normalizer
+
+
+class GaussianActorNet(ReadsObservation):
     """obs -> (loc, scale) with a learned state-independent log-std, clamped to its bounds."""
 
     #: the TensorDict keys the actor writes (the distribution's parameters)
@@ -112,9 +141,10 @@ class GaussianActorNet(nn.Module):
         init_log_std: float,
         min_log_std: float,
         max_log_std: float,
+        inputs: nn.Module | None = None,
     ):
         super().__init__()
-        self.normalizer = normalizer
+        self._set_inputs(normalizer, inputs)
         self.mlp = mlp
         self.log_std = nn.Parameter(torch.full((act_dim,), float(init_log_std)))
         self.min_log_std = min_log_std
@@ -124,15 +154,15 @@ class GaussianActorNet(nn.Module):
         """The clamped log standard deviation, [act_dim]."""
         return torch.clamp(self.log_std, self.min_log_std, self.max_log_std)
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc = self.mlp(self.normalizer(obs))
+    def forward(self, obs: torch.Tensor | TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = self.mlp(self.features(obs))
         scale = self.log_scale().exp().expand_as(loc)
         return loc, scale
 
     def sampler(self, deterministic: bool, layers: list[Callable]) -> Sampler:
         """obs -> (loc, scale, action, log-probability of the action) for one rollout: the clamped
         log-std and the density's constant are computed once here."""
-        norm = self.normalizer
+        norm = self.input_function()
         log_scale = self.log_scale().detach()
         scale = log_scale.exp()
         log_norm = (log_scale + _LOG_SQRT_2PI).sum()  # -log of the density's normalising constant
@@ -158,24 +188,30 @@ class GaussianActorNet(nn.Module):
         return gaussian_kl(behaviour["loc"], behaviour["scale"], loc, scale)
 
 
-class CategoricalActorNet(nn.Module):
+class CategoricalActorNet(ReadsObservation):
     """obs -> logits [..., sum(nvec)]: one categorical per action component."""
 
     dist_keys = ("logits",)
 
-    def __init__(self, normalizer: nn.Module, mlp: nn.Sequential, nvec: Sequence[int]) -> None:
+    def __init__(
+        self,
+        normalizer: nn.Module,
+        mlp: nn.Sequential,
+        nvec: Sequence[int],
+        inputs: nn.Module | None = None,
+    ) -> None:
         super().__init__()
-        self.normalizer = normalizer
+        self._set_inputs(normalizer, inputs)
         self.mlp = mlp
         self.nvec = tuple(int(n) for n in nvec)
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.mlp(self.normalizer(obs))
+    def forward(self, obs: torch.Tensor | TensorDictBase) -> torch.Tensor:
+        return self.mlp(self.features(obs))
 
     def sampler(self, deterministic: bool, layers: list[Callable]) -> Sampler:
         """obs -> (logits, action, log-probability of the action): the Gumbel-max draw of each
         component (exactly a draw from its softmax), log-probs from ``log_softmax``."""
-        norm = self.normalizer
+        norm = self.input_function()
         nvec = self.nvec
         k = len(nvec)
         uniform = len(set(nvec)) == 1

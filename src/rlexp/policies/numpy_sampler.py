@@ -17,7 +17,8 @@ multiply-add), not bit for bit; both of TorchRL's and rlexp's collection loops c
 sampler, so they stay equal to each other (tests/test_ppo_math.py), and the loss recomputes the
 log-probability in torch from the stored action as before. Where numpy would be slower or differ in
 kind it is not used (``numpy_sampler`` returns None): a policy off the CPU, a float64 policy, other
-activations or layers, or many rows per call (where OpenBLAS would start its own threads; the
+activations or layers, image observations (a TensorDict; an actor reading some of a flat vector's
+groups is supported: its columns are gathered first), or many rows per call (where OpenBLAS would start its own threads; the
 torch sampler then runs, per call).
 """
 
@@ -120,6 +121,14 @@ def numpy_sampler(
     norm = actor_net.normalizer
     normalise = norm.enabled
     shift, scale_obs = norm._shift.numpy(), norm._scale.numpy()
+    columns = None  # the observation's entries the actor reads (None: all of them)
+    if actor_net._gathers:
+        inputs = actor_net.inputs
+        if inputs.structured or inputs.index is None:  # images: torch's encoders
+            return None
+        columns = inputs.index.numpy()
+        # normalising is per entry: gathering first gives the same values, on fewer entries
+        shift, scale_obs = shift[columns], scale_obs[columns]
     clip = np.float32(norm.clip)
     log_scale = actor_net.log_scale().detach()
     scale_t = log_scale.exp()
@@ -128,6 +137,8 @@ def numpy_sampler(
 
     def arrays(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(loc, action, log-probability) for observations [rows, D], float32 numpy."""
+        if columns is not None:
+            x = x[:, columns]
         if normalise:
             x = x * scale_obs + shift
             np.minimum(np.maximum(x, -clip, out=x), clip, out=x)
