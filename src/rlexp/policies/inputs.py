@@ -112,10 +112,10 @@ def select_parts(
         )
     for name in names:
         if not any(_matches(name, p) for p in parts):
+            # every key, each "/" prefix of one, every group and image key
+            prefixes = {p.key.rsplit("/", i)[0] for p in parts for i in range(p.key.count("/") + 1)}
             candidates = sorted(
-                {p.key for p in parts}
-                | {p.group for p in parts}
-                | {p.image_key for p in parts} - {""}
+                (prefixes | {p.group for p in parts} | {p.image_key for p in parts}) - {""}
             )
             close = difflib.get_close_matches(str(name), candidates, n=1)
             hint = f"; did you mean {close[0]!r}?" if close else ""
