@@ -92,6 +92,19 @@ ALIASES: tuple[Alias, ...] = (
     Alias("net_arch", SB3, "policy.actor.hidden_sizes", "and policy.critic.hidden_sizes"),
     Alias("activation_fn", SB3, "policy.actor.activation", "and policy.critic.activation"),
     Alias(
+        "features_extractor_class",
+        SB3,
+        "policy.encoder.name",
+        "NatureCNN is nature (policy=cnn); the IMPALA ResNet is impala (docs/policies.md)",
+    ),
+    Alias("share_features_extractor", SB3, "policy.share_encoder"),
+    Alias(
+        "obs_groups",
+        "rsl_rl",
+        "policy.actor.observations",
+        "and policy.critic.observations: lists of observation keys or groups (docs/policies.md)",
+    ),
+    Alias(
         "normalize",
         f"{SB3} (VecNormalize)",
         "env.normalize_observations",
