@@ -62,6 +62,7 @@ class GymnasiumEnv(GymShapedEnv):
         super().__init__(env_id, num_envs, layout, coding, device)
         self._envs = envs
         self._plain_obs = layout.plain
+        self._structured = layout.structured  # images: an ObsBatch per step (images.py)
         self._reshape_actions = len(coding.shape) != 1
         self.state_kind = env_state_kind(envs[0])
         if layout.frame_stack > 1:  # the stacked frames live in a wrapper no state covers
@@ -127,8 +128,10 @@ class GymnasiumEnv(GymShapedEnv):
         n = self.num_envs
         if self._low is None or self._reshape_actions:  # the env's values / shape, per copy
             actions = [self.action_coding.decode(actions[i]) for i in range(n)]
-        layout = self.obs_layout
-        obs = empty_obs(layout, n) if layout.structured else np.empty((n, layout.dim), np.float32)
+        if self._structured:
+            obs = empty_obs(self.obs_layout, n)
+        else:
+            obs = np.empty((n, self.obs_dim), dtype=np.float32)
         reward = np.empty((n, 1), dtype=np.float32)
         terminated = np.zeros((n, 1), dtype=bool)
         truncated = np.zeros((n, 1), dtype=bool)
