@@ -3,7 +3,7 @@
 (in-process, worker processes, EnvPool) and a TorchRL env passes through, ``env.frame_stack``
 against a stack built by hand across a reset, uint8 kept end to end, and the one-line refusals.
 
-Expected values are built with numpy from the test env's own frames (``image_envs.frame``), never
+Expected values are built with numpy from the test env's own frames (``gym_image_envs.frame``), never
 from rlexp's encoders."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
-from image_envs import frame
+from gym_image_envs import frame
 from tensordict import TensorDict
 from torchrl.data import Bounded, Composite, Unbounded
 
@@ -181,7 +181,7 @@ def _step(env, n: int):
 
 
 def test_in_process_env_emits_a_tensordict_of_the_vector_and_uint8_chw_images():
-    import image_envs  # noqa: F401  (registers the ids)
+    import gym_image_envs  # noqa: F401  (registers the ids)
 
     from rlexp.envs.gym import GymnasiumEnv
 
@@ -219,7 +219,7 @@ def test_in_process_env_emits_a_tensordict_of_the_vector_and_uint8_chw_images():
 
 
 def test_a_plain_box_env_still_emits_one_flat_float32_tensor():
-    import image_envs  # noqa: F401
+    import gym_image_envs  # noqa: F401
 
     from rlexp.envs.gym import GymnasiumEnv
 
@@ -237,9 +237,9 @@ def test_a_plain_box_env_still_emits_one_flat_float32_tensor():
 def test_frame_stack_against_a_stack_built_by_hand_across_a_reset(backend):
     """env.frame_stack=3 on HWC frames, 3-step episodes: newest last, a reset fills the stack with
     its first frame, the finished copy's "next" keeps its last 3 frames."""
-    import image_envs  # noqa: F401
+    import gym_image_envs  # noqa: F401
 
-    env = _make(backend, "image_envs:Image-v0", 2, frame_stack=3)
+    env = _make(backend, "gym_image_envs:Image-v0", 2, frame_stack=3)
     try:
         assert env.observation_spec["observation", "pixels"].shape == (2, 9, 6, 5)
         assert env.obs_layout.record()["frame_stack"] == 3
@@ -279,13 +279,13 @@ def _make(backend: str, name: str, n: int, **kw):
 
 
 def test_worker_processes_emit_the_same_tensordict_as_in_process():
-    import image_envs  # noqa: F401
+    import gym_image_envs  # noqa: F401
 
     from rlexp.envs.gym import GymnasiumEnv
     from rlexp.envs.gym_async import AsyncGymnasiumEnv
 
-    one = GymnasiumEnv("image_envs:ImageDict-v0", 2)
-    many = AsyncGymnasiumEnv("image_envs:ImageDict-v0", 2)
+    one = GymnasiumEnv("gym_image_envs:ImageDict-v0", 2)
+    many = AsyncGymnasiumEnv("gym_image_envs:ImageDict-v0", 2)
     try:
         assert many.observation_spec == one.observation_spec
         one.set_seed(1), many.set_seed(1)
@@ -388,11 +388,11 @@ def test_a_torchrl_env_s_image_entries_pass_through_as_uint8_chw():
     ("args", "words"),
     [
         (
-            ["env.name=image_envs:ImageRank5-v0"],
-            ["image_envs:ImageRank5-v0", "unsupported layout", "(2, 2, 6, 5, 3)"],
+            ["env.name=gym_image_envs:ImageRank5-v0"],
+            ["gym_image_envs:ImageRank5-v0", "unsupported layout", "(2, 2, 6, 5, 3)"],
         ),
         (
-            ["env.name=image_envs:Vector-v0", "env.frame_stack=4"],
+            ["env.name=gym_image_envs:Vector-v0", "env.frame_stack=4"],
             ["env.frame_stack=4", "has no image"],
         ),
         (["env=cart_pole", "env.frame_stack=4"], ["env.frame_stack=4", "'native'"]),

@@ -1,4 +1,4 @@
-"""Tiny uint8-image Gymnasium envs for the image tests (``env.name=image_envs:<Id>``; the
+"""Tiny uint8-image Gymnasium envs for the image tests (``env.name=gym_image_envs:<Id>``; the
 ``gymnasium_async`` workers import this module by that name).
 
 Every pixel of a frame is known in advance: ``frame(shape, t, episode)`` is ``arange`` over the
