@@ -47,7 +47,7 @@ from rlexp.algorithms.base import (
 from rlexp.algorithms.fused_step import FusedPPOStep
 from rlexp.algorithms.fused_step import unsupported as fused_unsupported
 from rlexp.algorithms.normalize import ReduceSum, RewardNormalizer
-from rlexp.common.observations import equal_rows, structured
+from rlexp.common.observations import equal_rows, in_chunks, structured
 from rlexp.config.schema import AlgorithmConfig
 from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import POLICIES, ActorCritic
@@ -211,17 +211,16 @@ class PPO(MutableHyperparameters):
         rollout, and V(s'_t) reused from V(s_t+1) wherever the next observation *is* the following
         step's observation (bit-equal: no reset in between), so the critic runs again only on the
         final observations of finished episodes and on the last step. Half the critic work of
-        evaluating V(s) and V(s') separately (TorchRL's way), same values. A TensorDict
-        observation (images) is compared entry by entry, and the critic runs on it in chunks of
-        ``mini_batch_size`` rows: the encoder's float copy of the uint8 images is a minibatch's,
-        never the rollout's.
+        evaluating V(s) and V(s') separately (TorchRL's way), same values. A TensorDict observation
+        is compared entry by entry; the critic runs on its images in minibatch chunks (in_chunks).
         """
         obs = batch.get("observation")
         next_obs = batch.get(("next", "observation"))
-        critic = self._chunked_critic if structured(obs) else self.policy.critic_net
+        critic = self.policy.critic_net
+        if structured(obs):
+            critic = in_chunks(critic, self.cfg.mini_batch_size)
         value = critic(obs)  # [*B, T, 1]
-        dims = batch.batch_dims
-        follows = equal_rows(next_obs[..., :-1], obs[..., 1:], dims)  # [*B, T-1]
+        follows = equal_rows(next_obs[..., :-1], obs[..., 1:], batch.batch_dims)  # [*B, T-1]
         own = torch.cat([~follows, follows.new_ones(follows.shape[:-1] + (1,))], dim=-1)
         next_value = torch.empty_like(value)
         next_value[..., :-1, :] = value[..., 1:, :]
@@ -229,15 +228,6 @@ class PPO(MutableHyperparameters):
         batch.set("state_value", value)
         batch.set(("next", "state_value"), next_value)
         return self.gae(batch)
-
-    def _chunked_critic(self, obs: TensorDictBase) -> torch.Tensor:
-        """V(obs) of a TensorDict observation, ``mini_batch_size`` rows at a time."""
-        flat = obs.reshape(-1)
-        step = max(1, self.cfg.mini_batch_size)
-        critic = self.policy.critic_net
-        values = [critic(flat[i : i + step]) for i in range(0, flat.shape[0], step)]
-        out = torch.cat(values) if values else critic(flat)
-        return out.reshape(*obs.batch_size, -1)
 
     def scale_rewards(self, batch: TensorDictBase) -> TensorDictBase:
         """The rollout with ``("next", "reward")`` normalised and/or clipped, as a shallow copy: the

@@ -63,9 +63,21 @@ def equal_rows(a: Observation, b: Observation, batch_dims: int) -> torch.Tensor:
     return out
 
 
-def row_bytes(obs: Observation, batch_dims: int) -> int:
-    """Bytes of one sample of ``obs`` (all entries, their own dtypes)."""
-    return sum(t[(0,) * batch_dims].numel() * t.element_size() for t in leaves(obs))
+def in_chunks(
+    fn: Callable[[TensorDictBase], torch.Tensor], rows: int
+) -> Callable[[TensorDictBase], torch.Tensor]:
+    """``fn`` (a network) over a TensorDict observation of any batch shape, ``rows`` samples at a
+    time: the encoder's float copy of the uint8 images is a chunk's, never the whole rollout's."""
+    step = max(1, int(rows))
+
+    def run(obs: TensorDictBase) -> torch.Tensor:
+        flat = obs.reshape(-1)
+        if flat.shape[0] <= step:
+            return fn(obs)
+        out = torch.cat([fn(flat[i : i + step]) for i in range(0, flat.shape[0], step)])
+        return out.reshape(*obs.batch_size, *out.shape[1:])
+
+    return run
 
 
 def to_plain(obs: Observation | None) -> Any:
