@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from gymnasium import spaces
 from gym_image_envs import frame
+from gymnasium import spaces
 from tensordict import TensorDict
 from torchrl.data import Bounded, Composite, Unbounded
 
