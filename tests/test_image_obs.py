@@ -412,3 +412,39 @@ def test_image_refusals_are_one_line_exit_2_before_the_run_dir(tmp_path, args, w
     for word in words:
         assert word in lines[0], lines[0]
     assert "Traceback" not in proc.stderr and not run_dir.exists()
+
+
+def test_a_dict_of_nested_images_and_vectors_trains_from_the_cli_through_workers(tmp_path):
+    """End to end: worker processes, env.frame_stack=2, env.image_keys=[depth], a nested image
+    key ("cam.front": also a name an nn.ModuleDict cannot take as it is), the CNN policy; the
+    checkpoint records the images' layout and the frame stack."""
+    from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
+
+    run_dir = tmp_path / "r"
+    args = [
+        "env=gym",
+        "env.name=gym_image_envs:ImageDict-v0",
+        "env.backend=gymnasium_async",
+        "env.num_envs=2",
+        "env.num_eval_envs=1",
+        "env.frame_stack=2",
+        "env.image_keys=[depth]",
+        "policy=cnn",
+        "policy.encoder.kernel_sizes=[2,2,1]",
+        "policy.encoder.strides=[1,1,1]",
+        "trainer.total_frames=128",
+        "trainer.frames_per_batch=64",
+        "trainer.eval_every=128",
+        "trainer.eval_episodes=1",
+        "trainer.save_every=64",
+        "algorithm.mini_batch_size=32",
+        "algorithm.num_epochs=1",
+        f"hydra.run.dir={run_dir}",
+    ]
+    run_train(args, cwd=tmp_path, env_extra=PYPATH)
+    layout = load_checkpoint(latest_checkpoint(run_dir / "checkpoints"))["observation_layout"]
+    assert layout["frame_stack"] == 2 and layout["dim"] == 2
+    images = {p["image_key"]: p for p in layout["parts"] if p["kind"] == "image"}
+    assert images["cam.front"]["shape"] == [6, 6, 5]  # 2 frames x 3 channels, H 6, W 5
+    assert images["cam.front"]["source_layout"] == "stack_hwc"
+    assert images["depth"]["shape"] == [2, 4, 7]  # 2 grey [4, 7] frames
