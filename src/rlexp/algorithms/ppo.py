@@ -47,7 +47,7 @@ from rlexp.algorithms.base import (
 from rlexp.algorithms.fused_step import FusedPPOStep
 from rlexp.algorithms.fused_step import unsupported as fused_unsupported
 from rlexp.algorithms.normalize import ReduceSum, RewardNormalizer
-from rlexp.common.observations import equal_rows, in_chunks, structured
+from rlexp.common.observations import in_chunks, next_is_following, structured
 from rlexp.config.schema import AlgorithmConfig
 from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import POLICIES, ActorCritic
@@ -220,7 +220,7 @@ class PPO(MutableHyperparameters):
         if structured(obs):
             critic = in_chunks(critic, self.cfg.mini_batch_size)
         value = critic(obs)  # [*B, T, 1]
-        follows = equal_rows(next_obs[..., :-1], obs[..., 1:], batch.batch_dims)  # [*B, T-1]
+        follows = next_is_following(obs, next_obs, batch.batch_dims)  # [*B, T-1]
         own = torch.cat([~follows, follows.new_ones(follows.shape[:-1] + (1,))], dim=-1)
         next_value = torch.empty_like(value)
         next_value[..., :-1, :] = value[..., 1:, :]

@@ -63,6 +63,13 @@ def equal_rows(a: Observation, b: Observation, batch_dims: int) -> torch.Tensor:
     return out
 
 
+def next_is_following(obs: Observation, next_obs: Observation, batch_dims: int) -> torch.Tensor:
+    """Of a rollout ``[*B, T]`` (time the last batch dim): whether each step's next observation
+    is bit-equal to the following step's observation (no reset between), bool ``[*B, T-1]``."""
+    lead = (slice(None),) * (batch_dims - 1)
+    return equal_rows(next_obs[(*lead, slice(-1))], obs[(*lead, slice(1, None))], batch_dims)
+
+
 def in_chunks(
     fn: Callable[[TensorDictBase], torch.Tensor], rows: int
 ) -> Callable[[TensorDictBase], torch.Tensor]:
