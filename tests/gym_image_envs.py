@@ -63,6 +63,19 @@ class ImageEnv(gym.Env):
         return self._obs(), float(self.t), self.t >= self.length, False, {}
 
 
+class StatefulImageEnv(ImageEnv):
+    """``ImageEnv`` (the Dict one) with ``get_state`` / ``set_state``: a checkpoint holds it exactly."""
+
+    def __init__(self) -> None:
+        super().__init__(dict_obs=True, length=4)
+
+    def get_state(self):
+        return {"t": self.t, "episode": self.episode}
+
+    def set_state(self, state) -> None:
+        self.t, self.episode = int(state["t"]), int(state["episode"])
+
+
 class VectorEnv(ImageEnv):
     """No image: a float32 [3] observation (``env.frame_stack`` has nothing to stack)."""
 
@@ -77,4 +90,5 @@ class VectorEnv(ImageEnv):
 gym.register("Image-v0", entry_point=ImageEnv)
 gym.register("ImageDict-v0", entry_point=ImageEnv, kwargs={"dict_obs": True})
 gym.register("ImageRank5-v0", entry_point=ImageEnv, kwargs={"shape": (2, 2, 6, 5, 3)})
+gym.register("ImageState-v0", entry_point=StatefulImageEnv)
 gym.register("Vector-v0", entry_point=VectorEnv)

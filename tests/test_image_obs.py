@@ -268,6 +268,36 @@ def test_frame_stack_against_a_stack_built_by_hand_across_a_reset(backend):
         env.close()
 
 
+@pytest.mark.parametrize("backend", ["gymnasium", "gymnasium_async"])
+def test_an_image_env_s_state_resumes_exactly_with_its_uint8_observations(backend):
+    """env_state() mid-episode (a copy pending its reset included) into a fresh env: the next full
+    reset hands back the same uint8 images and vector, and the steps after are the same."""
+    import gym_image_envs  # noqa: F401
+
+    a = _make(backend, "gym_image_envs:ImageState-v0", 2)
+    b = _make(backend, "gym_image_envs:ImageState-v0", 2)
+    try:
+        a.set_seed(0)
+        a.reset()
+        for _ in range(4):  # t=4 ends the episode: the reset observation is pending
+            nxt = a.step_action(torch.zeros(2, 1, dtype=torch.int64))
+        state = a.env_state()
+        assert state["kind"] == "state" and state["obs"]["cam.front"].dtype == np.uint8
+        b.set_seed(0)
+        b.load_env_state(state)
+        now = b.reset()["observation"]
+        want = a.autoreset_observation(nxt)
+        assert now["cam.front"].dtype == torch.uint8 and (now == want).all()
+        np.testing.assert_array_equal(now["cam.front"][1].numpy(), chw(frame(HWC, 0, 1)))
+        for _ in range(3):
+            na, nb = _step(a, 2), _step(b, 2)
+            assert (na[0]["observation"] == nb[0]["observation"]).all()
+            assert (na[1] == nb[1]).all()
+    finally:
+        a.close()
+        b.close()
+
+
 def _make(backend: str, name: str, n: int, **kw):
     if backend == "gymnasium":
         from rlexp.envs.gym import GymnasiumEnv
