@@ -3,6 +3,9 @@ extra) as the same rlexp env as the in-process Gymnasium adapter.
 
 - Tasks: EnvPool's own, under Gymnasium's names (``HalfCheetah-v5``, ``Hopper-v5``, ...); EnvPool
   ships its own MuJoCo build and task code (docs/envs.md, "Vectorised backends" compares them).
+  Atari (``Pong-v5``, ...): 84x84 greyscale frames, 4 stacked (``[4, 84, 84]`` uint8), emitted as
+  the uint8 ``pixels`` entry of a TensorDict observation; ``env.frame_stack=N`` is EnvPool's own
+  ``stack_num``.
 - Threads: ``env.num_threads`` (0: every CPU this process may use), never more than those CPUs nor
   than ``num_envs``.
 - Autoreset: EnvPool resets a finished env at its NEXT step; rlexp resets it right away

@@ -1,5 +1,7 @@
 """Gymnasium environments (the MuJoCo suite, classic control, the user's own) as batched TorchRL
-environments, stepped in the training process (``env.backend=gymnasium``).
+environments, stepped in the training process (``env.backend=gymnasium``). Images (uint8) are
+emitted as a TensorDict of ``vector`` and uint8 ``[C, H, W]`` entries (``images.py``); with
+``env.frame_stack`` each copy is wrapped in ``images.FrameStack``.
 
 ``GymnasiumEnv`` is a lean ``EnvBase`` over ``num_envs`` Gymnasium copies (``adapter.py`` holds
 what it shares with the vectorised backends): the spaces become TorchRL specs (``spaces.py``:

@@ -1,5 +1,7 @@
 """What runs inside a ``gymnasium_async`` worker process: the env, built there, behind a wrapper
-that flattens its observations (``spaces.py``, so shared memory holds one float32 vector per copy),
+that flattens its observations (``spaces.py``, so shared memory holds one float32 vector per copy,
+or with images a Dict of that vector and uint8 ``[C, H, W]`` images; ``env.frame_stack`` stacks
+them here, per copy),
 drops the per-step infos (rlexp reads none of them: less to pickle through the pipe), and answers
 the adapter's checkpoint calls (``env_state.copy_state`` / ``restore_copy``, run in the worker).
 
