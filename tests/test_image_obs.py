@@ -478,3 +478,25 @@ def test_a_dict_of_nested_images_and_vectors_trains_from_the_cli_through_workers
     assert images["cam.front"]["shape"] == [6, 6, 5]  # 2 frames x 3 channels, H 6, W 5
     assert images["cam.front"]["source_layout"] == "stack_hwc"
     assert images["depth"]["shape"] == [2, 4, 7]  # 2 grey [4, 7] frames
+
+
+@pytest.mark.parametrize(
+    ("overrides", "words"),
+    [
+        (["env.frame_stack=-1"], ["env.frame_stack=-1 must be 0 to 64"]),
+        (["env.frame_stack=65"], ["env.frame_stack=65 must be 0 to 64"]),
+        (['env.image_keys=[""]'], ["env.image_keys=['']", "a list of observation keys"]),
+        (["env=cart_pole", "env.image_keys=[cam]"], ["env.image_keys", "'native'"]),
+        (["env.backend=torchrl", "env.frame_stack=2"], ["env.frame_stack=2", "'torchrl'"]),
+    ],
+)
+def test_frame_stack_and_image_keys_rules_are_one_line_config_errors(overrides, words):
+    from conftest import compose
+    from rlexp.config.validate import ConfigError, to_root_config
+
+    with pytest.raises(ConfigError) as err:
+        to_root_config(compose(["env=gym", "env.name=gym_image_envs:Image-v0", *overrides]))
+    msg = str(err.value)
+    assert "\n" not in msg
+    for word in words:
+        assert word in msg, msg
