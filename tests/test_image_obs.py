@@ -358,6 +358,13 @@ def test_envpool_pong_gives_uint8_4x84x84_stacked_frames_newest_last():
         assert stacked2.obs_layout.record()["frame_stack"] == 2
     finally:
         stacked2.close()
+    for kw, words in (
+        ({"name": "Hopper-v5"}, ["env.frame_stack=2", "no stack_num"]),
+        ({"name": "Pong-v5", "kwargs": {"stack_num": 3}}, ["env.kwargs.stack_num=3", "disagree"]),
+    ):
+        with pytest.raises(ValueError) as err:
+            EnvPoolEnv(num_envs=1, frame_stack=2, **kw)
+        assert "\n" not in str(err.value) and all(w in str(err.value) for w in words), err.value
 
 
 def test_a_torchrl_env_s_image_entries_pass_through_as_uint8_chw():
