@@ -115,6 +115,27 @@ def test_a_dict_of_images_and_vectors_keeps_the_vector_flat_and_names_nested_ima
     np.testing.assert_array_equal(layout.flatten(obs), out["vector"])  # the vector alone
 
 
+def test_images_inside_a_tuple_are_named_by_index_path():
+    space = spaces.Tuple(
+        (
+            spaces.Box(0, 255, (5, 4, 4), np.uint8),  # RGBA HWC
+            spaces.Dict({"cam": spaces.Box(0, 255, (2, 1, 5, 4), np.uint8)}),  # 2 grey CHW frames
+            spaces.Box(-1, 1, (3,), np.float32),
+        )
+    )
+    layout = obs_layout(space, "w")
+    assert [(p.image_key, p.shape, p.source_layout) for p in layout.images] == [
+        ("0", (4, 5, 4), "hwc"),
+        ("1.cam", (2, 5, 4), "stack_chw"),
+    ]
+    assert layout.dim == 3 and [p.key for p in layout.parts] == ["0", "1/cam", "2"]
+    a, b = frame((5, 4, 4), 1, 0), frame((2, 1, 5, 4), 2, 0)
+    out = layout.encode((a, {"cam": b}, np.array([1, 2, 3], np.float32)))
+    np.testing.assert_array_equal(out["0"], a.transpose(2, 0, 1))
+    np.testing.assert_array_equal(out["1.cam"], b[:, 0])
+    np.testing.assert_array_equal(out["vector"], [1, 2, 3])
+
+
 def test_image_keys_names_a_grey_image_by_key_path_or_tensordict_key():
     space = spaces.Dict(
         {
