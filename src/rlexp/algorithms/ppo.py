@@ -47,6 +47,7 @@ from rlexp.algorithms.base import (
 from rlexp.algorithms.fused_step import FusedPPOStep
 from rlexp.algorithms.fused_step import unsupported as fused_unsupported
 from rlexp.algorithms.normalize import ReduceSum, RewardNormalizer
+from rlexp.common.observations import in_chunks, next_is_following, structured
 from rlexp.config.schema import AlgorithmConfig
 from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import POLICIES, ActorCritic
@@ -210,13 +211,16 @@ class PPO(MutableHyperparameters):
         rollout, and V(s'_t) reused from V(s_t+1) wherever the next observation *is* the following
         step's observation (bit-equal: no reset in between), so the critic runs again only on the
         final observations of finished episodes and on the last step. Half the critic work of
-        evaluating V(s) and V(s') separately (TorchRL's way), same values.
+        evaluating V(s) and V(s') separately (TorchRL's way), same values. A TensorDict observation
+        is compared entry by entry; the critic runs on its images in minibatch chunks (in_chunks).
         """
-        critic = self.policy.critic_net
         obs = batch.get("observation")
         next_obs = batch.get(("next", "observation"))
+        critic = self.policy.critic_net
+        if structured(obs):
+            critic = in_chunks(critic, self.cfg.mini_batch_size)
         value = critic(obs)  # [*B, T, 1]
-        follows = (next_obs[..., :-1, :] == obs[..., 1:, :]).all(-1)  # [*B, T-1]
+        follows = next_is_following(obs, next_obs, batch.batch_dims)  # [*B, T-1]
         own = torch.cat([~follows, follows.new_ones(follows.shape[:-1] + (1,))], dim=-1)
         next_value = torch.empty_like(value)
         next_value[..., :-1, :] = value[..., 1:, :]

@@ -142,13 +142,26 @@ def check_state(sd: Mapping[str, Any], step: int, resume: bool) -> None:
     best = sd.get("best_metric", -math.inf)
     if not _is_number(best) or math.isnan(best):
         raise FieldError(f"best_metric={_shown(best)}; expected a number (-inf: none yet)")
-    pending = sd.get("pending_observation")
-    if pending is not None and (
-        not isinstance(pending, torch.Tensor) or not pending.is_floating_point()
-    ):
-        raise FieldError(f"pending_observation is {_shown(pending)[:40]}, not a float tensor")
+    _check_pending_observation(sd.get("pending_observation"))
     if sd.get("pending_rollout") is not None:
         _check_pending_rollout(_mapping(sd["pending_rollout"], "pending_rollout"))
+
+
+def _check_pending_observation(pending: Any) -> None:
+    """A float tensor, or (images) a mapping of a float ``vector`` and uint8 image tensors."""
+    if pending is None or (isinstance(pending, torch.Tensor) and pending.is_floating_point()):
+        return
+    if isinstance(pending, Mapping) and pending:
+        for key, value in pending.items():
+            image = isinstance(value, torch.Tensor) and value.dtype == torch.uint8
+            floats = isinstance(value, torch.Tensor) and value.is_floating_point()
+            if not (isinstance(key, str) and (floats if key == "vector" else image)):
+                raise FieldError(
+                    f"pending_observation[{_shown(key)}] is {_shown(value)[:40]}; expected a float "
+                    "'vector' or uint8 images"
+                )
+        return
+    raise FieldError(f"pending_observation is {_shown(pending)[:40]}, not a float tensor")
 
 
 #: What the update reads of a rollout (``algorithm.overlap``'s pending one: rlexp/training/overlap.py).

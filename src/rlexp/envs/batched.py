@@ -197,7 +197,12 @@ def make_batched_env(cfg: EnvConfig, num_envs: int, seed: int) -> EnvBase:
                 f"{where} built a {type(raw).__name__}, not a TorchRL EnvBase; use "
                 "env.backend=vecenv for an rsl_rl-style VecEnv"
             )
-        env = TorchRLAdapter(raw, cfg.name)
+        # An EnvBase already in rlexp's shape (its own step_action / autoreset_observation and
+        # observation layout, e.g. a TensorDict observation of vector + uint8 images) as it is.
+        native = all(
+            hasattr(raw, a) for a in ("step_action", "autoreset_observation", "obs_layout")
+        )
+        env = raw if native else TorchRLAdapter(raw, cfg.name)
     count = env.num_envs
     if not takes_count and count != cfg.num_envs:
         env.close()

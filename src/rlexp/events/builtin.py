@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from rlexp.common.observations import structured, vector_of, with_vector
 from rlexp.config.native_task import FileName, Interval, Number, OrNull, Vector
 from rlexp.envs.native.events import OBJECT_POSE_PARAMS, TARGET_POSE_PARAMS
 from rlexp.events.env_access import (
@@ -192,14 +193,18 @@ randomize_goal_pose.check_env = native_check_env("randomize_target_pose")  # typ
     managers=("train",),  # evaluation fires step events before the env step only
 )
 def observation_noise(ctx: EventContext, std: float = 0.01, clip: float | None = None) -> None:
-    """Step event: add N(0, std^2) to the observations the policy sees (and that are stored)."""
+    """Step event: add N(0, std^2) to the observations the policy sees (and that are stored):
+    the flat vector (with images, the observation's ``vector`` entry; images are left as they are)."""
     if ctx.phase != "observation" or ctx.tensordict is None:
         return
-    obs = ctx.tensordict.get("observation")
+    full = ctx.tensordict.get("observation")
+    obs = vector_of(full)
+    if obs is None:  # images only: nothing to add noise to
+        return
     noise = torch.from_numpy(ctx.rng.normal(0.0, std, size=tuple(obs.shape)).astype(np.float32))
     if clip is not None:
         noise.clamp_(-clip, clip)
-    ctx.tensordict.set("observation", obs + noise.to(obs.device))
+    ctx.tensordict.set("observation", with_vector(full, obs + noise.to(obs.device)))
 
 
 @register_event(
@@ -242,20 +247,22 @@ def record_rollouts(
     """Interval event (training): write the rollout just collected to ``rollouts/step_<N>.npz``.
 
     Arrays, all ``[num_envs, T, ...]``: ``observation``, ``action``, ``reward``, ``done``,
-    ``terminated``, ``truncated``, ``next_observation``; plus ``global_step`` (scalar).
+    ``terminated``, ``truncated``, ``next_observation``; plus ``global_step`` (scalar). With image
+    observations (a TensorDict) each entry is an array of its own, in its own dtype (images uint8):
+    ``observation.vector``, ``observation.<image key>``, ``next_observation.<...>``.
     """
     if ctx.batch is None:
         return
     out_dir = output_dir(ctx, save_path, "rollouts", allow_outside_run_dir)
     b = ctx.batch
     arrays = {
-        "observation": b["observation"],
+        **_observation_arrays("observation", b["observation"]),
         "action": b["action"],
         "reward": b["next", "reward"].squeeze(-1),
         "done": b["next", "done"].squeeze(-1),
         "terminated": b["next", "terminated"].squeeze(-1),
         "truncated": b["next", "truncated"].squeeze(-1),
-        "next_observation": b["next", "observation"],
+        **_observation_arrays("next_observation", b["next", "observation"]),
     }
     data = {k: v.detach().cpu().numpy() for k, v in arrays.items()}
 
@@ -267,6 +274,13 @@ def record_rollouts(
 
 
 record_rollouts.check_params = check_save_path  # type: ignore[attr-defined]
+
+
+def _observation_arrays(name: str, obs: Any) -> dict[str, torch.Tensor]:
+    """``{name: obs}``, or per entry of a TensorDict observation ``{name.<key>: entry}``."""
+    if not structured(obs):
+        return {name: obs}
+    return {f"{name}.{key}": obs.get(key) for key in sorted(obs.keys())}
 
 
 @register_event(

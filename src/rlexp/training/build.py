@@ -138,12 +138,11 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
         )
     if hasattr(env, "warn_action_bounds"):  # a Box not in [-1, 1]: once, in the run's log
         env.warn_action_bounds()
-    obs_dim = env.observation_spec["observation"].shape[-1]
     log.info(
-        "env %s x%d: obs %d, action %d%s",
+        "env %s x%d: obs %s, action %d%s",
         e.name,
         e.num_envs,
-        obs_dim,
+        observation_summary(env.observation_spec["observation"]),
         env.action_spec.shape[-1],
         env_section_note(e),
     )
@@ -173,6 +172,18 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
         eval_events=EventManager(config.events.eval, "events.eval", seed=config.seed + 3),
         device=device,
     )
+
+
+def observation_summary(spec: Any) -> str:
+    """``17``, or (a TensorDict observation) ``vector 4 + pixels uint8 [3, 84, 84]``."""
+    if not hasattr(spec, "keys"):
+        return str(int(spec.shape[-1]))
+    dims = len(spec.shape)
+    return " + ".join(
+        f"{k} {int(v.shape[-1])}" if v.dtype.is_floating_point else
+        f"{k} {str(v.dtype).replace('torch.', '')} {list(v.shape[dims:])}"
+        for k, v in spec.items()
+    )  # fmt: skip
 
 
 def env_section_note(e: Any) -> str:

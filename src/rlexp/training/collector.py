@@ -61,14 +61,16 @@ class RolloutCollector(Collector):
         if isinstance(policy, SamplingPolicy):  # the numpy sampler's noise, a rollout at a time
             policy.set_noise_block(self.frames_per_batch)
         self._fast = supports_fast_rollout(env, policy)
-        self._obs: torch.Tensor | None = None  # the observation to act on next (fast path)
+        # the observation to act on next (fast path): a tensor, or (images) a TensorDict of the
+        # vector and uint8 images, stacked per key into the rollout as they are (no float copy)
+        self._obs: torch.Tensor | TensorDictBase | None = None
 
-    def next_observation(self) -> torch.Tensor | None:
+    def next_observation(self) -> torch.Tensor | TensorDictBase | None:
         """The observation the policy acts on at the next step (after any step events)."""
         obs = self._obs if self._obs is not None else self._carrier.get("observation", None)
         return None if obs is None else obs.detach().clone()
 
-    def set_next_observation(self, obs: torch.Tensor) -> None:
+    def set_next_observation(self, obs: torch.Tensor | TensorDictBase) -> None:
         """Resume: act first on the observation the interrupted run would have acted on."""
         current = self._carrier.get("observation", None)
         if current is None or current.shape != obs.shape:
@@ -177,6 +179,7 @@ def _all_numpy(env: EnvBase, sample, obs: torch.Tensor, to_env) -> bool:
     sampler (policies/numpy_sampler.py) for this many rows, everything on the CPU."""
     return (
         to_env is None
+        and isinstance(obs, torch.Tensor)  # (a TensorDict of vector and images: the torch loop)
         and hasattr(env, "step_arrays")
         and hasattr(sample, "arrays")
         and obs.device.type == "cpu"

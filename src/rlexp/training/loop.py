@@ -13,6 +13,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
 from rlexp.algorithms.base import NonFiniteError
+from rlexp.common.observations import all_finite
 from rlexp.runtime.distributed import DistInfo, all_gather_object, all_reduce_sum
 from rlexp.runtime.user_code import describe, user_code_exits
 
@@ -64,7 +65,7 @@ def check_rollout_finite(
     observations or rewards hold a NaN or Inf. Distributed, every rank must call it: the flags are
     summed over ranks so that all raise together (one alone would block the others)."""
     keys = (("next", "observation"), ("next", "reward"))
-    bad = [(dist.rank, k) for k in keys if not torch.isfinite(batch[k]).all()]
+    bad = [(dist.rank, k) for k in keys if not all_finite(batch[k])]  # (a TensorDict's floats)
     if dist.enabled:
         flags = torch.zeros(dist.world_size, len(keys), device=device)
         for rank, k in bad:

@@ -23,6 +23,7 @@ from rlexp.checkpoints.files import (
     save_checkpoint,
     set_rng_state,
 )
+from rlexp.common.observations import from_plain, to_plain, vector_of
 from rlexp.config.schema import TrainerConfig
 from rlexp.events import EventContext, EventManager
 from rlexp.events.transform import EventTransform
@@ -208,9 +209,9 @@ class Trainer:
             losses = self.algorithm.update(batch)
         except NonFiniteError as exc:
             raise NonFiniteError(f"{exc} at step {self.global_step}") from None
-        self.policy.normalizer.update(
-            batch["observation"], all_reduce_sum if self.dist.enabled else None
-        )
+        vector = vector_of(batch["observation"])  # images are never normalised (DESIGN47 §2)
+        if vector is not None:
+            self.policy.normalizer.update(vector, all_reduce_sum if self.dist.enabled else None)
         self._timing["update"] = time.perf_counter() - t0
         return losses
 
@@ -366,7 +367,7 @@ class Trainer:
             "last_eval": dict(self.last_eval),
             "best_metric": self.best_metric,
             "hooks": self.hooks.state_dict(),
-            "pending_observation": self._pending_observation(),
+            "pending_observation": to_plain(self._pending_observation()),  # (a dict: images)
             "eval_in_flight": record(
                 getattr(self.eval_worker, "in_flight", None) or self._resume_round
             ),  # resume: first
@@ -391,7 +392,7 @@ class Trainer:
         self._resume_rng = sd["rng"]
         self._resume_rollout = sd.get("pending_rollout")
         if self.dist.is_main:  # with the env state it belongs to (rank 0's)
-            self._resume_obs = sd.get("pending_observation")
+            self._resume_obs = from_plain(sd.get("pending_observation"))
         if self.env_resume is not None and self.env_resume.startswith("restarted"):
             self._resume_obs = self._resume_rollout = None  # new episodes: nothing carries over
             self.episodes.drop_running()
