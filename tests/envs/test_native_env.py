@@ -103,7 +103,7 @@ def test_observation_values_match_mujoco():
     place(env, 1, arm=env.robot_init_qpos + rng.uniform(-0.5, 0.5, 6))
     env.qvel[1, :6] = rng.uniform(-1, 1, 6)
     env._ctrl[1] += rng.uniform(-0.05, 0.05, 6)
-    obs = torch.from_numpy(env._flatten(env._observation_dict()))[1].double().numpy()
+    obs = torch.from_numpy(env._observe()[0])[1].double().numpy()
     d = mujoco_data(env, 1)
     lay = {name: (start, stop) for name, start, stop, _ in env.observation_layout}
     site = env.model.site("ee_site").id

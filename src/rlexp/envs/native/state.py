@@ -28,6 +28,7 @@ class _StepVars:
         self.fk_cache: tuple[np.ndarray, np.ndarray] | None = None
         # every env's observation now (post-reset for reset envs)
         self.current_obs: np.ndarray | None = None
+        self.current_images: dict[str, np.ndarray] = {}  # a camera term's uint8 [N, C, H, W]
         self.interval_count = 0
 
 
