@@ -333,3 +333,17 @@ def test_the_eval_worker_evaluates_image_snapshots_as_the_training_process_does(
         ]
     assert [s for s, _ in evals["false"]] == [48, 96, 144]
     assert evals["true"] == evals["false"]
+
+
+def test_the_nan_guard_checks_the_vector_of_an_image_rollout():
+    """A NaN in a next observation's vector is named; uint8 images pass (always finite)."""
+    from rlexp.algorithms.base import NonFiniteError
+    from rlexp.runtime.distributed import DistInfo
+    from rlexp.training.loop import check_rollout_finite
+
+    _, env, policy = _setup(10)
+    batch, _ = _rollout(env, policy, steps=3)
+    check_rollout_finite(batch, DistInfo(), torch.device("cpu"), 9)
+    batch["next", "observation", "vector"][2, 1, 3] = float("nan")
+    with pytest.raises(NonFiniteError, match="next/observation from the env at step 9"):
+        check_rollout_finite(batch, DistInfo(), torch.device("cpu"), 9)
