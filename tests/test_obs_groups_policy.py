@@ -284,6 +284,18 @@ def test_share_encoder_false_gives_the_critic_encoders_of_its_own():
     assert torch.equal(apart.actor_net(obs)[0], before)
 
 
+@pytest.mark.parametrize("share", [True, False])
+def test_the_critics_loss_reaches_the_actors_encoder_only_when_shared(share):
+    pol = _policy(PolicyConfig(encoder=ENC, share_encoder=share), layout=IMAGES)
+    pol.critic_net(_image_obs()).square().sum().backward()
+    grads = [p.grad for p in pol.actor_net.inputs.encoders["pixels"].parameters()]
+    if share:
+        assert all(g is not None for g in grads) and any(g.abs().sum() > 0 for g in grads)
+    else:
+        assert all(g is None for g in grads)
+    assert all(p.grad is None for p in pol.actor_net.mlp.parameters())
+
+
 def test_state_dict_round_trip_of_a_grouped_image_policy():
     for share in (True, False):
         cfg = PolicyConfig(encoder=dataclasses.replace(ENC, name="nature"), share_encoder=share)

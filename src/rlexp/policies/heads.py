@@ -7,6 +7,9 @@
   ``torch.distributions.Categorical`` per component, log-prob and entropy summed over components,
   the action an int64 vector ``[K]`` (``K = 1`` for ``Discrete``), the mode the per-component argmax.
 
+Each head reads the observation through ``ReadsObservation``: the normaliser, then, where the
+network selects groups or keys or reads images, its ``inputs.ObsInput``.
+
 Each head also gives the collection sampler (``sampler``): the same distribution written as a few
 tensor ops, drawing actions without building a distribution object per env step (tested equal in
 log-density to the distribution TorchRL's loss uses).

@@ -41,11 +41,11 @@ def layout_of(env: Any) -> ObsLayout:
         base = base.base_env
     layout = getattr(base, "obs_layout", None)
     spec = env.observation_spec["observation"]
-    if isinstance(layout, ObsLayout) and (
-        layout.structured or not hasattr(spec, "shape") or int(spec.shape[-1]) == layout.dim
-    ):
+    flat = not hasattr(spec, "keys")  # one tensor, not a Composite
+    # a wrapper that changed the vector's width (none of rlexp's does) leaves the recorded layout
+    if isinstance(layout, ObsLayout) and (not flat or int(spec.shape[-1]) == layout.dim):
         return layout
-    if not hasattr(spec, "keys"):
+    if flat:
         return plain_layout(int(spec.shape[-1]))
     parts: list[ObsPart] = []
     dim = 0
