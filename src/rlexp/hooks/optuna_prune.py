@@ -103,7 +103,7 @@ class OptunaPrune:
         self.storage, self.study_name, self.job = str(storage), str(study), int(job)
         self.pruner_cfg = dict(pruner)
         self.metric = metric
-        self._trial: Any = None
+        self._trial: tuple[Any, int] | None = None  # (the study, the trial's id)
         self._reports = False  # this job is its trial's first: its curve is the trial's
         self._broken = False  # the study could not be reached: warned once, the run goes on
 
@@ -123,7 +123,7 @@ class OptunaPrune:
             raise LookupError(f"no RUNNING trial of study {self.study_name!r} runs job {self.job}")
         frozen = max(mine, key=lambda t: t.number)
         self._reports = _jobs(frozen)[0] == self.job
-        return optuna.trial.Trial(study, frozen._trial_id)
+        return study, frozen._trial_id
 
     def __call__(self, state: HookState, control: HookControl) -> None:
         if state.point != "eval_end" or state.rank != 0 or self._broken:
@@ -132,11 +132,15 @@ class OptunaPrune:
         if value is None or not math.isfinite(float(value)):
             return
         try:
+            import optuna
+
             if self._trial is None:
                 self._trial = self._find_trial()
+            # a Trial reads the storage once: a fresh one sees what the trial's other jobs wrote
+            trial = optuna.trial.Trial(*self._trial)
             if self._reports:
-                self._trial.report(float(value), state.global_step)
-            prune = self._trial.should_prune()
+                trial.report(float(value), state.global_step)
+            prune = trial.should_prune()
         except Exception as exc:  # the storage gone, the trial told meanwhile: train on, unpruned
             self._broken = True
             log.warning(
@@ -153,7 +157,7 @@ class OptunaPrune:
             name = str(self.pruner_cfg["_target_"]).rsplit(".", 1)[-1]
             control.request_stop(
                 f"pruned by Optuna's {name} at step {state.global_step}: {self.metric}="
-                f"{float(value):.4g} (trial {self._trial.number})",
+                f"{float(value):.4g} (trial {trial.number})",
                 status="pruned",
             )
 

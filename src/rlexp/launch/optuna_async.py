@@ -173,7 +173,7 @@ class TrialLoop:
         self.ended += 1
         self.failed += state == TrialState.FAIL
         if not self.batch and self.ended >= self.sweep.n_jobs:
-            self._check_failures(self.failed, self.ended, "of the trials so far")
+            self._check_failures(self.failed, self.ended, "so far")
 
     def _tell_batch(self) -> None:
         if not self.told:
