@@ -134,6 +134,50 @@ def test_the_failure_rate_stops_asking_asynchronously(tmp_path, caplog):
     assert "stopping the sweep: 2 of 2 trials so far failed" in caplog.text
 
 
+def test_sweeps_of_two_dirs_share_one_study_without_taking_each_others_trials(tmp_path):
+    """One journal, two sweep dirs (2 local workers and 2 SLURM jobs, say): each sweep plans,
+    resumes and numbers its own job dirs; the sampler sees every trial."""
+    shared = f"journal://{tmp_path}/shared.journal"
+    first, second = ClockLauncher({0: 10.0}), ClockLauncher({})
+    a = sweep_once(tmp_path / "a", first, storage=shared, study_name="s", n_trials=3)
+    b = sweep_once(tmp_path / "b", second, storage=shared, study_name="s", n_trials=2)
+    assert sorted(first.start) == [0, 1, 2] and sorted(second.start) == [0, 1]  # own job dirs
+    trials = b.study.get_trials()
+    assert [t.user_attrs["rlexp_sweep"] for t in trials] == [str((tmp_path / d).resolve()) for d in "aaabb"]  # fmt: skip
+    assert [t.user_attrs["rlexp_job"] for t in trials] == [0, 1, 2, 0, 1]
+    # the second sweep's sampler continued the shared study: reseeded with seed + 3 trials so far
+    from test_optuna_sweeper import draws
+
+    assert trials[3].params["x"] == draws(optuna.samplers.RandomSampler(seed=6), 1)[0]["x"]
+    # each dir's results: its own best trial and job
+    for sweeper, numbers in ((a, [0, 1, 2]), (b, [3, 4])):
+        res = OmegaConf.load(sweeper.sweep_dir / "optimization_results.yaml")
+        best = max((trials[n] for n in numbers), key=lambda t: t.value)
+        assert (res.best_trial, res.best_job) == (best.number, best.user_attrs["rlexp_job"])
+    # the same command again in dir a: nothing to do (b's trials are not a's to resume)
+    again = ClockLauncher({})
+    sweep_once(tmp_path / "a", again, storage=shared, study_name="s", n_trials=3)
+    assert again.start == {}
+
+
+def test_a_trial_just_asked_by_another_sweep_is_not_failed_as_an_orphan(tmp_path, monkeypatch):
+    """A RUNNING trial with no job yet: another sweep of a shared study may have just asked it
+    (it records its job a moment later): left alone; one older than ORPHAN_AGE_S was left by a
+    killed sweep: told FAIL."""
+    from rlexp.launch import optuna_sweeper
+
+    shared = f"journal://{tmp_path}/shared.journal"
+    sweep_once(tmp_path / "a", ClockLauncher({}), storage=shared, study_name="s", n_trials=1)
+    study = optuna.load_study(study_name="s", storage=optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(tmp_path / "shared.journal"))))  # fmt: skip
+    just_asked = study.ask().number
+    sweep_once(tmp_path / "b", ClockLauncher({}), storage=shared, study_name="s", n_trials=1)
+    assert study.get_trials()[just_asked].state == TrialState.RUNNING
+    monkeypatch.setattr(optuna_sweeper, "ORPHAN_AGE_S", 0.0)
+    sweep_once(tmp_path / "b", ClockLauncher({}), storage=shared, study_name="s", n_trials=1)
+    assert study.get_trials()[just_asked].state == TrialState.FAIL
+
+
 # -- trial_seeds --------------------------------------------------------------------------------------
 
 
@@ -352,9 +396,14 @@ def spec_error(job_cfg=None, arguments=(), **sweeper) -> str:
 
 def test_a_pruner_where_no_intermediate_values_are_possible_is_refused_in_one_line():
     job = OmegaConf.create(
-        {"trainer": {"eval_every": 256, "eval_episodes": 2, "total_frames": 1024}, "env": {"num_eval_envs": 1}}  # fmt: skip
+        {
+            "trainer": {"eval_every": 256, "eval_episodes": 2, "total_frames": 1024},
+            "env": {"num_eval_envs": 1},
+        }  # fmt: skip
     )
-    check_spec({"pruner": "median", "direction": "maximize"}, [], job)  # evaluates during training: accepted
+    check_spec(
+        {"pruner": "median", "direction": "maximize"}, [], job
+    )  # evaluates during training: accepted
     assert spec_error(job, ["trainer.eval_every=0"], pruner="median") == (
         "hydra.sweeper.pruner=MedianPruner: trainer.eval_every=0, so the trials never evaluate "
         "and report no intermediate values for the pruner to judge; set trainer.eval_every above "

@@ -248,7 +248,7 @@ def test_a_journal_study_resumes_retries_and_reseeds_in_process(tmp_path):
     ]
     assert trials[3].params == trials[1].params
     x = trials[1].params["x"]  # the retry's record: its job dir, seed (the config's: 0), overrides
-    assert trials[3].user_attrs == {"rlexp_job": 1, "rlexp_retry_of": 1, "rlexp_jobs": [1], "rlexp_seeds": [0], "rlexp_overrides": [f"x={x}", f"y={trials[1].params['y']}"]}  # fmt: skip
+    assert trials[3].user_attrs == {"rlexp_job": 1, "rlexp_retry_of": 1, "rlexp_jobs": [1], "rlexp_seeds": [0], "rlexp_overrides": [f"x={x}", f"y={trials[1].params['y']}"], "rlexp_sweep": str(sweep.resolve())}  # fmt: skip
     assert trials[4].params == draws(optuna.samplers.RandomSampler(seed=10), 1)[0]
     results = OmegaConf.load(sweep / "optimization_results.yaml")
     best = max((t for t in trials if t.value is not None), key=lambda t: t.value)

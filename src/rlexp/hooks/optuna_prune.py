@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from rlexp.config.native_task import Number, ParamRule, Text
@@ -30,8 +31,9 @@ from rlexp.hooks.base import HookControl, HookState, register_hook
 
 log = logging.getLogger(__name__)
 
-#: The trial attrs the sweeper records (``rlexp.launch.optuna_study``: JOB_ATTR, JOBS_ATTR).
-JOB_ATTR, JOBS_ATTR = "rlexp_job", "rlexp_jobs"
+#: The trial attrs the sweeper records (``rlexp.launch.optuna_study``: JOB_ATTR, JOBS_ATTR,
+#: SWEEP_ATTR).
+JOB_ATTR, JOBS_ATTR, SWEEP_ATTR = "rlexp_job", "rlexp_jobs", "rlexp_sweep"
 #: Where a pruner's ``_target_`` may point.
 PRUNER_MODULE = "optuna.pruners."
 
@@ -107,8 +109,9 @@ class OptunaPrune:
         self._reports = False  # this job is its trial's first: its curve is the trial's
         self._broken = False  # the study could not be reached: warned once, the run goes on
 
-    def _find_trial(self) -> Any:
-        """This job's RUNNING trial in the study (None, with one warning, if there is none)."""
+    def _find_trial(self, sweep_dir: str) -> Any:
+        """(the study, the trial id) of this job's RUNNING trial: its job dirs hold this job, in
+        this sweep dir (``sweep_dir``, the run dir's parent; a study may be shared)."""
         import optuna
         from hydra.utils import instantiate
 
@@ -118,7 +121,11 @@ class OptunaPrune:
             study_name=self.study_name, storage=open_storage(self.storage), pruner=pruner
         )
         running = study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,))
-        mine = [t for t in running if self.job in _jobs(t)]
+        mine = [
+            t
+            for t in running
+            if self.job in _jobs(t) and t.user_attrs.get(SWEEP_ATTR, sweep_dir) == sweep_dir
+        ]
         if not mine:
             raise LookupError(f"no RUNNING trial of study {self.study_name!r} runs job {self.job}")
         frozen = max(mine, key=lambda t: t.number)
@@ -135,7 +142,7 @@ class OptunaPrune:
             import optuna
 
             if self._trial is None:
-                self._trial = self._find_trial()
+                self._trial = self._find_trial(str(Path(state.run_dir).resolve().parent))
             # a Trial reads the storage once: a fresh one sees what the trial's other jobs wrote
             trial = optuna.trial.Trial(*self._trial)
             if self._reports:

@@ -43,6 +43,9 @@ JOBS_ATTR = "rlexp_jobs"
 SEEDS_ATTR = "rlexp_seeds"
 #: Trial user attr: the trial's job overrides without ``seed=`` and the pruning hook's.
 OVERRIDES_ATTR = "rlexp_overrides"
+#: Trial user attr: the sweep dir (absolute) whose job dirs the trial runs in: sweeps of other dirs
+#: may share the study (their trials inform the sampler, never this sweep's plan).
+SWEEP_ATTR = "rlexp_sweep"
 
 #: Short names of ``hydra.sweeper.sampler`` (also the options of ``hydra/sweeper/sampler``).
 SAMPLERS = {
@@ -230,6 +233,13 @@ def job_of(trial: Any) -> int | None:
     """The job number a trial ran in (None: a trial rlexp did not launch)."""
     job = trial_attr(trial, JOB_ATTR)
     return job if isinstance(job, int) and not isinstance(job, bool) else None
+
+
+def in_sweep(trial: Any, sweep_dir: str) -> bool:
+    """The trial runs in ``sweep_dir`` (one without :data:`SWEEP_ATTR`: a sweep before it, or the
+    only one: in every sweep dir)."""
+    where = trial_attr(trial, SWEEP_ATTR)
+    return where is None or where == sweep_dir
 
 
 def jobs_of(trial: Any) -> list[int]:

@@ -63,7 +63,9 @@ from rlexp.launch.optuna_space import SearchSpaceError
 from rlexp.launch.optuna_study import (
     JOB_ATTR,
     RETRY_ATTR,
+    SWEEP_ATTR,
     StudyConfigError,
+    in_sweep,
     job_of,
     jobs_of,
     seeds_of,
@@ -77,6 +79,19 @@ LOCK_FILE = "optuna.lock"
 OBJECTIVE = optuna_plan.OBJECTIVE
 #: Exit code when the sweep cannot start (the dir is in use, the storage cannot be opened).
 EXIT_REFUSED = 2
+
+
+#: A RUNNING trial without a job this old was left by a sweep killed between ``ask`` and recording
+#: the trial's job (a moment); a younger one may be another sweep's of a shared study, just asked.
+ORPHAN_AGE_S = 60.0
+
+
+def _orphaned(trial: Any) -> bool:
+    """``trial`` (RUNNING, no job recorded) was asked :data:`ORPHAN_AGE_S` ago or more."""
+    import datetime
+
+    start = trial.datetime_start
+    return start is None or (datetime.datetime.now() - start).total_seconds() >= ORPHAN_AGE_S
 
 
 class SweepRefused(Exception):
@@ -237,7 +252,7 @@ class OptunaSweep:
 
     def next_free_job(self) -> int:
         """A job number above every job dir the study's trials used."""
-        trials = self.study.get_trials(deepcopy=False) if self.study is not None else []
+        trials = self.mine(self.study) if self.study is not None else []
         return max((j for t in trials for j in jobs_of(t)), default=-1) + 1
 
     def base_seed(self, spec: SweepSpec) -> int:
@@ -344,12 +359,17 @@ class OptunaSweep:
             )
         return sampler
 
+    def mine(self, study: Any) -> list[Any]:
+        """The study's trials that run in this sweep dir (the study may be shared)."""
+        key = str(self.sweep_dir.resolve())
+        return [t for t in study.get_trials(deepcopy=False) if in_sweep(t, key)]
+
     def _run(self, study: Any, spec: SweepSpec) -> None:
         from optuna.trial import TrialState
 
         trials = study.get_trials(deepcopy=False)
-        for t in trials:  # killed between ask() and recording its job: it never ran
-            if t.state == TrialState.RUNNING and job_of(t) is None:
+        for t in self.mine(study):  # killed between ask() and recording its job: it never ran
+            if t.state == TrialState.RUNNING and job_of(t) is None and _orphaned(t):
                 tell(study, t.number, state=TrialState.FAIL)
         if len(spec.directions) == 1:
             self._tell_finished_jobs(study, spec)
@@ -357,7 +377,7 @@ class OptunaSweep:
         if sampler is not None:
             study.sampler = sampler
         n_seeds = int(self.trial_seeds)
-        work, heads = plan_work(study.get_trials(deepcopy=False), self.n_trials, n_seeds)
+        work, heads = plan_work(self.mine(study), self.n_trials, n_seeds)
         kept = sum(t.state in (TrialState.COMPLETE, TrialState.PRUNED) for t in heads.values())
         counts = {k: sum(w.kind == k for w in work) for k in ("resume", "retry", "new")}
         log.info(
@@ -385,6 +405,7 @@ class OptunaSweep:
             study.enqueue_trial(dict(w.retry_of.params))
         trial = study.ask(spec.dists)
         trial.set_user_attr(JOB_ATTR, w.job)
+        trial.set_user_attr(SWEEP_ATTR, str(self.sweep_dir.resolve()))
         if w.kind == "retry":
             trial.set_user_attr(RETRY_ATTR, w.retry_of.number)
         if spec.custom is not None:
@@ -397,7 +418,7 @@ class OptunaSweep:
         re-run, or PRUNED) and is not launched again: its dirs stay as they are."""
         from optuna.trial import TrialState
 
-        _, heads = plan_work(study.get_trials(deepcopy=False), 0)
+        _, heads = plan_work(self.mine(study), 0)
         for t in (t for _, t in sorted(heads.items()) if t.state == TrialState.RUNNING):
             jobs = jobs_of(t)
             ran_with = optuna_space.trial_overrides(t.params, spec.dists, spec.fixed)
@@ -425,14 +446,14 @@ class OptunaSweep:
         number and job dir; none when no trial completed (the summary line says why)."""
         from optuna.trial import TrialState
 
-        done = [t for t in study.get_trials(deepcopy=False) if t.state == TrialState.COMPLETE]
+        done = [t for t in self.mine(study) if t.state == TrialState.COMPLETE]
         if not done:
             log.warning(
                 "no trial of study %r completed: no optimization_results.yaml", study.study_name
             )
             return
-        if len(directions) < 2:
-            best = study.best_trial
+        if len(directions) < 2:  # this sweep's best (a shared study holds other sweeps' too)
+            best = (max if directions[0] == "maximize" else min)(done, key=lambda t: t.value)
             results: dict[str, Any] = {
                 "name": "optuna",
                 "best_params": best.params,
@@ -448,9 +469,11 @@ class OptunaSweep:
                 best.value,
             )
         else:
+            numbers = {t.number for t in done}
             front = [
                 {"params": t.params, "values": t.values, "trial": t.number}
                 for t in study.best_trials
+                if t.number in numbers
             ]
             results = {"name": "optuna", "solutions": front}
             log.info("Pareto front: %d trial(s)", len(front))
