@@ -124,6 +124,35 @@ def test_a_slow_trial_does_not_delay_the_next_trials_start_on_the_other_worker(t
     assert batch.start == {0: 0.0, 1: 0.0, 2: 10.0, 3: 10.0}
 
 
+class StopLauncher(ClockLauncher):
+    """Job 1 is interrupted by a stop signal: its status.json says so and it returns None."""
+
+    def __init__(self, sweep_dir: Path) -> None:
+        super().__init__({})
+        self.sweep_dir = sweep_dir
+
+    def _return(self, job, overrides):
+        if job == 1:
+            (self.sweep_dir / "1").mkdir(parents=True, exist_ok=True)
+            (self.sweep_dir / "1" / "status.json").write_text('{"state": "interrupted"}')
+            return JobReturn(status=JobStatus.COMPLETED, _return_value=None)
+        return super()._return(job, overrides)
+
+
+def test_an_interrupted_trial_stays_running_and_is_resumed_not_failed(tmp_path):
+    sweep = tmp_path / "s"
+    first = sweep_once(sweep, StopLauncher(sweep), n_trials=3)
+    states = [t.state for t in first.study.get_trials()]
+    assert states == [TrialState.COMPLETE, TrialState.RUNNING, TrialState.COMPLETE]
+    (sweep / "1" / "status.json").unlink()  # its re-run finishes
+    again = ClockLauncher({})
+    second = sweep_once(sweep, again, n_trials=3)
+    assert sorted(again.start) == [1]  # the same trial, in place: no FAIL, no retry, no new one
+    trials = second.study.get_trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE] * 3
+    assert trials[1].params == first.study.get_trials()[1].params
+
+
 def test_the_failure_rate_stops_asking_asynchronously(tmp_path, caplog):
     # every job fails: after n_jobs (2) trials told, 2 of 2 failed > 0.5: no new trial is asked;
     # the other worker's trial in flight (none here: both were the first two) ends

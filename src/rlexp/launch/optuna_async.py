@@ -5,7 +5,9 @@ batches of before (``false``: ``n_jobs`` trials asked, all awaited, all told).
 A trial is one job, or ``hydra.sweeper.trial_seeds=N`` jobs (one per seed, job dirs numbered
 together); it is told once its last job is back: ``FAIL`` if a job failed, ``PRUNED`` if a job's
 ``status.json`` says ``pruned`` (the ``optuna_prune`` hook stopped it), else the job's value, or
-the mean / IQM of its jobs' values (``hydra.sweeper.trial_objective``).
+the mean / IQM of its jobs' values (``hydra.sweeper.trial_objective``). A trial whose job a stop
+signal interrupted (``status.json``: ``interrupted``) is not told: it stays RUNNING and the same
+command resumes it in place, as one the sweep was killed in.
 
 The launcher runs the jobs: ``launch_stream(n_jobs, take, done)`` where it has one (rlexp's
 ``hydra/launcher=local`` and ``slurm``: a job starts the moment a slot is free), else its ``launch``
@@ -125,6 +127,9 @@ class TrialLoop:
         if len(trial.values) < len(trial.jobs):
             return
         state, values = self._outcome(trial)
+        if state is None:  # a stop signal interrupted it: RUNNING, resumed in place on a re-run
+            log.info("trial %d (job %s) interrupted: left to resume", trial.number, trial.jobs)
+            return
         if self.batch:
             self.told.append((trial.number, (state, values, trial)))
         else:
@@ -150,9 +155,12 @@ class TrialLoop:
         )
 
     def _outcome(self, trial: Trial) -> tuple[Any, list[float] | None]:
+        """(state, values) to tell; (None, None): a job was interrupted, the trial stays RUNNING."""
         from optuna.trial import TrialState
 
         states = [job_state(self.sweep.sweep_dir / str(j)) for j in trial.jobs]
+        if "interrupted" in states:
+            return None, None
         if "pruned" in states:
             return TrialState.PRUNED, None
         got = [trial.values[j] for j in trial.jobs]
