@@ -105,13 +105,15 @@ def test_samplers_and_pruners_are_named_by_short_names_or_allowlisted_targets():
     nested = {"_target_": "optuna.samplers.CmaEsSampler", "independent_sampler": evil}
     with pytest.raises(ValueError, match=r"sampler.independent_sampler._target_='os.system'"):
         leaf("sampler", nested, optuna_study.SAMPLERS)
-    # a pruner needs intermediate values, which rlexp's trials do not report: only nop passes
-    optuna_study.check_pruner(leaf("p", "nop", optuna_study.PRUNERS))
-    optuna_study.check_pruner(None)
+    # a pruner judges one objective's intermediate values (the jobs report them, #50): refused
+    # for a multi-objective study only
+    optuna_study.check_pruner(leaf("p", "nop", optuna_study.PRUNERS), 2)
+    optuna_study.check_pruner(None, 2)
+    optuna_study.check_pruner(leaf("p", "median", optuna_study.PRUNERS), 1)
     with pytest.raises(ValueError) as err:
-        optuna_study.check_pruner(leaf("p", "median", optuna_study.PRUNERS))
+        optuna_study.check_pruner(leaf("p", "median", optuna_study.PRUNERS), 2)
     assert "hydra.sweeper.pruner=optuna.pruners.MedianPruner" in str(err.value)
-    assert "hooks=median_stop" in str(err.value)
+    assert "this one has 2 directions" in str(err.value)
     assert optuna_study.directions("MAXIMIZE") == ["maximize"]
     assert optuna_study.directions(["maximize", "minimize"]) == ["maximize", "minimize"]
     with pytest.raises(ValueError, match="hydra.sweeper.direction='up'"):
@@ -244,7 +246,9 @@ def test_a_journal_study_resumes_retries_and_reseeds_in_process(tmp_path):
         "COMPLETE",
         "COMPLETE",
     ]
-    assert trials[3].params == trials[1].params and trials[3].user_attrs == {"rlexp_job": 1, "rlexp_retry_of": 1}  # fmt: skip
+    assert trials[3].params == trials[1].params
+    x = trials[1].params["x"]  # the retry's record: its job dir, seed (the config's: 0), overrides
+    assert trials[3].user_attrs == {"rlexp_job": 1, "rlexp_retry_of": 1, "rlexp_jobs": [1], "rlexp_seeds": [0], "rlexp_overrides": [f"x={x}", f"y={trials[1].params['y']}"], "rlexp_sweep": str(sweep.resolve())}  # fmt: skip
     assert trials[4].params == draws(optuna.samplers.RandomSampler(seed=10), 1)[0]
     results = OmegaConf.load(sweep / "optimization_results.yaml")
     best = max((t for t in trials if t.value is not None), key=lambda t: t.value)
@@ -319,7 +323,10 @@ def test_a_bad_sweeper_config_is_refused_before_the_sweep_starts(tmp_path):
 
     base = ["-m", "hydra/sweeper=optuna", f"hydra.sweep.dir={tmp_path / 's'}", "seed=0"]
     for extra, message in [
-        (["hydra.sweeper.pruner=median"], "hydra.sweeper.pruner=optuna.pruners.MedianPruner"),
+        (
+            ["hydra.sweeper.pruner=median", "trainer.eval_every=0"],
+            "hydra.sweeper.pruner=MedianPruner: trainer.eval_every=0, so the trials never evaluate",
+        ),
         (["hydra.sweeper.sampler=tpx"], "did you mean 'tpe'"),
         (["algorithm.lr=tag(lg,interval(1e-4,1e-2))"], "unknown tag(s) ['lg']"),
         (["hydra.sweeper.max_failure_rate=2"], "hydra.sweeper.max_failure_rate=2"),

@@ -5,7 +5,8 @@ of its own, so one that dies (the OOM killer) never takes the others down
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from hydra.core.utils import JobReturn
 
@@ -26,3 +27,12 @@ class RlexpJoblibLauncher(JoblibLauncher):
         from rlexp.launch.job_pool import launch_jobs
 
         return launch_jobs(self, job_overrides, initial_job_idx)
+
+    def launch_stream(
+        self, n_jobs: int, take: Callable[[], Any], done: Callable[[int, JobReturn], None]
+    ) -> None:
+        """An asynchronous Optuna sweep's jobs: the next one starts as soon as one of ``n_jobs``
+        ends (``rlexp.launch.job_pool.stream_jobs``)."""
+        from rlexp.launch.job_pool import stream_jobs
+
+        stream_jobs(self, n_jobs, take, done)

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,9 @@ from rlexp.launch.slurm import RequeueOnPreemption
 
 log = logging.getLogger(__name__)
 
+#: How often an asynchronous sweep looks at its SLURM jobs (s).
+POLL_S = 1.0
+
 
 class RlexpSlurmLauncher(RequeueOnPreemption, SlurmLauncher):
     """Submits each sweep job as a SLURM array task; a job stopped by SLURM's signal requeues.
@@ -39,10 +43,44 @@ class RlexpSlurmLauncher(RequeueOnPreemption, SlurmLauncher):
         self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int
     ) -> list[JobReturn]:
         """As ``BaseSubmititLauncher.launch`` (hydra-submitit-launcher 1.2), except the results."""
-        import submitit
-
         if self.config is None or not job_overrides:
             raise RuntimeError("RlexpSlurmLauncher.launch needs setup() first and at least one job")
+        executor = self._executor()
+        job_params = [self._job_args(initial_job_idx + i, ov) for i, ov in enumerate(job_overrides)]
+        jobs = executor.map_array(self, *zip(*job_params, strict=True))
+        return self.collect(jobs, job_overrides, initial_job_idx)
+
+    def launch_stream(
+        self, n_jobs: int, take: Callable[[], Any], done: Callable[[int, JobReturn], None]
+    ) -> None:
+        """An asynchronous Optuna sweep's jobs (``rlexp.launch.optuna_async``): one SLURM job
+        submitted per ``take()`` (job number, overrides) as soon as fewer than ``n_jobs`` are
+        queued or running; ``done(job number, JobReturn)`` as each ends (polled every
+        :data:`POLL_S` s). ``take()`` may say None (no more) or ``"wait"`` (none until one ends)."""
+        if self.config is None:
+            raise RuntimeError("RlexpSlurmLauncher.launch_stream needs setup() first")
+        executor = self._executor()
+        running: dict[int, tuple[Any, list[str]]] = {}
+        more = True
+        while more or running:
+            while more and len(running) < n_jobs:
+                item = take()
+                if item is None or item == "wait":
+                    more = item is not None
+                    break
+                idx, overrides = item
+                running[idx] = (executor.submit(self, *self._job_args(idx, overrides)), overrides)
+            ended = [idx for idx, (job, _) in running.items() if job.done()]
+            if not ended:
+                time.sleep(POLL_S)
+            for idx in ended:
+                job, overrides = running.pop(idx)
+                done(idx, self.collect([job], [overrides], idx)[0])
+
+    def _executor(self) -> Any:
+        """submitit's executor with this launcher's parameters (as hydra-submitit-launcher)."""
+        import submitit
+
         params = self.params
         init_params = {"folder": params["submitit_folder"]}
         specific_init_keys = {"max_num_timeout"}
@@ -64,21 +102,12 @@ class RlexpSlurmLauncher(RequeueOnPreemption, SlurmLauncher):
         sweep_dir.mkdir(parents=True, exist_ok=True)
         if "mode" in self.config.hydra.sweep:
             os.chmod(sweep_dir, mode=int(str(self.config.hydra.sweep.mode), 8))
-        job_params: list[Any] = []
-        for idx, overrides in enumerate(job_overrides):
-            idx = initial_job_idx + idx
-            log.info("\t#%d : %s", idx, " ".join(filter_overrides(overrides)))
-            job_params.append(
-                (
-                    list(overrides),
-                    "hydra.sweep.dir",
-                    idx,
-                    f"job_id_for_{idx}",
-                    Singleton.get_state(),
-                )
-            )
-        jobs = executor.map_array(self, *zip(*job_params, strict=True))
-        return self.collect(jobs, job_overrides, initial_job_idx)
+        return executor
+
+    def _job_args(self, idx: int, overrides: Sequence[str]) -> tuple[Any, ...]:
+        """What ``BaseSubmititLauncher.__call__`` takes for job ``idx`` (logged as Hydra does)."""
+        log.info("\t#%d : %s", idx, " ".join(filter_overrides(overrides)))
+        return (list(overrides), "hydra.sweep.dir", idx, f"job_id_for_{idx}", Singleton.get_state())
 
     def collect(
         self, jobs: Sequence[Any], job_overrides: Sequence[Sequence[str]], initial_job_idx: int

@@ -21,8 +21,10 @@ class OptunaSweeperConfig:
     # A short name (tpe, random, cmaes, gp, qmc, nsgaii, nsgaiii, grid, bruteforce) or a dict with
     # _target_ optuna.samplers.*; the hydra/sweeper/sampler group holds the dicts (default: tpe).
     sampler: Any = None
-    # null or nop: the trials report no intermediate values, so Optuna's pruners could not prune
-    # (rlexp's hooks=median_stop stops weak trials); any other pruner is refused in one line.
+    # null (none), or a short name (median, percentile, successive_halving, hyperband, threshold,
+    # patient, wilcoxon, nop) or a dict with _target_ optuna.pruners.*: each trial's job reports
+    # its eval/episode_return at every evaluation to the study and stops (status pruned) when
+    # the pruner says so (docs/sweeps.md, "Pruning").
     pruner: Any = None
     # maximize (rlexp's trials return their final eval/episode_return) or minimize; a list for
     # several objectives.
@@ -44,6 +46,14 @@ class OptunaSweeperConfig:
     search_space: dict[str, Any] | None = None
     # module.function(cfg, trial) that suggests more parameters on each new trial.
     custom_search_space: str | None = None
+    # true: each of the n_jobs workers takes the next trial as soon as its job ends (no barrier);
+    # false: batches of n_jobs trials, the next batch asked once the whole batch is back.
+    async_trials: bool = True
+    # Seeds (jobs) per trial: seed, seed+1, ... (the same for every trial); the trial's value is
+    # their trial_objective.
+    trial_seeds: int = 1
+    # How a trial of several seeds scores: mean or iqm (the interquartile mean).
+    trial_objective: str = "mean"
 
 
 ConfigStore.instance().store(

@@ -54,7 +54,7 @@ NOT_CONFIGURATION = (
 )
 #: Runs shown side by side in the differences table; more are summarised per value.
 SIDE_BY_SIDE = 6
-RESULT_STATES = ("finished", "stopped_early")
+RESULT_STATES = ("finished", "stopped_early", "pruned")
 
 
 @dataclass

@@ -43,7 +43,7 @@ SKIP_DIRS = frozenset({"tensorboard", "checkpoints", "wandb", "__pycache__"})
 TAIL_BYTES = 256 * 1024
 #: What the status column shows: status.json's states, and died | stalled | running? | unknown.
 STATES = tuple(
-    "running finished stopped_early interrupted stopped failed died stalled running? unknown".split()
+    "running finished stopped_early pruned interrupted stopped failed died stalled running? unknown".split()
 )
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 log = logging.getLogger(__name__)

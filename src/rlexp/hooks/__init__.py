@@ -6,6 +6,7 @@ Layer 2 (pieces). May import: layers 0-1 and the other pieces (``pbt``, ``checkp
 
 from rlexp.hooks import (
     builtin,  # noqa: F401,E402  (registers stop_at, schedule, ...)
+    optuna_prune,  # noqa: F401,E402  (registers optuna_prune: an Optuna sweep's pruning)
     pbt,  # noqa: F401,E402  (registers pbt: Population Based Training)
 )
 from rlexp.hooks.base import (

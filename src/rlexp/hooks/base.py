@@ -8,7 +8,7 @@ Trainer. The points, in the order the Trainer fires them in one iteration:
 ``update_end`` (``state.losses``), ``log`` (``state.metrics``: what is about to be written; a hook
 may add keys with ``control.log``), ``eval_end`` (``state.eval_metrics``), ``checkpoint``
 (``state.checkpoint``), and once at the end ``train_end`` (``state.status``: finished,
-stopped_early, interrupted or failed).
+stopped_early, pruned, interrupted or failed).
 
 Stops and hyperparameter changes are *decisions*: they are queued and applied by the Trainer at two
 points every rank reaches together (before the update, and at the end of the iteration), with rank
@@ -37,7 +37,10 @@ from rlexp.config.native_task import ParamRule, Unchecked, check_params, plain
 #: The hook points, in the order the Trainer fires them.
 POINTS = ("train_start", "rollout_end", "update_end", "log", "eval_end", "checkpoint", "train_end")
 #: How a run can end, as ``train_end`` tells it.
-END_STATUSES = ("finished", "stopped_early", "interrupted", "failed")
+END_STATUSES = ("finished", "stopped_early", "pruned", "interrupted", "failed")
+#: The statuses a hook's stop may end a run with: a result either way (exit 0, a checkpoint);
+#: ``pruned``: an Optuna pruner decided (``rlexp.hooks.optuna_prune``).
+STOP_STATUSES = ("stopped_early", "pruned")
 
 HOOK_FUNCS: dict[str, Callable[..., Any]] = {}
 _ALLOWED_MODULES: list[str] = ["rlexp.hooks."]
@@ -104,6 +107,7 @@ class Decisions:
     """What hooks decided in one stretch of the loop: applied together, the same on every rank."""
 
     stop: str | None = None  # the reason of the first stop request
+    stop_status: str = "stopped_early"  # the status the run ends with (STOP_STATUSES)
     set: dict[str, float] = field(default_factory=dict)  # hyperparameter -> value (last wins)
     load: str | None = None  # a checkpoint whose training state replaces this run's (PBT's exploit)
 
@@ -127,9 +131,14 @@ class HookControl:
             raise ValueError(f"{self.where}: log key must be a non-empty string, got {key!r}")
         self.logged[key] = float(value)
 
-    def request_stop(self, reason: str) -> None:
+    def request_stop(self, reason: str, status: str = "stopped_early") -> None:
+        """Stop at the next safe point; ``status``: how the run ends (``pruned`` for a trial an
+        Optuna pruner stopped)."""
+        if status not in STOP_STATUSES:
+            raise ValueError(f"{self.where}: stop status {status!r}; choose from {STOP_STATUSES}")
         if self.decisions.stop is None:
             self.decisions.stop = f"{reason} ({self.where})" if self.where else str(reason)
+            self.decisions.stop_status = status
 
     def set(self, name: str, value: float) -> None:
         if name not in self._mutable:
@@ -212,6 +221,8 @@ class HookManager:
         self.hooks: list[tuple[str, tuple[str, ...], Callable[..., Any]]] = []
         self.control = HookControl(mutable)
         self.loader = loader  # applies ``load_state`` decisions: (checkpoint, algorithm)
+        self.stop_status = "stopped_early"  # how a hook's stop ends the run: the first stop's
+        self._stopped = False
         for name, cfg in hooks.items():
             where = f"hooks.{name}"
             func, params = check_hook(cfg.func, cfg.params, where)
@@ -251,6 +262,8 @@ class HookManager:
         decisions, self.control.decisions = self.control.decisions, Decisions()
         if gather is not None:
             decisions = gather(decisions)[0]
+        if decisions.stop is not None and not self._stopped:
+            self.stop_status, self._stopped = decisions.stop_status, True
         if decisions.load is not None and self.loader is not None:
             self.loader(Path(decisions.load), algorithm)
         for name, value in decisions.set.items():

@@ -28,6 +28,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from rlexp.launch.sweep_stop import exit_stopped
+
 log = logging.getLogger(__name__)
 
 #: How often the sweep's process looks at its job processes when nothing else wakes it (s).
@@ -136,9 +138,15 @@ def record_died(job: Job) -> None:
         log.error("could not record the death of job %s: %s", job.label, exc)
 
 
+#: What ``take`` returns when no job may start now, but one may once a running job has ended.
+WAIT = "wait"
+
+
 class JobPool:
-    """Runs ``jobs`` through ``start(job)`` (which spawns its process), ``n_jobs`` at a time;
-    ``stopping()`` says when no further job may start."""
+    """Runs jobs through ``start(job)`` (which spawns its process), ``n_jobs`` at a time, taking the
+    next one from ``take()`` as soon as a slot is free (None: no more jobs; :data:`WAIT`: none now,
+    ask again when a job ended); ``ended(job)`` once each job is reaped; ``stopping()`` says when no
+    further job may start."""
 
     def __init__(self, n_jobs: int, stopping: Callable[[], int | None]) -> None:
         self.n_jobs = n_jobs
@@ -148,30 +156,38 @@ class JobPool:
     def pids(self) -> list[int]:
         return [j.process.pid for j in self.running if j.process is not None and j.process.pid]
 
-    def run(self, jobs: list[Job], start: Callable[[Job], None]) -> None:
-        waiting = list(jobs)
-        while waiting or self.running:
+    def run(
+        self,
+        take: Callable[[], Any],
+        start: Callable[[Job], None],
+        ended: Callable[[Job], None] = lambda job: None,
+    ) -> None:
+        more = True
+        while more or self.running:
             signum = self.stopping()
-            while waiting and len(self.running) < self.n_jobs and signum is None:
-                job = waiting.pop(0)
+            while more and len(self.running) < self.n_jobs and signum is None:
+                job = take()
+                if job is None or job == WAIT:
+                    more = job is not None
+                    break
                 start(job)
                 self.running.append(job)
-            if signum is not None and waiting:
-                name = signal.Signals(signum).name
-                for job in waiting:
-                    log.warning("%s: the sweep is stopping; job %s not started", name, job.label)
-                waiting = []
+            if signum is not None and more:
+                more = False  # no further job starts (launch_jobs names the ones left)
             if not self.running:
+                if more:  # WAIT with nothing running would wait for ever
+                    raise RuntimeError("the job pool was told to wait with no job running")
                 continue
             # a job's pipe only until its result came: a closed pipe is always ready (a busy loop)
             handles = [j.process.sentinel for j in self.running]
             handles += [j.conn for j in self.running if j.result is None]
             multiprocessing.connection.wait(handles, timeout=POLL_S)
             for job in list(self.running):
-                self._collect(job)
+                if self._collect(job):
+                    ended(job)
 
-    def _collect(self, job: Job) -> None:
-        """Take the job's result if it sent one; once its process ended, reap it."""
+    def _collect(self, job: Job) -> bool:
+        """Take the job's result if it sent one; once its process ended, reap it (True)."""
         if job.result is None:
             try:
                 if job.conn.poll():
@@ -179,7 +195,7 @@ class JobPool:
             except (EOFError, OSError):
                 pass
         if job.process.is_alive():
-            return
+            return False
         job.process.join()
         if job.result is None:
             try:  # sent just before it ended
@@ -191,6 +207,7 @@ class JobPool:
         self.running.remove(job)
         if job.result is None:
             record_died(job)
+        return True
 
 
 def launch_jobs(
@@ -198,59 +215,112 @@ def launch_jobs(
 ) -> list:
     """The joblib launcher's ``launch`` on :class:`JobPool`: every job's ``JobReturn`` (a dead
     job's is a completed one with no value, as a failed job's: its status.json says why)."""
-    import cloudpickle
-    from hydra.core.singleton import Singleton
-    from hydra.core.utils import JobReturn, JobStatus, filter_overrides, setup_globals
-    from hydra_plugins.hydra_joblib_launcher._core import execute_job
+    from hydra.core.utils import filter_overrides
 
-    from rlexp.launch.sweep_stop import ParentStop, exit_stopped
-
-    setup_globals()
-    config = launcher.config
-    sweep_dir = Path(str(config.hydra.sweep.dir))
-    sweep_dir.mkdir(parents=True, exist_ok=True)
     n_jobs = n_jobs_of(launcher.joblib.get("n_jobs"))
     log.info(
         "rlexp's job pool (n_jobs=%d, one process per job) is launching %d jobs",
         n_jobs,
         len(job_overrides),
     )
-    log.info("Launching jobs, sweep output dir : %s", sweep_dir)
+    pool = _Pool(launcher, n_jobs)
     jobs = []
     for i, overrides in enumerate(job_overrides):
         idx = initial_job_idx + i
         log.info("\t#%d : %s", idx, " ".join(filter_overrides(overrides)))
         jobs.append(Job(idx, overrides, _run_dir(launcher, overrides, idx)))
-    singleton_state = Singleton.get_state()
-    ctx = multiprocessing.get_context("spawn")
-    parent = os.getpid()
+    waiting = list(jobs)
+    stop = pool.run(lambda: waiting.pop(0) if waiting else None, lambda job: None)
+    for job in jobs if stop.signum is not None else ():
+        if job.process is None:
+            log.warning("%s: the sweep is stopping; job %s not started", stop.name, job.label)
+    returns = [pool.job_return(job) for job in jobs]
+    if stop.signum is not None:
+        exit_stopped(str(pool.sweep_dir), stop)
+    return returns
 
-    def start(job: Job) -> None:
-        args = (job.idx, job.overrides, launcher.hydra_context, config, launcher.task_function,
-                singleton_state)  # fmt: skip
+
+def stream_jobs(
+    launcher: Any,
+    n_jobs: int,
+    take: Callable[[], Any],
+    done: Callable[[int, Any], None],
+) -> None:
+    """Jobs taken one at a time as a slot frees (an asynchronous Optuna sweep): ``take()`` gives
+    (job number, overrides), None (no more) or :data:`WAIT`; ``done(job number, JobReturn)`` as
+    each ends, in the sweep's main thread. A stop signal ends the sweep as :func:`launch_jobs`
+    does, once the running jobs are back."""
+    from hydra.core.utils import filter_overrides
+
+    pool = _Pool(launcher, n_jobs)
+    log.info("rlexp's job pool (n_jobs=%d, one process per job): asynchronous trials", n_jobs)
+
+    def next_job() -> Any:
+        item = take()
+        if item is None or item == WAIT:
+            return item
+        idx, overrides = item
+        log.info("\t#%d : %s", idx, " ".join(filter_overrides(overrides)))
+        return Job(idx, overrides, _run_dir(launcher, overrides, idx))
+
+    stop = pool.run(next_job, lambda job: done(job.idx, pool.job_return(job)))
+    if stop.signum is not None:
+        exit_stopped(str(pool.sweep_dir), stop)
+
+
+class _Pool:
+    """The launcher's jobs in spawned processes: how one starts, and its ``JobReturn``."""
+
+    def __init__(self, launcher: Any, n_jobs: int) -> None:
+        from hydra.core.singleton import Singleton
+        from hydra.core.utils import setup_globals
+
+        setup_globals()
+        self.launcher, self.n_jobs = launcher, n_jobs
+        self.sweep_dir = Path(str(launcher.config.hydra.sweep.dir))
+        self.sweep_dir.mkdir(parents=True, exist_ok=True)
+        log.info("Launching jobs, sweep output dir : %s", self.sweep_dir)
+        self.singleton_state = Singleton.get_state()
+        self.ctx = multiprocessing.get_context("spawn")
+        self.parent = os.getpid()
+
+    def start(self, job: Job) -> None:
+        import cloudpickle
+        from hydra_plugins.hydra_joblib_launcher._core import execute_job
+
+        lc = self.launcher
+        args = (job.idx, job.overrides, lc.hydra_context, lc.config, lc.task_function,
+                self.singleton_state)  # fmt: skip
         payload = cloudpickle.dumps((execute_job, args))
-        reader, writer = ctx.Pipe(duplex=False)
-        job.process = ctx.Process(target=_job_main, args=(payload, writer, parent), daemon=False)
+        reader, writer = self.ctx.Pipe(duplex=False)
+        job.process = self.ctx.Process(
+            target=_job_main, args=(payload, writer, self.parent), daemon=False
+        )
         job.process.start()
         writer.close()
         job.conn = reader
 
-    stop_holder: list[ParentStop] = []
-    pool = JobPool(n_jobs, lambda: stop_holder[0].signum if stop_holder else None)
-    with ParentStop(pool.pids) as stop:
-        stop_holder.append(stop)
-        pool.run(jobs, start)
-    returns = []
-    for job in jobs:
+    def run(self, take: Callable[[], Any], ended: Callable[[Job], None]) -> Any:
+        """:meth:`JobPool.run` under :class:`ParentStop`; returns the stop (``signum`` or None)."""
+        from rlexp.launch.sweep_stop import ParentStop
+
+        stop_holder: list[ParentStop] = []
+        pool = JobPool(self.n_jobs, lambda: stop_holder[0].signum if stop_holder else None)
+        with ParentStop(pool.pids) as stop:
+            stop_holder.append(stop)
+            pool.run(take, self.start, ended)
+        return stop
+
+    def job_return(self, job: Job) -> Any:
+        """The job's ``JobReturn``; a dead or never started job's: completed with no value."""
+        import cloudpickle
+        from hydra.core.utils import JobReturn, JobStatus
+
         if job.result is not None:
-            returns.append(cloudpickle.loads(job.result))
-            continue
-        ret = JobReturn(overrides=job.overrides, working_dir=str(job.run_dir or sweep_dir))
+            return cloudpickle.loads(job.result)
+        ret = JobReturn(overrides=job.overrides, working_dir=str(job.run_dir or self.sweep_dir))
         ret.return_value, ret.status = None, JobStatus.COMPLETED  # died, or never started
-        returns.append(ret)
-    if stop.signum is not None:
-        exit_stopped(str(sweep_dir), stop)
-    return returns
+        return ret
 
 
 def _run_dir(launcher: Any, overrides: Sequence[str], idx: int) -> Path | None:

@@ -37,6 +37,15 @@ DEFAULT_STUDY = "rlexp"
 JOB_ATTR = "rlexp_job"
 #: Trial user attr of a retry: the number of the failed trial it repeats.
 RETRY_ATTR = "rlexp_retry_of"
+#: Trial user attr: every job dir of the trial, one per seed (``hydra.sweeper.trial_seeds``).
+JOBS_ATTR = "rlexp_jobs"
+#: Trial user attr: the ``seed`` each of those jobs ran with, in the same order.
+SEEDS_ATTR = "rlexp_seeds"
+#: Trial user attr: the trial's job overrides without ``seed=`` and the pruning hook's.
+OVERRIDES_ATTR = "rlexp_overrides"
+#: Trial user attr: the sweep dir (absolute) whose job dirs the trial runs in: sweeps of other dirs
+#: may share the study (their trials inform the sampler, never this sweep's plan).
+SWEEP_ATTR = "rlexp_sweep"
 
 #: Short names of ``hydra.sweeper.sampler`` (also the options of ``hydra/sweeper/sampler``).
 SAMPLERS = {
@@ -125,16 +134,14 @@ def build(cfg: dict[str, Any] | None, **kwargs: Any) -> Any:
     return instantiate({**cfg, **kwargs}, _convert_="all")
 
 
-def check_pruner(cfg: dict[str, Any] | None) -> None:
-    """Only ``NopPruner`` (or none): rlexp's trials are whole runs in other processes that report
-    no intermediate values to the study, and Optuna prunes only from those."""
-    if cfg is None or cfg["_target_"] == PRUNERS["nop"]:
+def check_pruner(cfg: dict[str, Any] | None, n_objectives: int = 1) -> None:
+    """A pruner prunes from one objective's intermediate values: none for several directions."""
+    if cfg is None or cfg["_target_"] == PRUNERS["nop"] or n_objectives == 1:
         return
     raise StudyConfigError(
-        f"hydra.sweeper.pruner={cfg['_target_']}: rlexp's trials report no intermediate values to "
-        "the study (each is a whole run in its own process), so an Optuna pruner would never "
-        "prune; set hydra.sweeper.pruner=null (or nop) and stop weak trials with rlexp's "
-        "median_stop hook (hooks=median_stop, docs/hooks.md)"
+        f"hydra.sweeper.pruner={cfg['_target_']}: Optuna prunes single-objective studies only, "
+        f"this one has {n_objectives} directions (hydra.sweeper.direction); set "
+        "hydra.sweeper.pruner=null"
     )
 
 
@@ -226,6 +233,34 @@ def job_of(trial: Any) -> int | None:
     """The job number a trial ran in (None: a trial rlexp did not launch)."""
     job = trial_attr(trial, JOB_ATTR)
     return job if isinstance(job, int) and not isinstance(job, bool) else None
+
+
+def in_sweep(trial: Any, sweep_dir: str) -> bool:
+    """The trial runs in ``sweep_dir`` (one without :data:`SWEEP_ATTR`: a sweep before it, or the
+    only one: in every sweep dir)."""
+    where = trial_attr(trial, SWEEP_ATTR)
+    return where is None or where == sweep_dir
+
+
+def jobs_of(trial: Any) -> list[int]:
+    """Every job number of a trial (:data:`JOBS_ATTR`; a trial before it: its one job)."""
+    jobs = trial_attr(trial, JOBS_ATTR)
+    if isinstance(jobs, list) and jobs and all(isinstance(j, int) for j in jobs):
+        return list(jobs)
+    job = job_of(trial)
+    return [] if job is None else [job]
+
+
+def seeds_of(trial: Any) -> list[int]:
+    """The seeds of a trial's jobs (:data:`SEEDS_ATTR`; [] for a trial that did not record them)."""
+    seeds = trial_attr(trial, SEEDS_ATTR)
+    return list(seeds) if isinstance(seeds, list) else []
+
+
+def overrides_of(trial: Any) -> list[str]:
+    """A trial's overrides (:data:`OVERRIDES_ATTR`): its parameters, then the fixed overrides."""
+    overrides = trial_attr(trial, OVERRIDES_ATTR)
+    return [str(o) for o in overrides] if isinstance(overrides, list) else []
 
 
 def study_file(sweep_dir: Path) -> Path | None:

@@ -2,15 +2,21 @@
 Optuna >= 4, whose study lives in the sweep dir, so that re-running the same
 ``python train.py -m ...`` command continues the sweep.
 
-Each batch of ``n_jobs`` trials is asked (``study.ask(distributions)``), launched through Hydra's
-launcher (basic, ``hydra/launcher=local``, ``slurm``), and told its job's value or ``FAIL``
-(``study.tell``). Hydra's own sweepers cannot resume (facebookresearch/hydra#3328): they ask
+Each of ``n_jobs`` workers takes the next trial (``study.ask(distributions)``) as soon as its
+previous job ended, no batch barrier (``hydra.sweeper.async_trials``; ``false``: batches of
+``n_jobs`` trials, all awaited), launched through Hydra's launcher (basic, ``hydra/launcher=local``,
+``slurm``), and tells its value, ``PRUNED`` or ``FAIL`` (``study.tell``; the loop:
+``rlexp.launch.optuna_async``). A trial may be ``hydra.sweeper.trial_seeds=N`` jobs, one per seed,
+scored by their mean or IQM. With ``hydra.sweeper.pruner``, each job reports its evaluations to
+its trial and stops ``pruned`` when the pruner says so (the ``optuna_prune`` hook,
+``rlexp.hooks.optuna_prune``). Hydra's own sweepers cannot resume (facebookresearch/hydra#3328): they ask
 ``n_trials`` new trials on every run and number the job dirs from 0, over the earlier trials' dirs.
 Here:
 
 - the study is kept in ``hydra.sweeper.storage``, by default ``<sweep dir>/optuna.journal``
   (Optuna's JournalStorage, safe on a cluster's shared file system; ``rlexp.launch.optuna_study``);
-  only this process writes it: the trials' jobs never open it;
+  only this process asks and tells trials; the trials' jobs open it (from any machine) only to
+  report intermediate values when a pruner is configured;
 - ``n_trials`` is the study's total: each trial owns a job dir named by its job number
   (``hydra.job.num``; the trial number unless a failed trial was retried), recorded on the trial
   (user attr ``rlexp_job``). A re-run keeps the finished trials and their dirs untouched, re-runs
@@ -30,7 +36,6 @@ Here:
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import sys
@@ -39,36 +44,58 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import DictConfig, OmegaConf
 
 from rlexp.files.fsutil import HolderBusy, HolderLock
-from rlexp.launch import optuna_space, optuna_study
+from rlexp.launch import optuna_async, optuna_plan, optuna_space, optuna_study
+from rlexp.launch.optuna_plan import (  # noqa: F401  (batches, trial_value: the plan's API here too)
+    ENDED,
+    Work,
+    batches,
+    check_evaluates,
+    finished_value,
+    override_value,
+    plan_work,
+    tell,
+    trial_value,
+)
 from rlexp.launch.optuna_space import SearchSpaceError
-from rlexp.launch.optuna_study import JOB_ATTR, RETRY_ATTR, StudyConfigError, job_of
+from rlexp.launch.optuna_study import (
+    JOB_ATTR,
+    RETRY_ATTR,
+    SWEEP_ATTR,
+    StudyConfigError,
+    in_sweep,
+    job_of,
+    jobs_of,
+    seeds_of,
+)
 
 log = logging.getLogger(__name__)
 
 #: Held by the sweep that runs the study (flock), with its pid and host for the one that is refused.
 LOCK_FILE = "optuna.lock"
 #: What rlexp's task function returns for a trial (``rlexp.app._task``): its final eval return.
-OBJECTIVE = "eval/episode_return"
+OBJECTIVE = optuna_plan.OBJECTIVE
 #: Exit code when the sweep cannot start (the dir is in use, the storage cannot be opened).
 EXIT_REFUSED = 2
 
 
+#: A RUNNING trial without a job this old was left by a sweep killed between ``ask`` and recording
+#: the trial's job (a moment); a younger one may be another sweep's of a shared study, just asked.
+ORPHAN_AGE_S = 60.0
+
+
+def _orphaned(trial: Any) -> bool:
+    """``trial`` (RUNNING, no job recorded) was asked :data:`ORPHAN_AGE_S` ago or more."""
+    import datetime
+
+    start = trial.datetime_start
+    return start is None or (datetime.datetime.now() - start).total_seconds() >= ORPHAN_AGE_S
+
+
 class SweepRefused(Exception):
     """The sweep cannot start: one line for the user, then exit :data:`EXIT_REFUSED`."""
-
-
-@dataclass
-class Work:
-    """One trial to launch: a killed trial re-run in place, a failed one retried, or a new one."""
-
-    kind: str  # "resume" | "retry" | "new"
-    job: int
-    trial: Any = None  # resume: the RUNNING FrozenTrial
-    retry_of: Any = None  # retry: the failed FrozenTrial
 
 
 @dataclass
@@ -82,6 +109,11 @@ class SweepSpec:
     fixed: dict[str, str]
     custom: Callable[[DictConfig, Any], None] | None = None
     grid: dict[str, list[Any]] | None = field(default=None)
+
+    @property
+    def prunes(self) -> bool:
+        """A pruner that needs the jobs' intermediate values (any but none and ``nop``)."""
+        return self.pruner is not None and self.pruner["_target_"] != optuna_study.PRUNERS["nop"]
 
 
 class SweepLock:
@@ -105,95 +137,15 @@ class SweepLock:
         self._lock.release()
 
 
-def plan_work(trials: Sequence[Any], n_trials: int) -> tuple[list[Work], dict[int, Any]]:
-    """What a (re-)run of the study does: per job dir its latest trial decides (RUNNING: killed,
-    re-run in place; FAIL: retried; COMPLETE/PRUNED: kept), then new trials up to ``n_trials``
-    job dirs. Returns (the work in job order, the latest trial of every job dir)."""
-    from optuna.trial import TrialState
-
-    heads: dict[int, Any] = {}
-    for t in sorted(trials, key=lambda t: t.number):
-        job = job_of(t)
-        if job is not None:
-            heads[job] = t
-    work = []
-    for job, t in sorted(heads.items()):
-        if t.state == TrialState.RUNNING:
-            work.append(Work("resume", job, trial=t))
-        elif t.state == TrialState.FAIL:
-            work.append(Work("retry", job, retry_of=t))
-    start = max(heads) + 1 if heads else 0
-    work += [Work("new", start + i) for i in range(max(0, n_trials - len(heads)))]
-    return work, heads
-
-
-def batches(work: list[Work], size: int) -> list[list[Work]]:
-    """Runs of at most ``size`` items with consecutive job numbers: a launcher numbers one call's
-    jobs from its first (``initial_job_idx``), and the job number is the job dir."""
-    out: list[list[Work]] = []
-    for item in work:
-        last = out[-1] if out else None
-        if last and len(last) < size and item.job == last[-1].job + 1:
-            last.append(item)
-        else:
-            out.append([item])
-    return out
-
-
-def trial_value(ret: JobReturn, n_objectives: int) -> list[float] | None:
-    """The job's return as the trial's values; None (a failed trial) for rlexp's None (the job
-    failed and said why), a job that raised, or anything not finite."""
-    if ret.status != JobStatus.COMPLETED:
-        return None
-    value = ret.return_value
-    try:
-        values = [float(value)] if n_objectives == 1 else [float(v) for v in value]
-    except (TypeError, ValueError):
-        return None
-    if len(values) != n_objectives or not all(math.isfinite(v) for v in values):
-        return None
-    return values
-
-
-def finished_value(job_dir: Path, overrides: Sequence[str] = ()) -> float | None:
-    """The final :data:`OBJECTIVE` of a job dir whose ``status.json`` says it ran to its end
-    (finished, or stopped early by a hook) with ``overrides`` (its trial's parameters) among its
-    ``.hydra/overrides.yaml``; None otherwise: then the trial is run again in its dir, where the
-    job skips only if its ``config.yaml`` proves the same config (``rlexp.run.proof``)."""
-    try:
-        status = json.loads((job_dir / "status.json").read_text())
-    except (OSError, ValueError):
-        return None
-    if not isinstance(status, dict) or status.get("state") not in ("finished", "stopped_early"):
-        return None
-    missing = sorted(set(overrides) - set(_job_overrides(job_dir)))
-    if missing:
-        log.warning("job dir %s did not run with %s: its result is not taken", job_dir, missing)
-        return None
-    final = status.get("final_eval")
-    value = final.get(OBJECTIVE) if isinstance(final, dict) else None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        return None
-    return float(value)
-
-
-def _job_overrides(job_dir: Path) -> list[str]:
-    """The job dir's ``.hydra/overrides.yaml`` ([] when missing or not a list of strings)."""
-    try:
-        listed = OmegaConf.to_container(OmegaConf.load(job_dir / ".hydra" / "overrides.yaml"))
-    except Exception:
-        return []
-    return [str(o) for o in listed] if isinstance(listed, list) else []
-
-
 def _plain(value: Any) -> Any:
     return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
 
 
-def check_spec(sweeper: Any, arguments: Sequence[str]) -> SweepSpec:
+def check_spec(sweeper: Any, arguments: Sequence[str], job_cfg: Any = None) -> SweepSpec:
     """``hydra.sweeper`` (a mapping of its keys) and the sweep's command-line ``arguments``,
-    checked: a ValueError (``StudyConfigError``, ``SearchSpaceError``) naming the key otherwise.
-    Imports nothing it would have to run."""
+    checked: a ValueError (``StudyConfigError``, ``SearchSpaceError``) naming the key otherwise;
+    ``job_cfg``: the composed config the jobs start from (a pruner needs evaluations during
+    training). Imports nothing it would have to run."""
     get = sweeper.get
     rate = get("max_failure_rate", 1.0)
     if not isinstance(rate, (int, float)) or not 0.0 <= rate <= 1.0:
@@ -204,7 +156,6 @@ def check_spec(sweeper: Any, arguments: Sequence[str]) -> SweepSpec:
     pruner = optuna_study.leaf_config(
         "hydra.sweeper.pruner", _plain(get("pruner")), optuna_study.PRUNERS
     )
-    optuna_study.check_pruner(pruner)
     params = _plain(get("params")) or {}
     lines = [f"{k}={v}" for k, v in params.items()] + list(arguments)
     dists, fixed = optuna_space.search_space(lines)
@@ -214,6 +165,10 @@ def check_spec(sweeper: Any, arguments: Sequence[str]) -> SweepSpec:
         **dists,
     }
     spec = SweepSpec(optuna_study.directions(get("direction")), sampler, pruner, dists, fixed)
+    optuna_study.check_pruner(pruner, len(spec.directions))
+    optuna_async.check_trial_seeds(get("trial_seeds", 1), get("trial_objective", "mean"), dists)
+    if spec.prunes and job_cfg is not None:
+        check_evaluates(pruner, spec, job_cfg)
     if sampler is not None and sampler["_target_"] == optuna_study.SAMPLERS["grid"]:
         spec.grid = {k: optuna_space.grid_choices(k, d) for k, d in dists.items()}
     custom = get("custom_search_space")
@@ -229,16 +184,6 @@ def check_spec(sweeper: Any, arguments: Sequence[str]) -> SweepSpec:
     return spec
 
 
-def _tell(study: Any, number: int, values: Any = None, state: Any = None) -> None:
-    """``study.tell``; the grid and brute-force samplers call ``study.stop()`` once every point is
-    asked, which Optuna refuses outside ``optimize`` (the trial is recorded all the same)."""
-    try:
-        study.tell(number, values, state=state)
-    except RuntimeError as exc:
-        if "Study.stop" not in str(exc):
-            raise
-
-
 class OptunaSweep:
     """The resumable ask-and-tell loop described in the module docstring (the Hydra plugin class
     ``hydra_plugins.rlexp_sweeper.RlexpOptunaSweeper`` hands its config here)."""
@@ -250,6 +195,10 @@ class OptunaSweep:
         self.max_failure_rate = float(sweeper.get("max_failure_rate", 1.0))
         self.storage = sweeper.get("storage")
         self.study_name = sweeper.get("study_name")
+        self.trial_seeds = sweeper.get("trial_seeds", 1)  # jobs (seeds) per trial
+        self.trial_objective = sweeper.get("trial_objective", "mean")  # their mean or IQM
+        self.async_trials = bool(sweeper.get("async_trials", True))  # false: batches
+        self.prune_overrides: list[str] = []  # the optuna_prune hook, added to every job
         self.config: DictConfig | None = None
         self.launcher: Any = None
         self.sweep_dir = Path(".")
@@ -273,14 +222,86 @@ class OptunaSweep:
         lock = SweepLock(self.sweep_dir)
         try:
             lock.acquire()
-            spec = check_spec(self.cfg, arguments)
+            spec = check_spec(self.cfg, arguments, self.config)
             self.study = self._open_study(spec)
             self._run(self.study, spec)
+            self.end_of_search(spec)
         except (SweepRefused, StudyConfigError, SearchSpaceError) as exc:
             log.error("%s", exc)
             sys.exit(EXIT_REFUSED)
         finally:
             lock.release()
+
+    def end_of_search(self, spec: SweepSpec) -> None:
+        """Called once the search ended (``n_trials`` reached or stopped by
+        ``max_failure_rate``), after ``optimization_results.yaml``, inside the sweep lock: the
+        confirmation of the best trials on fresh seeds hooks here (/work/wt/OPT_CONTRACT.md)."""
+        return None
+
+    def run_jobs(self, jobs: list[tuple[int, list[str]]]) -> dict[int, Any]:
+        """``jobs`` (job number, overrides) on the sweep's launcher, ``n_jobs`` at a time, each
+        starting as soon as a slot frees: job number -> its ``JobReturn``."""
+        waiting, returns = list(jobs), {}
+        optuna_async.run_loop(
+            self.launcher,
+            self.n_jobs,
+            lambda: waiting.pop(0) if waiting else None,
+            returns.__setitem__,
+        )
+        return returns
+
+    def next_free_job(self) -> int:
+        """A job number above every job dir the study's trials used."""
+        trials = self.mine(self.study) if self.study is not None else []
+        return max((j for t in trials for j in jobs_of(t)), default=-1) + 1
+
+    def base_seed(self, spec: SweepSpec) -> int:
+        """The ``seed`` the jobs compose with: a fixed ``seed=`` override, else the config's."""
+        text = spec.fixed.get(optuna_async.SEED_KEY, "").split("=", 1)[-1]
+        if text.lstrip("-").isdigit():
+            return int(text)
+        seed = OmegaConf.select(self.config, "seed", default=0) if self.config else 0
+        return int(seed) if isinstance(seed, int) else 0
+
+    def seeds_for(self, w: Work, params: dict[str, Any], spec: SweepSpec) -> list[int]:
+        """The seeds of ``w``'s jobs: a re-run's recorded ones, else ``base + k`` for a trial of
+        several seeds (every trial the same: common random numbers), else its one seed."""
+        recorded = (
+            seeds_of(w.trial if w.kind == "resume" else w.retry_of) if w.kind != "new" else []
+        )
+        if len(recorded) == len(w.jobs):
+            return recorded
+        if len(w.jobs) > 1:
+            return [self.base_seed(spec) + k for k in range(len(w.jobs))]
+        searched = params.get(optuna_async.SEED_KEY)
+        return [int(searched)] if isinstance(searched, int) else [self.base_seed(spec)]
+
+    def unit_overrides(self, base: Sequence[str], seed: int | None) -> list[str]:
+        """One job's overrides: the trial's, its own ``seed=`` (a trial of several seeds), and
+        the pruning hook's."""
+        out = list(base)
+        if seed is not None:
+            key = optuna_async.SEED_KEY
+            out = [o for o in out if o.split("=", 1)[0].lstrip("+~") != key] + [f"{key}={seed}"]
+        return out + self.prune_overrides
+
+    def _prune_overrides(self, spec: SweepSpec, study_name: str) -> list[str]:
+        """The ``optuna_prune`` hook as overrides: the storage (an absolute path: a job may run
+        elsewhere), the study, the pruner, and the job's number (``${hydra:job.num}``)."""
+        if not spec.prunes or self.storage is None:
+            return []
+        storage = str(self.storage)
+        for prefix in (optuna_study.JOURNAL, "sqlite:///"):
+            if storage.startswith(prefix) and not storage[len(prefix) :].startswith("/"):
+                storage = prefix + str(Path(storage[len(prefix) :]).resolve())
+        h = "+hooks.optuna_prune"
+        return [
+            f"{h}.func=optuna_prune",
+            f"{h}.params.storage={override_value(storage)}",
+            f"{h}.params.study={override_value(study_name)}",
+            f"{h}.params.job=${{hydra:job.num}}",
+            f"{h}.params.pruner={override_value(spec.pruner)}",
+        ]
 
     def storage_spec(self) -> Any:
         """``hydra.sweeper.storage``; the default journal becomes the sweep dir's ``optuna.db``
@@ -304,6 +325,12 @@ class OptunaSweep:
             )
         self.storage = self.storage_spec()
         storage = optuna_study.make_storage(self.storage)
+        if spec.prunes and self.storage is None:
+            raise StudyConfigError(
+                f"hydra.sweeper.pruner={spec.pruner['_target_']} with hydra.sweeper.storage=null: "  # type: ignore[index]
+                "the trials' jobs report to the study from their own processes and cannot reach "
+                "one in this process's memory; keep the default journal storage"
+            )
         pruner = optuna_study.build(spec.pruner)
         study = optuna_study.open_study(
             storage, self.storage, self.study_name, spec.directions, None, pruner
@@ -332,19 +359,25 @@ class OptunaSweep:
             )
         return sampler
 
+    def mine(self, study: Any) -> list[Any]:
+        """The study's trials that run in this sweep dir (the study may be shared)."""
+        key = str(self.sweep_dir.resolve())
+        return [t for t in study.get_trials(deepcopy=False) if in_sweep(t, key)]
+
     def _run(self, study: Any, spec: SweepSpec) -> None:
         from optuna.trial import TrialState
 
         trials = study.get_trials(deepcopy=False)
-        for t in trials:  # killed between ask() and recording its job: it never ran
-            if t.state == TrialState.RUNNING and job_of(t) is None:
-                _tell(study, t.number, state=TrialState.FAIL)
+        for t in self.mine(study):  # killed between ask() and recording its job: it never ran
+            if t.state == TrialState.RUNNING and job_of(t) is None and _orphaned(t):
+                tell(study, t.number, state=TrialState.FAIL)
         if len(spec.directions) == 1:
             self._tell_finished_jobs(study, spec)
         sampler = self._sampler(spec, len(trials))
         if sampler is not None:
             study.sampler = sampler
-        work, heads = plan_work(study.get_trials(deepcopy=False), self.n_trials)
+        n_seeds = int(self.trial_seeds)
+        work, heads = plan_work(self.mine(study), self.n_trials, n_seeds)
         kept = sum(t.state in (TrialState.COMPLETE, TrialState.PRUNED) for t in heads.values())
         counts = {k: sum(w.kind == k for w in work) for k in ("resume", "retry", "new")}
         log.info(
@@ -358,28 +391,9 @@ class OptunaSweep:
             counts["new"],
             self.n_trials,
         )
-        for batch in batches(work, self.n_jobs):
-            asked = [self._ask(study, spec, w) for w in batch]
-            overrides = [optuna_space.trial_overrides(p, spec.dists, spec.fixed) for _, p in asked]
-            returns = self.launcher.launch(overrides, initial_job_idx=batch[0].job)
-            failed = 0
-            for w, (number, _), ret in zip(batch, asked, returns, strict=True):
-                values = trial_value(ret, len(spec.directions))
-                if values is None:
-                    failed += 1
-                    _tell(study, number, state=TrialState.FAIL)
-                    log.info("trial %d (job %d) failed", number, w.job)
-                else:
-                    _tell(study, number, values)
-            if failed / len(batch) > self.max_failure_rate:
-                log.error(
-                    "stopping the sweep: %d of %d trials of the last batch failed "
-                    "(hydra.sweeper.max_failure_rate=%s)",
-                    failed,
-                    len(batch),
-                    self.max_failure_rate,
-                )
-                break
+        self.prune_overrides = self._prune_overrides(spec, study.study_name)
+        loop = optuna_async.TrialLoop(self, study, spec, work, batch=not self.async_trials)
+        optuna_async.run_loop(self.launcher, self.n_jobs, loop.take, loop.done)
         self._save_results(study, spec.directions)
 
     def _ask(self, study: Any, spec: SweepSpec, w: Work) -> tuple[int, dict[str, Any]]:
@@ -391,6 +405,7 @@ class OptunaSweep:
             study.enqueue_trial(dict(w.retry_of.params))
         trial = study.ask(spec.dists)
         trial.set_user_attr(JOB_ATTR, w.job)
+        trial.set_user_attr(SWEEP_ATTR, str(self.sweep_dir.resolve()))
         if w.kind == "retry":
             trial.set_user_attr(RETRY_ATTR, w.retry_of.number)
         if spec.custom is not None:
@@ -398,24 +413,30 @@ class OptunaSweep:
         return trial.number, dict(trial.params)
 
     def _tell_finished_jobs(self, study: Any, spec: SweepSpec) -> None:
-        """A trial left RUNNING whose job had finished (the sweep was killed while another job of
-        its batch trained: a launcher returns a batch's results together) is told the result its
-        job dir holds, the value rlexp's task function returns on a re-run, and is not launched
-        again: its dir stays as it is."""
+        """A trial left RUNNING whose jobs had all ended (the sweep was killed while another job
+        trained) is told what its job dirs hold (the value rlexp's task function returns on a
+        re-run, or PRUNED) and is not launched again: its dirs stay as they are."""
         from optuna.trial import TrialState
 
-        _, heads = plan_work(study.get_trials(deepcopy=False), 0)
-        for job, t in sorted(heads.items()):
-            if t.state != TrialState.RUNNING:
-                continue
+        _, heads = plan_work(self.mine(study), 0)
+        for t in (t for _, t in sorted(heads.items()) if t.state == TrialState.RUNNING):
+            jobs = jobs_of(t)
             ran_with = optuna_space.trial_overrides(t.params, spec.dists, spec.fixed)
-            value = finished_value(self.sweep_dir / str(job), ran_with)
-            if value is not None:
-                _tell(study, t.number, value)
+            if len(jobs) > 1:  # each job has its own seed= in place of a fixed one
+                ran_with = tuple(o for o in ran_with if not o.startswith("seed="))
+            states = [optuna_async.job_state(self.sweep_dir / str(j)) for j in jobs]
+            if "pruned" in states and all(s in ENDED for s in states):
+                tell(study, t.number, state=TrialState.PRUNED)
+                log.info("trial %d: its job dir(s) %s had ended pruned: told", t.number, jobs)
+                continue
+            values = [finished_value(self.sweep_dir / str(j), ran_with) for j in jobs]
+            if all(v is not None for v in values):
+                value = optuna_async.aggregate([[v] for v in values], self.trial_objective)[0]
+                tell(study, t.number, value)
                 log.info(
-                    "trial %d: its job dir %d had finished (%s = %s): told, not run again",
+                    "trial %d: its job dir %s had finished (%s = %s): told, not run again",
                     t.number,
-                    job,
+                    ",".join(map(str, jobs)),
                     OBJECTIVE,
                     value,
                 )
@@ -425,14 +446,14 @@ class OptunaSweep:
         number and job dir; none when no trial completed (the summary line says why)."""
         from optuna.trial import TrialState
 
-        done = [t for t in study.get_trials(deepcopy=False) if t.state == TrialState.COMPLETE]
+        done = [t for t in self.mine(study) if t.state == TrialState.COMPLETE]
         if not done:
             log.warning(
                 "no trial of study %r completed: no optimization_results.yaml", study.study_name
             )
             return
-        if len(directions) < 2:
-            best = study.best_trial
+        if len(directions) < 2:  # this sweep's best (a shared study holds other sweeps' too)
+            best = (max if directions[0] == "maximize" else min)(done, key=lambda t: t.value)
             results: dict[str, Any] = {
                 "name": "optuna",
                 "best_params": best.params,
@@ -448,9 +469,11 @@ class OptunaSweep:
                 best.value,
             )
         else:
+            numbers = {t.number for t in done}
             front = [
                 {"params": t.params, "values": t.values, "trial": t.number}
                 for t in study.best_trials
+                if t.number in numbers
             ]
             results = {"name": "optuna", "solutions": front}
             log.info("Pareto front: %d trial(s)", len(front))

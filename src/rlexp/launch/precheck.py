@@ -186,7 +186,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
             from rlexp.config.validate import check_known_keys
 
             check_known_keys(OmegaConf.merge(OmegaConf.structured(RootConfig), cfg))
-            check_sweeper(sweeper, args.overrides)
+            check_sweeper(sweeper, args.overrides, cfg)
             check_planned_dir(planned)  # before Hydra creates the sweep dir
             return None
         config = to_root_config(cfg)
@@ -222,7 +222,7 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
     return config
 
 
-def check_sweeper(sweeper: Any, overrides: Sequence[str]) -> None:
+def check_sweeper(sweeper: Any, overrides: Sequence[str], job_cfg: Any = None) -> None:
     """rlexp's Optuna sweeper: its extra is installed and its search space, sampler, pruner,
     storage and direction are usable (``rlexp.launch.optuna_sweeper.check_spec``), before Hydra
     creates the sweep dir."""
@@ -237,7 +237,7 @@ def check_sweeper(sweeper: Any, overrides: Sequence[str]) -> None:
 
     task = [o for o in overrides if not re.match(r"[+~]*hydra[./]", o)]
     try:
-        check_spec(sweeper, task)
+        check_spec(sweeper, task, job_cfg)
     except ValueError as exc:  # StudyConfigError, SearchSpaceError: one line naming the key
         raise ConfigError(str(exc)) from None
 

@@ -275,7 +275,7 @@ def wait_for_generation(
 #: writes them; the local launcher's job pool writes ``failed`` for a job that died): not waited for
 #: in sync mode. ``interrupted`` is not one: a stopped or preempted member may be resumed (SLURM
 #: requeues it) and is waited for up to ``sync_timeout_s`` like a running one.
-ENDED_STATES = ("failed", "stopped_early", "finished")
+ENDED_STATES = ("failed", "stopped_early", "pruned", "finished")
 
 
 def ended_state(member_dir: Path) -> str | None:

@@ -129,8 +129,9 @@ class RunLifecycle:
                 if trainer.eval_env is not None and not trainer.last_eval:
                     trainer.eval_once()
             if trainer.stopped_early is not None:  # a hook ended it: a result, exit 0
-                reason = trainer.stopped_early
-                status("stopped_early", trainer.global_step, trainer.last_eval, reason=reason)
+                reason = trainer.stopped_early  # stopped_early, or pruned (an Optuna pruner's)
+                how = trainer.hooks.stop_status
+                status(how, trainer.global_step, trainer.last_eval, reason=reason)
             else:
                 status("finished", trainer.global_step, trainer.last_eval)
         except StopRequested as exc:

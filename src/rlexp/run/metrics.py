@@ -237,6 +237,7 @@ class TensorBoardBackend:
         status = {
             "finished": api_pb2.STATUS_SUCCESS,
             "stopped_early": api_pb2.STATUS_SUCCESS,
+            "pruned": api_pb2.STATUS_SUCCESS,
         }.get(str(read_status(self.run_dir).get("state")))
         if status is None:
             return

@@ -66,7 +66,7 @@ def finished_result(
     but its ``config.yaml`` is missing or of another config: its result is not this run's."""
     status = read_status(run_dir)
     state, step = status.get("state"), status.get("global_step")
-    done = state == "stopped_early" or (
+    done = state in ("stopped_early", "pruned") or (
         state == "finished" and isinstance(step, int) and step >= total
     )
     if not done:

@@ -100,7 +100,7 @@ def read_status(run_dir: Path) -> dict[str, Any]:
 def write_status(
     run_dir: Path, state: str, global_step: int, final_eval: dict | None = None, **extra: Any
 ) -> None:
-    """``status.json``: running | finished | stopped_early | interrupted | stopped | failed, the step and the last eval
+    """``status.json``: running | finished | stopped_early | pruned | interrupted | stopped | failed, the step and the last eval
     (what sweeps and ``rlexp report`` read to tell finished jobs from unfinished ones). Rank 0 only."""
     from rlexp.runtime.distributed import info
 

@@ -146,7 +146,7 @@ class Trainer:
             if self.dist.enabled:
                 loop.check_ranks_in_sync(self.policy, self.dist.world_size)
             self.save_checkpoint()
-            status = "finished" if self.stopped_early is None else "stopped_early"
+            status = "finished" if self.stopped_early is None else self.hooks.stop_status
         except (StopRequested, KeyboardInterrupt):
             status = "interrupted"
             raise

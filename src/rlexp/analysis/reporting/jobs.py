@@ -25,6 +25,8 @@ SEED_KEYS = ("seed",)
 TIME_KEYS = ("perf/collect_time", "perf/update_time", "perf/eval_time")
 #: The state of a job a hook ended before its budget (``rlexp.hooks``): a result, not a failure.
 STOPPED_EARLY = "stopped_early"
+#: An Optuna trial its pruner stopped (a hook's stop too: its value at the stop is its result).
+PRUNED = "pruned"
 #: Distinct steps read at most from one ``metrics.jsonl`` (memory: ~100 bytes a step and metric).
 MAX_STEPS = 2_000_000
 #: Dirs inside a sweep that hold no job (their files are many: not walked).
@@ -38,7 +40,7 @@ class Job:
     path: Path
     overrides: list[str]
     seed: str | None
-    # finished | stopped_early | running | stopped | interrupted | failed | missing | unreadable
+    # finished | stopped_early | pruned | running | stopped | interrupted | failed | missing | unreadable
     state: str
     global_step: int
     reason: str = ""
@@ -67,12 +69,12 @@ class Job:
     @property
     def stopped_early(self) -> bool:
         """A hook ended it before its budget: a result (its final eval is the value at the stop)."""
-        return self.state == STOPPED_EARLY
+        return self.state in (STOPPED_EARLY, PRUNED)
 
     @property
     def result(self) -> bool:
         """It enters the statistics: finished or stopped early, with a final value of the metric."""
-        return self.state in ("finished", STOPPED_EARLY) and self.final is not None
+        return self.state in ("finished", STOPPED_EARLY, PRUNED) and self.final is not None
 
     @property
     def saved(self) -> int | None:
