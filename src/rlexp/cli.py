@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 # rlexp eval's work (re-exported: ``from rlexp.cli import evaluate``); a light import, torch-free
+from rlexp.analysis.report_cli import threshold_arg
 from rlexp.deploy.policy_eval import evaluate
 
 log = logging.getLogger("rlexp")
@@ -61,16 +62,6 @@ def _at_least_1(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
-
-
-def _threshold(text: str) -> tuple[str | None, float]:
-    """``rlexp report --threshold``: VALUE or METRIC=VALUE (rlexp.analysis.report.parse_threshold)."""
-    from rlexp.analysis.report import parse_threshold
-
-    try:
-        return parse_threshold(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _one_line(exc: BaseException) -> str:
@@ -158,7 +149,7 @@ def _add_runs_parsers(sub: Any) -> None:
     cmp.add_argument("--metric", default="eval/episode_return", help="score and curve metric")
     cmp.add_argument(
         "--threshold",
-        type=_threshold,
+        type=threshold_arg,
         default=None,
         metavar="[METRIC=]VALUE",
         help="also the steps each run took to first reach VALUE in --metric (or METRIC)",
@@ -296,34 +287,9 @@ def _main(argv: list[str]) -> None:
     pbt.add_argument("sweep_dir", help="the PBT sweep's dir (multirun/<date>/<time>)")
     pbt.add_argument("--member", default=None, help="the member (job dir name); default: the best")
     pbt.add_argument("-o", "--output", type=Path, default=None, help="write here (default: print)")
-    rep = sub.add_parser(
-        "report", help="a sweep's per-configuration statistics: report.md, report.csv, curves.png"
-    )
-    rep.add_argument("sweep_dir", help="a multirun dir, e.g. multirun/2026-11-22/10-00-00")
-    rep.add_argument("--metric", default="eval/episode_return", help="score and curve metric")
-    rep.add_argument("--no-plot", action="store_true", help="skip curves.png")
-    rep.add_argument(
-        "--threshold",
-        type=_threshold,
-        default=None,
-        metavar="[METRIC=]VALUE",
-        help="also the steps each seed took to reach VALUE (first time, and 3 logged values in "
-        "a row) in --metric, or in METRIC: e.g. 475, or eval/success_rate=0.9",
-    )
-    rep.add_argument(
-        "--results",
-        action="store_true",
-        default=None,
-        help="the results per env (train/eval return next to published anchors, wall time, "
-        "env steps/s; results.csv, results.png) for a sweep of one env too (automatic over several)",
-    )
-    rep.add_argument(
-        "--results-plot",
-        type=Path,
-        default=None,
-        metavar="PNG",
-        help="also write the results figure here, e.g. docs/results_1m.png (implies --results)",
-    )
+    from rlexp.analysis.report_cli import add_report_parser
+
+    add_report_parser(sub)
     _add_runs_parsers(sub)
     args = parser.parse_args(_sort_values_joined(argv))
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
@@ -332,26 +298,9 @@ def _main(argv: list[str]) -> None:
         _runs_commands(args)
         return
     if args.command == "report":
-        from rlexp.analysis.report import report
-        from rlexp.extras import MissingExtra, require
+        from rlexp.analysis.report_cli import report_command
 
-        try:
-            plots = not args.no_plot or args.results_plot is not None
-            require("report", "rlexp report", None if plots else ("scipy",))
-            threshold_metric, threshold = args.threshold or (None, None)
-            md = report(
-                Path(args.sweep_dir),
-                args.metric,
-                plot=not args.no_plot,
-                threshold=threshold,
-                threshold_metric=threshold_metric,
-                results=args.results,
-                results_plot=args.results_plot,
-            )
-            print(md, end="")
-        except (FileNotFoundError, MissingExtra) as exc:
-            print(f"rlexp report: {exc}", file=sys.stderr)
-            sys.exit(2)
+        report_command(args)
         return
     if args.command == "pbt":
         _pbt_export(args)

@@ -54,6 +54,10 @@ class OptunaSweeperConfig:
     trial_seeds: int = 1
     # How a trial of several seeds scores: mean or iqm (the interquartile mean).
     trial_objective: str = "mean"
+    # After the search: re-run the top_k best trials on `seeds` seeds no trial used, as jobs of
+    # the sweep (dirs 10000, ...); null: no confirmation. {top_k: 3, seeds: 5}. docs/sweeps.md,
+    # "Confirmation on fresh seeds".
+    confirm: Any = None
 
 
 ConfigStore.instance().store(

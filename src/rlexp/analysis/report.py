@@ -29,6 +29,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from rlexp.analysis.reporting.anchors import ANCHORS, SOURCES, Anchor, Source, anchors_for
+from rlexp.analysis.reporting.confirm import confirm_lines
 from rlexp.analysis.reporting.jobs import (
     DEFAULT_METRIC,
     SEED_KEYS,
@@ -204,6 +205,9 @@ def report(
     trials = optuna_markdown(sweep_dir)  # an Optuna sweep: its study's trials
     if trials:
         md += "\n".join(trials) + "\n"
+    confirmed = confirm_lines(sweep_dir)  # the best trials re-run on fresh seeds
+    if confirmed:
+        md += "\n".join(confirmed) + "\n"
     pbt = pbt_markdown(sweep_dir, metric)  # a PBT sweep: best member, schedules, lineage
     if pbt:
         md += "\n".join(pbt)

@@ -47,7 +47,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from rlexp.files.fsutil import HolderBusy, HolderLock
-from rlexp.launch import optuna_async, optuna_plan, optuna_space, optuna_study
+from rlexp.launch import optuna_async, optuna_confirm, optuna_plan, optuna_space, optuna_study
 from rlexp.launch.optuna_plan import (  # noqa: F401  (batches, trial_value: the plan's API here too)
     ENDED,
     Work,
@@ -167,6 +167,7 @@ def check_spec(sweeper: Any, arguments: Sequence[str], job_cfg: Any = None) -> S
     spec = SweepSpec(optuna_study.directions(get("direction")), sampler, pruner, dists, fixed)
     optuna_study.check_pruner(pruner, len(spec.directions))
     optuna_async.check_trial_seeds(get("trial_seeds", 1), get("trial_objective", "mean"), dists)
+    optuna_confirm.confirm_settings(_plain(get("confirm")), len(spec.directions))
     if spec.prunes and job_cfg is not None:
         check_evaluates(pruner, spec, job_cfg)
     if sampler is not None and sampler["_target_"] == optuna_study.SAMPLERS["grid"]:
@@ -198,6 +199,7 @@ class OptunaSweep:
         self.trial_seeds = sweeper.get("trial_seeds", 1)  # jobs (seeds) per trial
         self.trial_objective = sweeper.get("trial_objective", "mean")  # their mean or IQM
         self.async_trials = bool(sweeper.get("async_trials", True))  # false: batches
+        self.confirm = sweeper.get("confirm")  # top_k best trials re-run on fresh seeds
         self.prune_overrides: list[str] = []  # the optuna_prune hook, added to every job
         self.config: DictConfig | None = None
         self.launcher: Any = None
@@ -235,8 +237,10 @@ class OptunaSweep:
     def end_of_search(self, spec: SweepSpec) -> None:
         """Called once the search ended (``n_trials`` reached or stopped by
         ``max_failure_rate``), after ``optimization_results.yaml``, inside the sweep lock: the
-        confirmation of the best trials on fresh seeds hooks here (/work/wt/OPT_CONTRACT.md)."""
-        return None
+        confirmation of the best trials on fresh seeds (``rlexp.launch.optuna_confirm``)."""
+        settings = optuna_confirm.confirm_settings(_plain(self.confirm), len(spec.directions))
+        if settings is not None:
+            optuna_confirm.confirm(self, settings, spec.directions[0], self.base_seed(spec))
 
     def run_jobs(self, jobs: list[tuple[int, list[str]]]) -> dict[int, Any]:
         """``jobs`` (job number, overrides) on the sweep's launcher, ``n_jobs`` at a time, each
