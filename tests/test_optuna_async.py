@@ -12,6 +12,7 @@ own recorded times, and an asynchronous study killed mid-trial and run again.
 
 from __future__ import annotations
 
+import datetime
 import heapq
 import json
 import os
@@ -567,7 +568,11 @@ def test_an_async_study_killed_mid_trial_continues_without_losing_or_doubling_a_
     before = study_of(sweep).get_trials()
     assert before[3].state == TrialState.RUNNING
     done_before = {t.number: t.value for t in before if t.state == TrialState.COMPLETE}
-    assert done_before  # at least trials 0 and 1 were told before trial 3 started (2 workers)
+    assert len(done_before) >= 2  # trial 3 started once two of trials 0-2 had ended (2 workers)
+    # asynchronous: trial 2 was asked when the first of trials 0 and 1 ended, not after both
+    late = datetime.datetime.max
+    told = [t.datetime_complete or late for t in before[:2]]
+    assert before[2].datetime_start < max(told)
     second = run_train(cmd, cwd=tmp_path)
     after = study_of(sweep).get_trials()
     # every job dir has one trial, told once; the killed trial re-run in place, none asked twice
