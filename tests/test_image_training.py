@@ -307,3 +307,29 @@ def test_sigkill_and_resume_of_an_image_run_is_bit_identical(tmp_path, extra):
     assert best_a["global_step"] == best_b["global_step"]
     for key, value in best_a["policy"].items():
         assert torch.equal(value, best_b["policy"][key]), f"best.pt policy.{key} differs"
+
+
+def test_the_eval_worker_evaluates_image_snapshots_as_the_training_process_does(tmp_path):
+    """trainer.eval_async=true: the worker builds its own image env, receives each snapshot through
+    its pipe and reports the same rounds as in-process evaluation (every logged eval, best.pt)."""
+    import json
+
+    base = [
+        "env=hopper", "env.backend=torchrl", "env.name=image_envs:make_image_env",
+        "env.num_envs=3", "env.num_eval_envs=2", *POLICY, "trainer.total_frames=144",
+        "trainer.frames_per_batch=48", "trainer.save_every=0", "trainer.eval_every=48",
+        "trainer.eval_episodes=3", "algorithm.num_epochs=2", "algorithm.mini_batch_size=16",
+        "algorithm.compile=false", "logger=none", "logger.jsonl=true", "trainer.progress=false",
+        "seed=17",
+    ]  # fmt: skip
+    evals = {}
+    for mode in ("true", "false"):
+        run = tmp_path / mode
+        proc = _train([*base, f"trainer.eval_async={mode}", f"hydra.run.dir={run}"], tmp_path)
+        assert ("eval worker started" in proc.stdout + proc.stderr) == (mode == "true")
+        rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+        evals[mode] = [
+            (r["step"], r["eval/episode_return"]) for r in rows if "eval/episode_return" in r
+        ]
+    assert [s for s, _ in evals["false"]] == [48, 96, 144]
+    assert evals["true"] == evals["false"]
