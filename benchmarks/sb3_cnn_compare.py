@@ -6,7 +6,8 @@ Both train the same Atari game through EnvPool (84x84 greyscale, 4 frames stacke
 rlexp's ``+experiment=pong_ppo``): 8 envs x 128 steps, 4 minibatches of 256, 4 epochs, the Nature
 CNN (32x8x8/4, 64x4x4/2, 64x3x3/1, Linear 512) shared by a linear actor and critic, lr 2.5e-4
 annealed, clip 0.1 (value clipped too), entropy 0.01, value 0.5, max grad norm 0.5, Adam eps 1e-5.
-Evaluation and checkpoints are off on both sides (rlexp: past the budget; SB3: no callbacks), so
+Evaluation and checkpoints are off on both sides (rlexp: ``trainer.eval_episodes=0``, saving past
+the budget, only the final checkpoint; SB3: no callbacks), so
 the number is the training loop's own. Each contender runs as its own process, launch to exit
 (imports, env start, the first compile included: what a user waits for), ``--rounds`` times in
 alternating order; the table gives env steps / wall seconds, median over rounds.
@@ -106,7 +107,7 @@ def rlexp_cmd(args: argparse.Namespace, run_dir: Path) -> list[str]:
         f"env.name={args.env_id}", f"env.num_envs={NUM_ENVS}",
         f"trainer.total_frames={args.steps}", f"trainer.frames_per_batch={NUM_ENVS * NUM_STEPS}",
         f"algorithm.mini_batch_size={NUM_ENVS * NUM_STEPS // MINIBATCHES}",
-        f"algorithm.num_epochs={EPOCHS}", f"trainer.eval_every={never}",
+        f"algorithm.num_epochs={EPOCHS}", f"trainer.eval_every={never}", "trainer.eval_episodes=0",
         f"trainer.save_every={never}", f"trainer.torch_threads={args.threads}",
         f"trainer.device={args.device}", "trainer.progress=false", f"seed={args.seed}",
         f"hydra.run.dir={run_dir}",
