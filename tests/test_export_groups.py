@@ -370,3 +370,56 @@ def test_an_actor_of_two_images_and_no_vector_exports_with_named_uint8_inputs(tm
     ]
     got = session.run(["action"], {"camera": camera.numpy(), "depth": depth.numpy()})[0]
     np.testing.assert_array_equal(got, want.numpy())
+
+
+def test_the_helper_stacks_frames_and_builds_images_as_rlexp_s_env_does(tmp_path):
+    """No training: env.frame_stack=3 over a Dict of a nested HWC image, a grey [H, W] image
+    (env.image_keys) and a vector; the helper's FrameStack + inputs on the raw env's observations
+    (episodes of 3 steps: resets refill the stack) equal the observation rlexp's env emits."""
+    import runpy
+
+    import gym_image_envs  # noqa: F401  (registers the ids)
+
+    from conftest import compose
+    from rlexp.config.validate import to_root_config
+    from rlexp.deploy.export_actor import DeterministicActor, input_records
+    from rlexp.deploy.export_obs import helper_name, helper_source
+    from rlexp.envs.factory import make_env
+    from rlexp.policies.actor_critic import policy_for_env
+
+    overrides = ["env=gym", "env.name=gym_image_envs:ImageDict-v0", "env.frame_stack=3"]
+    overrides += ["env.image_keys=[depth]", "policy=cnn", "policy.encoder.kernel_sizes=[2,2,1]"]
+    overrides += ["policy.encoder.strides=[1,1,1]"]
+    config = to_root_config(compose(overrides))
+    env = make_env(config.env, 1, 0)
+    try:
+        policy = policy_for_env(config.policy, config.env, env)
+        inputs = input_records(
+            DeterministicActor(policy, torch.zeros(1), torch.zeros(1), False), policy
+        )
+        assert [(i["name"], i["shape"]) for i in inputs] == [
+            ("observation", ["batch", 2]),
+            ("cam_front", ["batch", 9, 6, 5]),  # 3 frames x 3 channels
+            ("depth", ["batch", 3, 4, 7]),  # 3 grey frames
+        ]
+        target = tmp_path / "p.pt"
+        path = tmp_path / helper_name(target)
+        path.write_text(helper_source(target, "x", env.obs_layout.record(), {}, inputs))
+        helper = runpy.run_path(str(path))
+        assert helper["FRAME_STACK"] == 3
+        raw = gym.make("gym_image_envs:ImageDict-v0")
+        stack = helper["FrameStack"]()
+        obs = stack.reset(raw.reset(seed=0)[0])
+        td = env.reset().get("observation")
+        for t in range(8):
+            xs = helper["inputs"](obs)
+            for spec in inputs:
+                want = td.get(spec["key"])
+                np.testing.assert_array_equal(xs[spec["name"]], want.numpy(), err_msg=f"{t}")
+            raw_obs, _, term, trunc, _ = raw.step(0)
+            obs = stack.reset(raw.reset()[0]) if term or trunc else stack.step(raw_obs)
+            nxt = env.step_action(torch.zeros(1, 1, dtype=torch.int64))
+            td = env.autoreset_observation(nxt)
+        raw.close()
+    finally:
+        env.close()
