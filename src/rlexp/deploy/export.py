@@ -33,6 +33,7 @@ import torch
 from rlexp.checkpoints.files import select_checkpoint
 from rlexp.deploy.export_actor import (
     DeterministicActor,
+    actor_columns,
     call_actor,
     exported_module,
     input_names,
@@ -202,7 +203,7 @@ def _actor_of(
             "critic_observations": _keys(policy.critic_input_parts)
             if policy.critic_net is not None
             else None,
-            **_names(env, config),
+            **_names(env, config, actor_columns(policy.actor_net.inputs, obs_dim)),
             # how the env's observation became the input vector (Dict / Tuple / Discrete parts)
             "observation_layout": layout.record() if layout is not None else None,
             # what the output is and how it becomes the env's action (docs/export.md)
@@ -262,9 +263,10 @@ def _write_helper(
     return path.name
 
 
-def _names(env: Any, config: Any) -> dict[str, Any]:
+def _names(env: Any, config: Any, columns: list[int]) -> dict[str, Any]:
     """Observation and action names where the env knows them (native tasks: term names, one per
-    element, and each observation term's slice); null for Gymnasium tasks."""
+    element of the file's ``observation`` input, i.e. of the actor's ``columns``, and each
+    observation term's slice of the env's whole vector); null for Gymnasium tasks."""
     base = env
     while hasattr(base, "base_env"):  # under TorchRL transforms
         base = base.base_env
@@ -276,6 +278,8 @@ def _names(env: Any, config: Any) -> dict[str, Any]:
     obs_names = [
         _element(n, i, stop - start) for n, start, stop, _ in layout for i in range(stop - start)
     ]
+    # the actor's elements only (not a critic group's)
+    obs_names = [obs_names[i] for i in columns if i < len(obs_names)]
     action_names = [
         _element(key, i, part.stop - part.start)
         for key, (part, _) in zip(native.actions, terms, strict=True)
