@@ -171,10 +171,11 @@ def camera_image(
     fovy: float | None = None,
 ) -> np.ndarray:
     """Every env's RGB image [N, height, width, 3] uint8 from a free camera at ``eye`` looking at
-    ``target`` (MuJoCo's offscreen renderer, ``MUJOCO_GL=egl``; the goal marker is drawn): an
+    ``target`` (MuJoCo's offscreen renderer, ``MUJOCO_GL=egl``; the goal marker is drawn; no
+    shadows, reflections or skybox): an
     image entry of the observation, [N, 3, height, width] to the policy (docs/envs.md)."""
     frames = np.empty((env.num_envs, int(height), int(width), 3), dtype=np.uint8)
-    view = {"eye": None if eye is None else tuple(eye), "fovy": fovy}
+    view = {"eye": None if eye is None else tuple(eye), "fovy": fovy, "effects": False}
     view["target"] = None if target is None else tuple(target)
     for i in range(env.num_envs):
         frames[i] = env.render(i, int(width), int(height), **view)
