@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+import torch
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError, ValidationError
 
@@ -50,7 +51,8 @@ def test_every_conf_file_composes_to_a_typed_config(group, option):
 def test_every_env_builds_with_policy_and_ppo(option):
     from rlexp.algorithms.ppo import make_algorithm
     from rlexp.envs.factory import make_env
-    from rlexp.policies.actor_critic import make_policy
+    from rlexp.policies.actor_critic import policy_for_env
+    from rlexp.policies.inputs import layout_of
 
     named = ["env.name=Acrobot-v1"] if option == "gym" else []  # env=gym: the user names the id
     config = to_root_config(
@@ -58,11 +60,20 @@ def test_every_env_builds_with_policy_and_ppo(option):
     )
     env = make_env(config.env, 2, seed=0)
     try:
-        obs_dim = env.observation_spec["observation"].shape[-1]
-        policy = make_policy(config.policy, obs_dim, env.action_spec.shape[-1], env.action_spec)
+        policy = policy_for_env(config.policy, config.env, env)
         make_algorithm(config.algorithm, policy, total_iterations=1)
         td = env.reset()
-        assert td["observation"].dtype.is_floating_point and td["observation"].shape == (2, obs_dim)
+        layout = layout_of(env)
+        if layout.structured:  # images: uint8 [2, C, H, W] entries beside the float32 vector
+            obs = td["observation"]
+            for part in layout.images:
+                assert obs[part.image_key].dtype == torch.uint8
+                assert obs[part.image_key].shape == (2, *part.shape)
+            assert ("vector" in obs.keys()) == (layout.dim > 0)
+        else:
+            obs_dim = layout.dim
+            assert td["observation"].dtype.is_floating_point
+            assert td["observation"].shape == (2, obs_dim)
         out = env.rand_step(td)
         assert out["next", "reward"].shape == (2, 1)
     finally:

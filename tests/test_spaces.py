@@ -66,7 +66,6 @@ def test_a_plain_box_is_the_vector_and_a_multi_dim_box_is_flattened_in_c_order()
 @pytest.mark.parametrize(
     ("space", "words"),
     [
-        (spaces.Box(0, 255, (8, 8, 3), np.uint8), "image"),
         (spaces.Text(4), "Text"),
         (spaces.Dict({"a": spaces.Box(0, 1, (1,)), "t": spaces.Text(3)}), "at key 't'"),
         (spaces.Sequence(spaces.Discrete(2)), "Sequence"),

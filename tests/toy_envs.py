@@ -183,8 +183,8 @@ class _Refused(gym.Env):
         return self.observation_space.sample(), 0.0, False, False, {}
 
 
-class ImageObs(_Refused):
-    observation_space = spaces.Box(0, 255, (8, 8, 3), np.uint8)
+class ImageObs(_Refused):  # an image in no layout rlexp reads (rank 5)
+    observation_space = spaces.Box(0, 255, (2, 2, 8, 8, 3), np.uint8)
 
 
 class TextObs(_Refused):

@@ -40,6 +40,9 @@ OVERLAP_BACKENDS = ("gymnasium", "native")
 #: Backends whose envs can rescale Box actions from [-1, 1] to the env's bounds (env.rescale_actions):
 #: the Gymnasium-shaped adapters (rlexp.envs.adapter).
 RESCALE_BACKENDS = ("gymnasium", "gymnasium_async", "envpool")
+#: Backends that detect image observations and stack frames (env.frame_stack, env.image_keys): the
+#: Gymnasium-shaped adapters; a torchrl env's uint8 entries pass as they are.
+IMAGE_BACKENDS = ("gymnasium", "gymnasium_async", "envpool")
 #: Backends whose env is built by a callable the config names (``env.name=package.module:callable``).
 CALLABLE_BACKENDS = ("vecenv", "torchrl")
 #: The metrics an evaluation round logs: what ``trainer.best_metric`` may follow.
@@ -282,6 +285,16 @@ FIELD_RULES: dict[str, Rule] = {
         lambda v: isinstance(v, bool),
         f"true or false; true only with env.backend one of {list(RESCALE_BACKENDS)} and a Box "
         "action space with finite bounds (checked by building one env)",
+    ),
+    "env.frame_stack": Rule(
+        lambda v: isinstance(v, int) and 0 <= v <= 64,
+        f"0 to 64 (0 or 1: off); above 1 only with env.backend one of {list(IMAGE_BACKENDS)} "
+        "and an image observation (checked by building one env)",
+    ),
+    "env.image_keys": Rule(
+        lambda v: isinstance(v, list | tuple) and all(isinstance(k, str) and k for k in v),
+        "a list of observation keys (a Dict key path like cam/front, or pixels for the root) that "
+        "are uint8 images; checked by building one env",
     ),
     "env.kwargs": Rule(
         lambda v: isinstance(v, dict),

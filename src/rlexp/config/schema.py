@@ -242,6 +242,12 @@ class EnvConfig:
     # Box actions: the policy acts in [-1, 1], mapped affinely onto the env's finite bounds
     # (gymnasium, gymnasium_async, envpool; docs/envs.md "Action bounds")
     rescale_actions: bool = False
+    # images (gymnasium, gymnasium_async, envpool; docs/envs.md "Images"): stack each image's last
+    # N frames where the env does not (0 or 1: off; newest last, a reset fills with its frame)
+    frame_stack: int = 0
+    # observation keys read as images besides the detected ones (uint8 Box of rank 3 or 4), e.g. a
+    # [H, W] grey image; an image at the root is "pixels"
+    image_keys: list[str] = field(default_factory=list)
     kwargs: dict[str, Any] = field(
         default_factory=dict
     )  # extra keyword arguments for gymnasium.make

@@ -18,6 +18,7 @@ from rlexp.config.aliases import alias_hint
 from rlexp.config.rules import (
     ACTIVATIONS,
     FIELD_RULES,
+    IMAGE_BACKENDS,
     MAX_NAME,
     MUTABLE_HYPERPARAMETERS,
     OVERLAP_BACKENDS,
@@ -237,6 +238,13 @@ def validate(config: RootConfig) -> None:
             f"env.rescale_actions=true maps the policy's [-1, 1] onto a Gymnasium Box's bounds; "
             f"env.backend={e.backend!r} does not: use one of {list(RESCALE_BACKENDS)}, or "
             "env.rescale_actions=false"
+        )
+    if (e.frame_stack > 1 or e.image_keys) and e.backend not in IMAGE_BACKENDS:
+        what = f"env.frame_stack={e.frame_stack}" if e.frame_stack > 1 else "env.image_keys"
+        raise ConfigError(
+            f"{what}: env.backend={e.backend!r} does not read images; use one of "
+            f"{list(IMAGE_BACKENDS)} (a torchrl env's uint8 entries are images as they are), or "
+            f"drop {what.split('=')[0]}"
         )
     if getattr(a, "overlap", False) and e.backend not in OVERLAP_BACKENDS:
         raise ConfigError(

@@ -21,8 +21,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from rlexp.envs.env_state import RESTORED, restart_mode, restart_seed
+from rlexp.envs.images import empty_obs, obs_from_state, obs_state
 from rlexp.envs.spaces import ActionCoding, ObsLayout
-from rlexp.envs.specs import set_specs
+from rlexp.envs.specs import obs_numpy, obs_tensor, set_specs
 
 log = logging.getLogger(__name__)
 #: Env ids whose action bounds were warned about in this process (``warn_action_bounds``).
@@ -62,7 +63,7 @@ class GymShapedEnv(EnvBase):
         self.action_coding = coding
         self.obs_dim = layout.dim
         self.act_dim = coding.dim
-        set_specs(self, n, self.obs_dim, coding)
+        set_specs(self, n, self.obs_dim, coding, layout)
         if coding.categorical:
             self._low = self._high = None
         else:
@@ -75,9 +76,10 @@ class GymShapedEnv(EnvBase):
         self._base_seed: int | None = (
             None  # the seed given to set_seed (restart seeds derive from it)
         )
-        self._reset_obs = np.zeros((n, self.obs_dim), dtype=np.float32)
+        # Observations in numpy: float32 [n, obs_dim], or with images an ``ObsBatch`` (images.py)
+        self._reset_obs = empty_obs(layout, n)
         # What changes every step lives in a plain object: EnvBase's __setattr__ costs ~3 us a call.
-        self._live = _Live(np.zeros((n, self.obs_dim), dtype=np.float32))
+        self._live = _Live(empty_obs(layout, n))
         self._pending_reset = np.zeros(n, dtype=bool)
         self._restored = np.zeros(n, dtype=bool)  # copies whose state came from load_env_state
         self.last_reset_was_restore = False
@@ -148,7 +150,7 @@ class GymShapedEnv(EnvBase):
                 "[-1, 1] cannot map onto: use env.rescale_actions=false"
             )
         unit = replace(coding, low=(-1.0,) * coding.dim, high=(1.0,) * coding.dim)
-        set_specs(self, self.num_envs, self.obs_dim, unit)
+        set_specs(self, self.num_envs, self.obs_dim, unit, self.obs_layout)
         self._low, self._high = -np.ones(coding.dim), np.ones(coding.dim)
         self._rescale = (low, (high - low) / 2.0)
 
@@ -185,10 +187,10 @@ class GymShapedEnv(EnvBase):
     ) -> dict[str, torch.Tensor]:
         """``step_tensors``' dict from the step's float32 observations [n, D], float32 rewards
         [n, 1] and bool flags [n, 1] (taken as they are: the tensors share their memory); counts
-        the step."""
+        the step. With images ``obs`` is an ``ObsBatch`` and the observation a TensorDict."""
         self.count_step(obs)
         return {
-            "observation": torch.from_numpy(obs),
+            "observation": obs_tensor(obs, self.num_envs),
             "reward": torch.from_numpy(reward),
             "done": torch.from_numpy(terminated | truncated),
             "terminated": torch.from_numpy(terminated),
@@ -230,7 +232,7 @@ class GymShapedEnv(EnvBase):
         hands those resets out. What rlexp's collector uses instead of a masked ``reset()``."""
         obs = next_td.get("observation")
         if self._pending_reset.any():
-            obs = torch.from_numpy(self.autoreset_array(obs.numpy()))
+            obs = obs_tensor(self.autoreset_array(obs_numpy(obs)), self.num_envs)
         return obs
 
     def autoreset_array(self, obs: np.ndarray) -> np.ndarray:
@@ -262,7 +264,9 @@ class GymShapedEnv(EnvBase):
         self._pending_reset[slice(None) if mask is None else mask] = False
         self._live.obs_now = obs
         return TensorDict(
-            {"observation": torch.from_numpy(obs)}, batch_size=self.batch_size, device=self.device
+            {"observation": obs_tensor(obs, self.num_envs)},
+            batch_size=self.batch_size,
+            device=self.device,
         )
 
     # -- resume ------------------------------------------------------------------------------------
@@ -297,8 +301,8 @@ class GymShapedEnv(EnvBase):
             "env_id": self.env_id,
             "kind": kind,
             "copies": copies,
-            "obs": self._live.obs_now.copy(),
-            "reset_obs": self._reset_obs.copy(),
+            "obs": obs_state(self._live.obs_now),
+            "reset_obs": obs_state(self._reset_obs),
             "pending_reset": self._pending_reset.copy(),
             "steps": self._live.steps,
             "seed": self._base_seed,
@@ -320,8 +324,8 @@ class GymShapedEnv(EnvBase):
             return
         self._restored[:] = self._restore_copies(kind, list(sd["copies"]))
         if "obs" in sd:
-            self._live.obs_now = np.array(sd["obs"], dtype=np.float32)
-        self._reset_obs[:] = np.asarray(sd["reset_obs"])
+            self._live.obs_now = obs_from_state(sd["obs"])
+        self._reset_obs[:] = obs_from_state(sd["reset_obs"])
         self._pending_reset[:] = np.asarray(sd["pending_reset"])
         self._seed = None
         self.resume_mode = RESTORED[kind]

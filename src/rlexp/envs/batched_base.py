@@ -107,7 +107,7 @@ class BatchedAdapter(EnvBase):
         self.action_coding = coding
         super().__init__(batch_size=torch.Size([n]), device=device)
         self.obs_dim, self.act_dim = obs_layout.dim, coding.dim
-        set_specs(self, n, self.obs_dim, coding)
+        set_specs(self, n, self.obs_dim, coding, obs_layout)
         dev = self.device
         if coding.categorical:
             self._start = torch.tensor(coding.start, dtype=torch.int64, device=dev)
@@ -126,7 +126,10 @@ class BatchedAdapter(EnvBase):
         self._restored = False  # the next full reset hands back the restored observation
         #: what the last load_env_state did (None before one): restored | restarted, and how
         self.resume_mode: str | None = None
-        self._live = _Live(torch.zeros(n, self.obs_dim, device=dev))
+        obs_spec = self.observation_spec["observation"]  # a TensorDict of zeros with images
+        self._live = _Live(
+            obs_spec.zero() if obs_layout.structured else torch.zeros(n, self.obs_dim, device=dev)
+        )
 
     # -- what a contract gives -----------------------------------------------------------------------
     def _raw_reset(self) -> torch.Tensor:
@@ -230,7 +233,7 @@ class BatchedAdapter(EnvBase):
             "num_envs": self.num_envs,
             "state": state,
             "on_device": on_device,  # paths of the state's tensors that lived on the env's device
-            "obs": self._live.obs_now.detach().cpu().clone(),
+            "obs": _obs_state(self._live.obs_now),
             "steps": self._live.steps,
             "seed": self._base_seed,
             **(self._extra_state() if kind == "state" else {}),
@@ -257,7 +260,11 @@ class BatchedAdapter(EnvBase):
             self._restart_from(sd, kind)
             return
         self.raw.set_state(_to_device(sd["state"], set(sd.get("on_device", [])), self.device))
-        self._live.obs_now = torch.as_tensor(sd["obs"]).to(self.device, torch.float32)
+        obs = sd["obs"]
+        if isinstance(obs, Mapping):  # with images: the TensorDict's entries (uint8 kept)
+            self._live.obs_now = TensorDict(obs, batch_size=self.batch_size).to(self.device)
+        else:
+            self._live.obs_now = torch.as_tensor(obs).to(self.device, torch.float32)
         self._load_extra(sd)
         self._restored = True
         self.resume_mode = "restored (the env's get_state)"
@@ -285,6 +292,13 @@ class BatchedAdapter(EnvBase):
         if callable(closer):
             closer()
         super().close(raise_if_closed=raise_if_closed)
+
+
+def _obs_state(obs: torch.Tensor | TensorDictBase) -> Any:
+    """The observation to act on next as checkpoint data (with images: a dict of its entries)."""
+    if isinstance(obs, TensorDictBase):
+        return {k: v.detach().cpu().clone() for k, v in obs.items()}
+    return obs.detach().cpu().clone()
 
 
 def _tensor_paths(state: Any, device: torch.device, path: str = "") -> list[str]:

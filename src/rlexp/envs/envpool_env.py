@@ -3,6 +3,9 @@ extra) as the same rlexp env as the in-process Gymnasium adapter.
 
 - Tasks: EnvPool's own, under Gymnasium's names (``HalfCheetah-v5``, ``Hopper-v5``, ...); EnvPool
   ships its own MuJoCo build and task code (docs/envs.md, "Vectorised backends" compares them).
+  Atari (``Pong-v5``, ...): 84x84 greyscale frames, 4 stacked (``[4, 84, 84]`` uint8), emitted as
+  the uint8 ``pixels`` entry of a TensorDict observation; ``env.frame_stack=N`` is EnvPool's own
+  ``stack_num``.
 - Threads: ``env.num_threads`` (0: every CPU this process may use), never more than those CPUs nor
   than ``num_envs``.
 - Autoreset: EnvPool resets a finished env at its NEXT step; rlexp resets it right away
@@ -81,23 +84,31 @@ class EnvPoolEnv(GymShapedEnv):
         max_episode_steps: int | None = None,
         kwargs: dict | None = None,
         num_threads: int = 0,
+        image_keys: tuple[str, ...] | list[str] = (),
+        frame_stack: int = 0,
     ) -> None:
         require("envpool", "env.backend=envpool")
         check_envpool_id(name)
         self._options = dict(kwargs or {})
         if max_episode_steps is not None:
             self._options["max_episode_steps"] = max_episode_steps
+        where = f"env.name={name!r}"
+        if frame_stack > 1:
+            self._options.update(_stack_option(name, frame_stack, self._options, where))
         self._name, self._num_envs = name, num_envs
         self.num_threads = pool_threads(num_threads, num_envs)
         pool = self._make_pool(seed)
-        where = f"env.name={name!r}"
-        layout = obs_layout(pool.observation_space, where)
-        if not layout.plain:
+        try:
+            layout = obs_layout(pool.observation_space, where, tuple(image_keys), frame_stack)
+            if not layout.batchable:
+                raise UnsupportedSpace(
+                    f"{where}: env.backend=envpool takes tasks with a flat Box or one image "
+                    f"observation (this one is {pool.observation_space}); use "
+                    "env.backend=gymnasium_async"
+                )
+        except UnsupportedSpace:
             pool.close()
-            raise UnsupportedSpace(
-                f"{where}: env.backend=envpool takes tasks with a flat Box observation (this one is "
-                f"{pool.observation_space}); use env.backend=gymnasium_async"
-            )
+            raise
         super().__init__(name, num_envs, layout, action_coding(pool.action_space, where))
         self._pool = pool
         self._pool_seed = seed  # the seed the pool was built with
@@ -131,17 +142,17 @@ class EnvPoolEnv(GymShapedEnv):
         """One step of every env on EnvPool's threads; finished envs are reset right away (their
         true final observation goes to ``"next"``)."""
         obs, reward, terminated, truncated, _ = self._pool.step(self.env_actions(action))
-        obs = obs.astype(np.float32)
+        obs = self.obs_layout.encode_batch(obs)
         done = np.flatnonzero(terminated | truncated)
         if done.size:
             reset_obs, _ = self._pool.reset(env_id=done.astype(np.int32))
-            self._reset_obs[done] = reset_obs
+            self._reset_obs[done] = self.obs_layout.encode_batch(reset_obs)
             self._pending_reset[done] = True
         return self.vector_output(obs, reward, terminated, truncated)
 
     def _reset_copies(self, ids: np.ndarray) -> np.ndarray:
         obs, _ = self._pool.reset(env_id=np.asarray(ids, dtype=np.int32))
-        return obs.astype(np.float32)
+        return self.obs_layout.encode_batch(obs)
 
     def _full_reset(self) -> np.ndarray:
         # A seed set since the pool was built (set_seed, a restart): a new pool of that seed.
@@ -152,7 +163,7 @@ class EnvPoolEnv(GymShapedEnv):
         self._seed = None
         self._pool_fresh = False
         obs, _ = self._pool.reset()
-        return obs.astype(np.float32)
+        return self.obs_layout.encode_batch(obs)
 
     # -- extras ------------------------------------------------------------------------------------
     def render(self, env_id: int = 0, **camera) -> np.ndarray:
@@ -165,6 +176,24 @@ class EnvPoolEnv(GymShapedEnv):
     def close(self, *, raise_if_closed: bool = True) -> None:
         self._pool.close()
         super().close(raise_if_closed=raise_if_closed)
+
+
+def _stack_option(name: str, n: int, options: dict, where: str) -> dict:
+    """``env.frame_stack=n`` as EnvPool's own ``stack_num`` option (Atari stacks frames in C++);
+    ValueError (one line) for a task without it, or with ``env.kwargs.stack_num`` set too."""
+    import envpool
+
+    if "stack_num" not in envpool.make_spec(name).config._fields:
+        raise ValueError(
+            f"{where}: env.frame_stack={n}, but EnvPool's {name} has no stack_num option to stack "
+            "frames with (EnvPool stacks frames for its Atari tasks); use env.frame_stack=0"
+        )
+    if "stack_num" in options and int(options["stack_num"]) != n:
+        raise ValueError(
+            f"{where}: env.frame_stack={n} and env.kwargs.stack_num={options['stack_num']} "
+            "disagree; set one of them"
+        )
+    return {"stack_num": n}
 
 
 #: EnvPool's pool settings (rlexp sets them from env.num_envs, env.num_threads and the seed).

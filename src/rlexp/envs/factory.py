@@ -18,19 +18,20 @@ def make_env(cfg: EnvConfig, num_envs: int, seed: int, device: str = "cpu") -> E
     ``device`` is where the CPU backends put their tensors (always ``cpu`` today); the batched torch
     backends (``vecenv``, ``torchrl``) are built on ``env.device`` instead: the env lives where its
     simulator does, and the policy follows ``trainer.device``."""
+    images = (tuple(cfg.image_keys), cfg.frame_stack)  # the Gymnasium-shaped backends' images
     if cfg.backend == "gymnasium":
         from rlexp.envs.gym import GymnasiumEnv
 
-        env = GymnasiumEnv(cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs, device=device)
+        env = GymnasiumEnv(cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs, device, *images)
     elif cfg.backend == "gymnasium_async":
         from rlexp.envs.gym_async import AsyncGymnasiumEnv
 
-        env = AsyncGymnasiumEnv(cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs)
+        env = AsyncGymnasiumEnv(cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs, *images)
     elif cfg.backend == "envpool":
         from rlexp.envs.envpool_env import EnvPoolEnv
 
         env = EnvPoolEnv(
-            cfg.name, num_envs, seed, cfg.max_episode_steps, cfg.kwargs, cfg.num_threads
+            cfg.name, num_envs, seed, cfg.max_episode_steps, cfg.kwargs, cfg.num_threads, *images
         )
     elif cfg.backend == "native":
         from rlexp.envs.native import make_native_env

@@ -1,5 +1,7 @@
 """Gymnasium environments (the MuJoCo suite, classic control, the user's own) as batched TorchRL
-environments, stepped in the training process (``env.backend=gymnasium``).
+environments, stepped in the training process (``env.backend=gymnasium``). Images (uint8) are
+emitted as a TensorDict of ``vector`` and uint8 ``[C, H, W]`` entries (``images.py``); with
+``env.frame_stack`` each copy is wrapped in ``images.FrameStack``.
 
 ``GymnasiumEnv`` is a lean ``EnvBase`` over ``num_envs`` Gymnasium copies (``adapter.py`` holds
 what it shares with the vectorised backends): the spaces become TorchRL specs (``spaces.py``:
@@ -25,7 +27,8 @@ import torch
 from rlexp.envs.adapter import GymShapedEnv
 from rlexp.envs.env_state import copy_state, env_state_kind, restore_copy
 from rlexp.envs.gym_ids import GYM_MUJOCO_TASKS, check_gym_id, mujoco_build_warnings, render_refusal
-from rlexp.envs.spaces import action_coding, obs_layout
+from rlexp.envs.images import empty_obs, stack_obs
+from rlexp.envs.spaces import action_coding, frame_stacked, obs_layout
 
 __all__ = ["GYM_MUJOCO_TASKS", "GymnasiumEnv", "check_gym_id", "make_torchrl_gym_env"]
 
@@ -42,23 +45,31 @@ class GymnasiumEnv(GymShapedEnv):
         max_episode_steps: int | None = None,
         make_kwargs: dict | None = None,
         device: str | torch.device = "cpu",
+        image_keys: tuple[str, ...] | list[str] = (),
+        frame_stack: int = 0,
     ) -> None:
         check_gym_id(env_id)
         os.environ.setdefault("MUJOCO_GL", "egl")
         kwargs = dict(make_kwargs or {})
         if max_episode_steps is not None:
             kwargs["max_episode_steps"] = max_episode_steps
-        self._make = functools.partial(gym.make, env_id, **kwargs)
+        where = f"env.name={env_id!r}"
+        make = functools.partial(gym.make, env_id, **kwargs)
+        keys = tuple(image_keys)
+        self._make = lambda: frame_stacked(make(), frame_stack, keys, where)
         with mujoco_build_warnings(env_id):
             envs = [self._make() for _ in range(num_envs)]
-        where = f"env.name={env_id!r}"
-        layout = obs_layout(envs[0].observation_space, where)
+        layout = obs_layout(envs[0].observation_space, where, keys, frame_stack)
         coding = action_coding(envs[0].action_space, where)
         super().__init__(env_id, num_envs, layout, coding, device)
         self._envs = envs
         self._plain_obs = layout.plain
+        self._structured = layout.structured  # images: an ObsBatch per step (images.py)
         self._reshape_actions = len(coding.shape) != 1
         self.state_kind = env_state_kind(envs[0])
+        if layout.frame_stack > 1:  # the stacked frames live in a wrapper no state covers
+            self.state_kind = "restart"
+            self.no_state_reason = "env.frame_stack's frame history is not saved"
         self._used = False  # a copy has been reset or stepped since the copies were made
 
     # -- TorchRL API -------------------------------------------------------------------------------
@@ -85,21 +96,22 @@ class GymnasiumEnv(GymShapedEnv):
             obs, _ = self._envs[i].reset(seed=self._seed + i)
         else:
             obs, _ = self._envs[i].reset()
-        return self.obs_layout.flatten(obs)
+        return self.obs_layout.encode(obs)
 
     def _reset_copies(self, ids: np.ndarray) -> np.ndarray:
-        return np.stack([self._reset_one(i) for i in ids]).astype(np.float32)
+        return stack_obs(self.obs_layout, [self._reset_one(i) for i in ids])
 
     def _full_reset(self) -> np.ndarray:
         # Restored from a checkpoint: the first full reset hands back the restored state (copies
         # that had never been reset are reset as usual).
         restored = self._restored
-        obs = np.stack(
+        obs = stack_obs(
+            self.obs_layout,
             [
                 self._current_obs(i) if restored[i] else self._reset_one(i)
                 for i in range(self.num_envs)
-            ]
-        ).astype(np.float32)
+            ],
+        )
         if not restored.any():
             self._seed = None  # seeded once: further resets draw from each env's own stream
         return obs
@@ -118,11 +130,14 @@ class GymnasiumEnv(GymShapedEnv):
         n = self.num_envs
         if self._low is None or self._reshape_actions:  # the env's values / shape, per copy
             actions = [self.action_coding.decode(actions[i]) for i in range(n)]
-        obs = np.empty((n, self.obs_dim), dtype=np.float32)
+        if self._structured:
+            obs = empty_obs(self.obs_layout, n)
+        else:
+            obs = np.empty((n, self.obs_dim), dtype=np.float32)
         reward = np.empty((n, 1), dtype=np.float32)
         terminated = np.zeros((n, 1), dtype=bool)
         truncated = np.zeros((n, 1), dtype=bool)
-        flatten = None if self._plain_obs else self.obs_layout.flatten_into
+        flatten = None if self._plain_obs else self.obs_layout.encode_into
         for i, env in enumerate(self._envs):
             o, r, term, trunc, _ = env.step(actions[i])
             if flatten is None:
@@ -142,7 +157,7 @@ class GymnasiumEnv(GymShapedEnv):
         if self._pending_reset[i]:
             return self._reset_obs[i]
         if self.state_kind == "mujoco":
-            return self.obs_layout.flatten(self._envs[i].unwrapped._get_obs())
+            return self.obs_layout.encode(self._envs[i].unwrapped._get_obs())
         return self._live.obs_now[i]
 
     def _copy_states(self, kind: str) -> list[dict]:

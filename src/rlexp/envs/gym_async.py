@@ -38,6 +38,7 @@ from rlexp.config.rules import first_line
 from rlexp.envs.adapter import GymShapedEnv
 from rlexp.envs.gym_ids import check_gym_id, mujoco_build_warnings, render_refusal
 from rlexp.envs.gym_worker import HELD_SIGNALS, WorkerEnvError, make_worker_env
+from rlexp.envs.images import as_obs
 from rlexp.envs.spaces import action_coding, obs_layout
 
 log = logging.getLogger(__name__)
@@ -104,13 +105,17 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         num_envs: int = 1,
         max_episode_steps: int | None = None,
         make_kwargs: dict | None = None,
+        image_keys: tuple[str, ...] | list[str] = (),
+        frame_stack: int = 0,
     ) -> None:
         check_gym_id(env_id)
         os.environ.setdefault("MUJOCO_GL", "egl")  # (the workers inherit it)
         kwargs = dict(make_kwargs or {})
         if max_episode_steps is not None:
             kwargs["max_episode_steps"] = max_episode_steps
-        make = functools.partial(make_worker_env, env_id, kwargs, os.getpid())
+        make = functools.partial(
+            make_worker_env, env_id, kwargs, os.getpid(), tuple(image_keys), frame_stack
+        )
         self._where = f"env.name={env_id!r} (env.backend=gymnasium_async)"
         method = start_method()
         # (AsyncVectorEnv builds one copy here for the spaces)
@@ -127,7 +132,8 @@ class AsyncGymnasiumEnv(GymShapedEnv):
                 )
             obs_space, act_space, kind = self._guarded(vec, vec.call, "rlexp_info")[0]
             where = f"env.name={env_id!r}"
-            layout, coding = obs_layout(obs_space, where), action_coding(act_space, where)
+            layout = obs_layout(obs_space, where, tuple(image_keys), frame_stack)
+            coding = action_coding(act_space, where)
         except (EOFError, ConnectionError) as exc:  # (AsyncVectorEnv terminates the others)
             if vec is not None:
                 shutdown(vec, graceful=False)
@@ -142,6 +148,8 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         self._used = False  # a copy has been reset, stepped or restored since they were made
         self._vec = vec
         self.state_kind = kind
+        if layout.frame_stack > 1:
+            self.no_state_reason = "env.frame_stack's frame history is not saved"
         self._close_workers = weakref.finalize(self, shutdown, vec)
 
     def _guarded(self, vec: AsyncVectorEnv, fn, *args, **kwargs):
@@ -172,7 +180,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         obs, reward, terminated, truncated, info = self._call(
             self._vec.step, self.env_actions(action)
         )
-        obs = np.array(obs, dtype=np.float32)  # out of the shared buffer the next step rewrites
+        obs = as_obs(self.obs_layout, obs)  # out of the shared buffer the next step rewrites
         done = np.flatnonzero(terminated | truncated)
         if done.size:
             self._reset_obs[done] = obs[done]
@@ -197,7 +205,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         mask[ids] = True
         seeds = self._seeds(range(self.num_envs))
         obs, _ = self._call(self._vec.reset, seed=seeds, options={"reset_mask": mask})
-        return np.array(obs[ids], dtype=np.float32)
+        return as_obs(self.obs_layout, obs)[ids]
 
     def _full_reset(self) -> np.ndarray:
         restored = self._restored
@@ -205,7 +213,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         if not restored.any():
             obs, _ = self._call(self._vec.reset, seed=self._seeds(range(self.num_envs)))
             self._seed = None  # seeded once: further resets draw from each copy's own stream
-            return np.array(obs, dtype=np.float32)
+            return as_obs(self.obs_layout, obs)
         # Restored from a checkpoint: the restored copies continue (the others are reset).
         obs = self._live.obs_now.copy()  # the checkpoint's ("state": what each copy showed)
         if self.state_kind == "mujoco":

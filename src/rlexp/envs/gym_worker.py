@@ -1,5 +1,7 @@
 """What runs inside a ``gymnasium_async`` worker process: the env, built there, behind a wrapper
-that flattens its observations (``spaces.py``, so shared memory holds one float32 vector per copy),
+that flattens its observations (``spaces.py``, so shared memory holds one float32 vector per copy,
+or with images a Dict of that vector and uint8 ``[C, H, W]`` images; ``env.frame_stack`` stacks
+them here, per copy),
 drops the per-step infos (rlexp reads none of them: less to pickle through the pipe), and answers
 the adapter's checkpoint calls (``env_state.copy_state`` / ``restore_copy``, run in the worker).
 
@@ -20,7 +22,8 @@ import numpy as np
 
 from rlexp.envs.env_state import copy_state, env_state_kind, restore_copy
 from rlexp.envs.gym_ids import mujoco_build_warnings
-from rlexp.envs.spaces import obs_layout
+from rlexp.envs.images import encoded_space
+from rlexp.envs.spaces import frame_stacked, obs_layout
 from rlexp.runtime.user_code import describe
 
 #: Blocked while the workers start (``gym_async.signals_held``), unblocked in each worker.
@@ -68,7 +71,9 @@ def _plain_errors(fn: Any) -> Any:
     return wrapped
 
 
-def make_worker_env(env_id: str, kwargs: dict, parent_pid: int) -> WorkerEnv:
+def make_worker_env(
+    env_id: str, kwargs: dict, parent_pid: int, image_keys: tuple = (), frame_stack: int = 0
+) -> WorkerEnv:
     """Build the env in a worker (``AsyncVectorEnv`` also calls this once in the training process,
     ``parent_pid``, for the spaces). ``module:EnvId`` imports its module here; an id an rlexp
     plugin registers needs the plugins loaded here too."""
@@ -86,41 +91,61 @@ def make_worker_env(env_id: str, kwargs: dict, parent_pid: int) -> WorkerEnv:
         from rlexp.plugins import load_plugins
 
         load_plugins()
-    with mujoco_build_warnings(env_id):
-        env = gym.make(env_id, **kwargs)
-    return WorkerEnv(env, env_id, kwargs)
+    return WorkerEnv(None, env_id, kwargs, image_keys, frame_stack)
 
 
 class WorkerEnv(gym.Wrapper):
     """A worker's env as the adapter drives it: flat float32 observations, no infos, and the
     ``rlexp_*`` calls (``AsyncVectorEnv.call`` / ``get_attr`` / ``set_attr``) for resume."""
 
-    def __init__(self, env: gym.Env, env_id: str, kwargs: dict | None = None) -> None:
-        super().__init__(env)
+    def __init__(
+        self,
+        env: gym.Env | None,
+        env_id: str,
+        kwargs: dict | None = None,
+        image_keys: tuple = (),
+        frame_stack: int = 0,
+    ) -> None:
         self.env_id = env_id
         self.kwargs = dict(kwargs or {})
-        self.layout = obs_layout(env.observation_space, f"env.name={env_id!r}")
-        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.layout.dim,), np.float32)
-        self.kind = env_state_kind(env)
+        self._stacking = (tuple(image_keys), int(frame_stack))
+        super().__init__(env if env is not None else self._make())
+        self.layout = obs_layout(self.env.observation_space, self._where, *self._stacking)
+        # what shared memory holds: the flat vector, or a Dict of it and the uint8 CHW images
+        self.observation_space = encoded_space(self.layout)
+        self.kind = env_state_kind(self.env)
+        if self.layout.frame_stack > 1:  # the stacked frames live in a wrapper no state covers
+            self.kind = "restart"
         self._restored = False
 
     @_plain_errors
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         obs, _ = self.env.reset(seed=seed, options=options or None)
-        return self.layout.flatten(obs), {}
+        return self.layout.encode(obs), {}
 
     @_plain_errors
     def step(self, action: Any):
         obs, reward, terminated, truncated, _ = self.env.step(action)
-        return self.layout.flatten(obs), reward, terminated, truncated, {}
+        return self.layout.encode(obs), reward, terminated, truncated, {}
 
     def rlexp_remake(self) -> None:
         """Replace the env by one made now (``GymnasiumEnv._set_seed``: a reseeded env starts from
         fresh copies, whatever state the old ones kept across resets)."""
         self.env.close()
-        with mujoco_build_warnings(self.env_id):
-            self.env = gym.make(self.env_id, **self.kwargs)
+        self.env = self._make()
         self._restored = False
+
+    @property
+    def _where(self) -> str:
+        return f"env.name={self.env_id!r}"
+
+    def _make(self) -> gym.Env:
+        """The env as configured: ``gym.make`` of the id and kwargs, frames stacked
+        (``env.frame_stack``)."""
+        with mujoco_build_warnings(self.env_id):
+            env = gym.make(self.env_id, **self.kwargs)
+        keys, stack = self._stacking
+        return frame_stacked(env, stack, keys, self._where)
 
     @_plain_errors
     def rlexp_info(self) -> tuple[gym.Space, gym.Space, str]:
@@ -149,4 +174,4 @@ class WorkerEnv(gym.Wrapper):
     @_plain_errors
     def rlexp_current_obs(self) -> np.ndarray:
         """The flattened observation of a MuJoCo env's current (restored) state."""
-        return self.layout.flatten(self.env.unwrapped._get_obs())
+        return self.layout.encode(self.env.unwrapped._get_obs())

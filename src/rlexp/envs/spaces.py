@@ -6,8 +6,10 @@ Observations (``ObsLayout``): ``Box`` (flattened in C order, cast to float32), `
 ``MultiBinary`` (0/1 floats), ``MultiDiscrete`` (one one-hot per component), and ``Dict`` / ``Tuple``
 of those, nested to any depth. Containers are flattened depth-first: a ``Dict``'s keys in sorted
 order (``str`` order of the key, whatever order the space lists them in), a ``Tuple``'s entries by
-index; a part's key is its path joined with ``/`` (``"goal/position"``, ``"0"``). Images (uint8
-``Box`` of rank 3 or more), ``Text``, ``Graph``, ``Sequence``, ``OneOf`` are refused.
+index; a part's key is its path joined with ``/`` (``"goal/position"``, ``"0"``). Images (a uint8
+``Box`` of rank 3 or 4, or a key ``env.image_keys`` names; ``images.py``) are not in the vector:
+with images the observation is a TensorDict of ``"vector"`` (float32) and one uint8 ``[C, H, W]``
+entry per image (``ObsLayout.encode``). ``Text``, ``Graph``, ``Sequence``, ``OneOf`` are refused.
 
 Actions (``ActionCoding``): ``Box`` (a Gaussian head; actions clipped to the box), ``Discrete``,
 ``MultiDiscrete`` and ``MultiBinary`` (a categorical head per component). A categorical action is an
@@ -17,16 +19,26 @@ adds each component's ``start`` and gives the env the shape and dtype its space 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
 
+from rlexp.envs.images import (
+    VECTOR_KEY,
+    FrameStack,
+    ObsBatch,
+    image_encoder,
+    image_key_of,
+    image_layout,
+)
+
 #: What the two tables above say, for error messages and docs.
 SUPPORTED_OBSERVATIONS = (
-    "Box, Discrete, MultiBinary, MultiDiscrete, and Dict/Tuple of them (nested; flattened)"
+    "Box, Discrete, MultiBinary, MultiDiscrete, and Dict/Tuple of them (nested; flattened), "
+    "uint8 images (HWC, CHW, stacked frames)"
 )
 SUPPORTED_ACTIONS = "Box (Gaussian), Discrete, MultiDiscrete, MultiBinary (categorical)"
 #: How containers are flattened (recorded in checkpoints and export metadata).
@@ -79,6 +91,8 @@ class ObsLayout:
     #: a 1-D float Box at the root: the observation is the vector (the fast path)
     plain: bool = False
     _encoders: tuple[Callable[[Any], np.ndarray], ...] = field(default=(), compare=False)
+    #: env.frame_stack: images are the env's last N frames (1: as the env gives them)
+    frame_stack: int = 1
 
     @property
     def images(self) -> tuple[ObsPart, ...]:
@@ -91,7 +105,7 @@ class ObsLayout:
         return bool(self.images)
 
     def flatten(self, obs: Any) -> np.ndarray:
-        """The observation as a float32 vector [dim]."""
+        """The observation's non-image parts as a float32 vector [dim]."""
         if self.plain:
             return np.asarray(obs, dtype=np.float32).reshape(-1)
         out = np.empty(self.dim, dtype=np.float32)
@@ -104,16 +118,57 @@ class ObsLayout:
             out[:] = obs
             return
         for part, encode in zip(self.parts, self._encoders, strict=True):
-            out[part.offset : part.offset + part.size] = encode(_leaf(obs, part.key))
+            if part.kind != "image":
+                out[part.offset : part.offset + part.size] = encode(_leaf(obs, part.key))
+
+    def encode(self, obs: Any) -> np.ndarray | dict[str, np.ndarray]:
+        """The observation as the env emits it for one copy: the flat float32 vector [dim], or
+        with images a dict of ``"vector"`` (unless dim is 0) and uint8 ``[C, H, W]`` per image."""
+        if not self.structured:
+            return self.flatten(obs)
+        out = {VECTOR_KEY: self.flatten(obs)} if self.dim else {}
+        for part, encode in zip(self.parts, self._encoders, strict=True):
+            if part.kind == "image":
+                out[part.image_key] = encode(_leaf(obs, part.key))
+        return out
+
+    def encode_into(self, out: np.ndarray | ObsBatch, obs: Any) -> None:
+        """``encode`` written into one copy's row of a batch (``out``: a [dim] view or an
+        ``ObsBatch`` row)."""
+        if not isinstance(out, ObsBatch):
+            self.flatten_into(out, obs)
+            return
+        arrays = out.arrays
+        if self.dim:
+            self.flatten_into(arrays[VECTOR_KEY], obs)
+        for part, encode in zip(self.parts, self._encoders, strict=True):
+            if part.kind == "image":
+                arrays[part.image_key][...] = encode(_leaf(obs, part.key))
+
+    @property
+    def batchable(self) -> bool:
+        """Whether ``encode_batch`` takes this layout: a plain Box, or one image at the root."""
+        return self.plain or (len(self.parts) == 1 and self.parts[0].kind == "image")
+
+    def encode_batch(self, obs: np.ndarray) -> np.ndarray | ObsBatch:
+        """A vector env's raw batch [n, ...] as the env emits it (``batchable`` layouts): float32
+        [n, dim], or an ``ObsBatch`` of the uint8 [n, C, H, W] image (a new array either way)."""
+        if self.plain:
+            return np.asarray(obs).astype(np.float32)
+        part = self.parts[0]
+        return ObsBatch({part.image_key: np.array(self._encoders[0](obs), order="C")})
 
     def record(self) -> dict[str, Any]:
         """Plain data for checkpoints and export metadata (compared on load)."""
-        return {
+        out = {
             "space": self.space_name,
             "dim": self.dim,
             "order": FLATTEN_ORDER,
             "parts": [p.record() for p in self.parts],
         }
+        if self.frame_stack > 1:  # the images are the env's last N frames: a deployment stacks too
+            out["frame_stack"] = self.frame_stack
+        return out
 
 
 def _leaf(obs: Any, key: str) -> Any:
@@ -159,11 +214,18 @@ def _describe(space: spaces.Space) -> str:
     return text if len(text) <= 80 else text[:77] + "..."
 
 
-def obs_layout(space: spaces.Space, where: str) -> ObsLayout:
+def obs_layout(
+    space: spaces.Space, where: str, image_keys: Sequence[str] = (), frame_stack: int = 1
+) -> ObsLayout:
     """The layout of ``space``; ``UnsupportedSpace`` naming the part that cannot be flattened
-    (``where``: the config key and value the env came from, for the message)."""
+    (``where``: the config key and value the env came from, for the message). ``image_keys``:
+    keys ``env.image_keys`` names as images (a part's key, or its TensorDict key); ``frame_stack``
+    is recorded (``space`` is the stacked one already: ``images.FrameStack``)."""
     parts: list[ObsPart] = []
     encoders: list[Callable[[Any], np.ndarray]] = []
+    named = set(image_keys)
+    seen: set[str] = set()  # Box keys and their TensorDict keys (what image_keys may name)
+    boxes: list[str] = []
 
     def visit(sp: spaces.Space, key: str) -> None:
         offset = sum(p.size for p in parts)
@@ -175,11 +237,22 @@ def obs_layout(space: spaces.Space, where: str) -> ObsLayout:
             for i, sub in enumerate(sp.spaces):
                 visit(sub, f"{key}/{i}" if key else str(i))
         elif isinstance(sp, spaces.Box):
-            if np.dtype(sp.dtype) == np.uint8 and len(sp.shape) >= 3:
-                raise UnsupportedSpace(
-                    f"{where}: the observation{at} is an image ({_describe(sp)}); rlexp's MLP "
-                    f"policies take {SUPPORTED_OBSERVATIONS}, not images (no CNN policy)"
-                )
+            image_key = image_key_of(key)
+            is_named = bool(named & {key, image_key})
+            seen.update({key, image_key})
+            boxes.append(key or image_key)
+            image = image_layout(tuple(sp.shape), sp.dtype, is_named, at, where, UnsupportedSpace)
+            if image is not None:
+                chw, source = image
+                if image_key == VECTOR_KEY:
+                    raise UnsupportedSpace(
+                        f"{where}: the image at key {key!r} would be the observation entry "
+                        f"{VECTOR_KEY!r}, which holds the flat vector; rename the env's key"
+                    )
+                parts.append(ObsPart(key, "image", chw, -1, 0, image_key=image_key,
+                                     source_layout=source))  # fmt: skip
+                encoders.append(image_encoder(source, chw))
+                return
             size = int(np.prod(sp.shape))
             parts.append(ObsPart(key, "box", tuple(sp.shape), offset, size))
             encoders.append(_box)
@@ -206,6 +279,12 @@ def obs_layout(space: spaces.Space, where: str) -> ObsLayout:
             )
 
     visit(space, "")
+    unknown = sorted(named - seen)
+    if unknown:
+        raise UnsupportedSpace(
+            f"{where}: env.image_keys={sorted(named)} names {unknown}, which the observation does "
+            f"not have (its Box keys: {boxes}; an image at the root is {image_key_of('')!r})"
+        )
     if not parts:
         raise UnsupportedSpace(f"{where}: the observation space {_describe(space)} is empty")
     dim = sum(p.size for p in parts)
@@ -214,7 +293,8 @@ def obs_layout(space: spaces.Space, where: str) -> ObsLayout:
         and len(space.shape) == 1
         and np.issubdtype(np.dtype(space.dtype), np.floating)
     )
-    return ObsLayout(type(space).__name__, tuple(parts), dim, plain, tuple(encoders))
+    stack = max(1, int(frame_stack))
+    return ObsLayout(type(space).__name__, tuple(parts), dim, plain, tuple(encoders), stack)
 
 
 @dataclass(frozen=True)
@@ -323,3 +403,18 @@ def _parts_of(record: dict[str, Any]) -> list[dict[str, Any]]:
     """A layout record's parts, a missing ``group`` read as ``"policy"`` (records made before
     observation groups have none; new ones write it only when it is not ``"policy"``)."""
     return [{"group": "policy", **p} if isinstance(p, dict) else p for p in record.get("parts", [])]
+
+
+def frame_stacked(env: Any, n: int, image_keys: Sequence[str], where: str) -> Any:
+    """``env.frame_stack=n``: ``env`` behind ``images.FrameStack`` over its image leaves (``n`` 0
+    or 1: ``env`` itself); ``UnsupportedSpace`` (one line) when it has no image to stack."""
+    if n <= 1:
+        return env
+    images = obs_layout(env.observation_space, where, image_keys).images
+    if not images:
+        env.close()
+        raise UnsupportedSpace(
+            f"{where}: env.frame_stack={n} stacks image frames, and the observation "
+            f"({_describe(env.observation_space)}) has no image; use env.frame_stack=0"
+        )
+    return FrameStack(env, n, [p.key for p in images])

@@ -10,7 +10,9 @@ alike (docs/batched_envs.md):
   and export metadata. **Groups**: each entry is of group ``policy``, except under a top-level entry
   named ``critic``, and, when the env has a top-level ``policy`` entry (Isaac Lab's groups), every
   top-level entry is a group of its own name; the ``policy`` group's entries come first.
-  Images (uint8 of rank >= 3) are refused.
+  Images (uint8 entries of rank 3, HWC or CHW, or 4, stacked frames; ``images.image_layout``) are
+  not flattened: the observation is then a TensorDict of ``vector`` and one uint8 [N, C, H, W]
+  entry per image (its key with "/" as "."), as the Gymnasium backends give it.
 - **actions**: one action key. ``Bounded`` / ``Unbounded`` continuous specs become rlexp's Gaussian
   actions (flattened; bounds +-inf where the spec has none; actions clipped to finite bounds);
   ``Categorical`` and ``OneHot`` (one component), ``MultiCategorical`` and ``Binary`` become
@@ -44,7 +46,8 @@ from torchrl.envs import EnvBase
 
 from rlexp.envs.batched_base import FLOATS, BatchedAdapter, check_tensor
 from rlexp.envs.env_state import plain_state
-from rlexp.envs.spaces import ActionCoding, ObsLayout, ObsPart
+from rlexp.envs.images import VECTOR_KEY, image_key_of, image_layout
+from rlexp.envs.spaces import ActionCoding, ObsLayout, ObsPart, UnsupportedSpace
 
 #: Top-level entries that are observation groups of their own (the rest are the policy's), unless
 #: the env has a ``policy`` entry: then every top-level entry is a group (Isaac Lab's wrappers).
@@ -88,6 +91,13 @@ class TorchRLAdapter(BatchedAdapter):
         coding, self._action_shape, self._one_hot = _action(spec, len(batch), where)
         self._action_dtype = spec.dtype
         self._keys, layout = _observations(raw, len(batch), where)
+        # image entries: (key, TensorDict key, source layout, CHW shape); the rest is the vector
+        self._images = [
+            (k, p.image_key, p.source_layout, p.shape)
+            for k, p in zip(self._keys, layout.parts, strict=True)
+            if p.kind == "image"
+        ]
+        self._vector_keys = [k for k, p in zip(self._keys, layout.parts, strict=True) if p.size]
         done_keys = {_name(k).rsplit("/", 1)[-1]: k for k in raw.done_keys}
         if "done" not in done_keys:
             raise ValueError(
@@ -101,11 +111,27 @@ class TorchRLAdapter(BatchedAdapter):
         }
         self._no_truncation = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
 
-    def _flat(self, td: TensorDictBase) -> torch.Tensor:
+    def _flat(self, td: TensorDictBase) -> torch.Tensor | TensorDictBase:
         n = self.num_envs
+        if self._images:
+            return self._structured(td)
         parts = [td.get(k).reshape(n, -1) for k in self._keys]
         flat = parts[0] if len(parts) == 1 else torch.cat([p.to(torch.float32) for p in parts], -1)
         return flat.to(torch.float32)
+
+    def _structured(self, td: TensorDictBase) -> TensorDictBase:
+        """The observation with images: ``vector`` (float32, when there is one) and each image
+        as uint8 [N, C, H, W]."""
+        n, out = self.num_envs, {}
+        if self._vector_keys:
+            parts = [td.get(k).reshape(n, -1).to(torch.float32) for k in self._vector_keys]
+            out[VECTOR_KEY] = parts[0] if len(parts) == 1 else torch.cat(parts, -1)
+        for key, name, source, chw in self._images:
+            x = td.get(key).reshape(n, *self._shapes[key][1:])
+            if source.endswith("hwc"):
+                x = x.movedim(-1, -3)
+            out[name] = x.reshape(n, *chw).contiguous()
+        return TensorDict._new_unsafe(out, batch_size=self.batch_size, device=self.device)
 
     def _check_obs(self, td: TensorDictBase, what: str) -> None:
         for key in self._keys:
@@ -181,17 +207,22 @@ def _observations(raw: EnvBase, dims: int, where: str) -> tuple[list[Any], ObsLa
     parts, offset = [], 0
     for key in keys:
         shape = tuple(int(s) for s in spec[key].shape[dims:])
-        if spec[key].dtype == torch.uint8 and len(shape) >= 3:
-            raise TypeError(
-                f"{where}: the observation {_name(key)!r} is an image ({list(shape)}, uint8); "
-                "rlexp's MLP policies take flat vectors, not images (no CNN policy)"
-            )
+        if spec[key].dtype == torch.uint8:
+            at = f" {_name(key)!r}"
+            image = image_layout(shape, "uint8", False, at, where, UnsupportedSpace)
+            if image is not None:
+                chw, source = image
+                parts.append(
+                    ObsPart(_name(key), "image", chw, -1, 0, group=group(key),
+                            image_key=image_key_of(_name(key)), source_layout=source)
+                )  # fmt: skip
+                continue
         size = 1
         for s in shape:
             size *= s
         parts.append(ObsPart(_name(key), "box", shape, offset, size, group=group(key)))
         offset += size
-    plain = len(keys) == 1 and len(parts[0].shape) == 1
+    plain = len(keys) == 1 and len(parts[0].shape) == 1 and parts[0].kind != "image"
     return keys, ObsLayout("Composite", tuple(parts), offset, plain)
 
 

@@ -155,7 +155,8 @@ class ObsInput(nn.Module):
         )
         self.image_keys = tuple(p.image_key for p in self.parts if p.kind == "image")
         encoders = encoders or {}
-        self.encoders = nn.ModuleDict({k: encoders[k] for k in self.image_keys})
+        # (a module name cannot hold "."; a nested image's key "cam.front" is "cam/front" here)
+        self.encoders = nn.ModuleDict({_module_name(k): encoders[k] for k in self.image_keys})
         self.out_dim = self.vector_dim + sum(int(e.features_dim) for e in self.encoders.values())
 
     @property
@@ -172,7 +173,7 @@ class ObsInput(nn.Module):
             x = normalizer(obs.get("vector"))
             features.append(x if self.index is None else x.index_select(-1, self.index))
         for key in self.image_keys:
-            features.append(self.encoders[key](obs.get(key)))
+            features.append(self.encoders[_module_name(key)](obs.get(key)))
         return features[0] if len(features) == 1 else torch.cat(features, -1)
 
     def function(self, normalizer: nn.Module) -> Callable[[Any], torch.Tensor]:
@@ -185,3 +186,8 @@ class ObsInput(nn.Module):
     def records(self) -> list[dict[str, Any]]:
         """The selected parts as the layout records them (export metadata, eval)."""
         return [p.record() for p in self.parts]
+
+
+def _module_name(image_key: str) -> str:
+    """An image key as a name ``nn.ModuleDict`` takes ("." is its path separator)."""
+    return image_key.replace(".", "/")
