@@ -19,8 +19,8 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from rlexp.envs.native.terms import TERM_ERRORS, named_error
 from rlexp.envs.images import image_key_of
+from rlexp.envs.native.terms import TERM_ERRORS, named_error
 from rlexp.envs.spaces import ObsLayout, ObsPart
 
 if TYPE_CHECKING:
