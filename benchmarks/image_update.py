@@ -79,6 +79,9 @@ def main() -> None:
     )
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t0 = time.perf_counter()
+    algo.compute_advantages(batch.clone())  # GAE alone (the update runs it again)
+    gae_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
     algo.update(batch)
     update_s = time.perf_counter() - t0
     minibatches = args.epochs * (args.envs * args.steps // args.mb)
@@ -90,7 +93,8 @@ def main() -> None:
                 "rollout_image_mb": round(images / 2**20, 1),
                 "collect_s": round(collect_s, 2),
                 "update_s": round(update_s, 2),
-                "per_minibatch_ms": round(1000 * update_s / minibatches, 1),
+                "gae_s": round(gae_s, 2),
+                "per_minibatch_ms": round(1000 * (update_s - gae_s) / minibatches, 1),
                 "peak_rss_before_update_mb": round(rss_before / 1024, 1),
                 "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
                 "step_taken": "fused" if algo.fused is not None else "clipppo",

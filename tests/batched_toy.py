@@ -88,7 +88,8 @@ class ToyPhysics:
 class ToyVecEnv:
     """rsl_rl's VecEnv contract over ``ToyPhysics``.
 
-    ``obs_format``: ``tensor`` | ``tuple`` (rsl_rl 2.x) | ``dict`` (rsl_rl 3.x groups);
+    ``obs_format``: ``tensor`` | ``tuple`` (rsl_rl 2.x) | ``dict`` (rsl_rl 3.x groups; ``critic``:
+    with a "critic" group);
     ``final_obs``: hand the true final observations over in ``extras["final_observation"]``;
     ``bad``: break the contract one way (obs_shape, obs_dtype, device, reward_shape)."""
 
@@ -102,8 +103,10 @@ class ToyVecEnv:
         action_space: bool = True,
         bad: str | None = None,
         max_episode_length: int = MAX_LEN,
+        critic: bool = True,
     ) -> None:
         self.num_envs, self.num_actions, self.device = num_envs, 2, device
+        self.critic = critic  # dict: a "critic" group (2x the policy's) beside "policy"
         self.max_episode_length = max_episode_length
         self.physics = ToyPhysics(num_envs, device, seed, max_episode_length)
         self.obs_format, self.final_obs, self.bad = obs_format, final_obs, bad
@@ -123,7 +126,8 @@ class ToyVecEnv:
         if self.obs_format == "tuple":
             return obs, {"observations": {}}
         if self.obs_format == "dict":
-            return TensorDict({"policy": obs, "critic": obs * 2}, batch_size=[self.num_envs])
+            groups = {"policy": obs, "critic": obs * 2} if self.critic else {"policy": obs}
+            return TensorDict(groups, batch_size=[self.num_envs])
         return obs
 
     def get_observations(self):

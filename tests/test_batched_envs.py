@@ -48,6 +48,7 @@ VECENV = [
     "env.backend=vecenv",
     "env.name=batched_toy:make_vecenv",
     "+env.kwargs.obs_format=dict",  # rsl_rl 3.x's observation groups
+    "+env.kwargs.critic=false",  # "policy" only: the export below probes the 7 policy values
     "seed=5",
 ]
 TORCHRL = [*BASE, "env.backend=torchrl", "env.name=batched_toy:make_torchrl_env", "seed=6"]
@@ -118,7 +119,8 @@ def test_vecenv_step_against_hand_computed_values(final_obs):
 
 @pytest.mark.parametrize("obs_format", ["tensor", "tuple", "dict"])
 def test_vecenv_observation_forms_give_the_same_run(obs_format):
-    """A tensor, rsl_rl 2.x's (obs, extras) and rsl_rl 3.x's groups ("policy") are one contract."""
+    """A tensor, rsl_rl 2.x's (obs, extras) and rsl_rl 3.x's groups ("policy") are one contract:
+    the policy's observation first in the vector (the dict's "critic" group, 2x it, after it)."""
     from batched_toy import ToyVecEnv
 
     from rlexp.envs.vecenv import VecEnvAdapter
@@ -126,10 +128,19 @@ def test_vecenv_observation_forms_give_the_same_run(obs_format):
     env = VecEnvAdapter(ToyVecEnv(2, seed=1, obs_format=obs_format), "toy")
     ref = VecEnvAdapter(ToyVecEnv(2, seed=1), "toy")
     assert env.obs_layout.parts[0].key == ("policy" if obs_format == "dict" else "")
-    torch.testing.assert_close(env.reset()["observation"], ref.reset()["observation"])
+    wide = 14 if obs_format == "dict" else 7
+    assert env.obs_dim == wide
+
+    def same(a, b):
+        torch.testing.assert_close(a[:, :7], b, rtol=0, atol=0)
+        if wide == 14:
+            torch.testing.assert_close(a[:, 7:], 2 * b, rtol=0, atol=0)
+
+    same(env.reset()["observation"], ref.reset()["observation"])
     for _ in range(25):  # past a time-out
         a, b = env.step_action(torch.ones(2, 2)), ref.step_action(torch.ones(2, 2))
-        assert (a == b).all()
+        same(a["observation"], b["observation"])
+        assert all((a[k] == b[k]).all() for k in ("reward", "done", "terminated", "truncated"))
 
 
 def test_torchrl_step_against_hand_computed_values():

@@ -115,6 +115,27 @@ def test_a_dict_of_images_and_vectors_keeps_the_vector_flat_and_names_nested_ima
     np.testing.assert_array_equal(layout.flatten(obs), out["vector"])  # the vector alone
 
 
+def test_images_inside_a_tuple_are_named_by_index_path():
+    space = spaces.Tuple(
+        (
+            spaces.Box(0, 255, (5, 4, 4), np.uint8),  # RGBA HWC
+            spaces.Dict({"cam": spaces.Box(0, 255, (2, 1, 5, 4), np.uint8)}),  # 2 grey CHW frames
+            spaces.Box(-1, 1, (3,), np.float32),
+        )
+    )
+    layout = obs_layout(space, "w")
+    assert [(p.image_key, p.shape, p.source_layout) for p in layout.images] == [
+        ("0", (4, 5, 4), "hwc"),
+        ("1.cam", (2, 5, 4), "stack_chw"),
+    ]
+    assert layout.dim == 3 and [p.key for p in layout.parts] == ["0", "1/cam", "2"]
+    a, b = frame((5, 4, 4), 1, 0), frame((2, 1, 5, 4), 2, 0)
+    out = layout.encode((a, {"cam": b}, np.array([1, 2, 3], np.float32)))
+    np.testing.assert_array_equal(out["0"], a.transpose(2, 0, 1))
+    np.testing.assert_array_equal(out["1.cam"], b[:, 0])
+    np.testing.assert_array_equal(out["vector"], [1, 2, 3])
+
+
 def test_image_keys_names_a_grey_image_by_key_path_or_tensordict_key():
     space = spaces.Dict(
         {
@@ -358,6 +379,13 @@ def test_envpool_pong_gives_uint8_4x84x84_stacked_frames_newest_last():
         assert stacked2.obs_layout.record()["frame_stack"] == 2
     finally:
         stacked2.close()
+    for kw, words in (
+        ({"name": "Hopper-v5"}, ["env.frame_stack=2", "no stack_num"]),
+        ({"name": "Pong-v5", "kwargs": {"stack_num": 3}}, ["env.kwargs.stack_num=3", "disagree"]),
+    ):
+        with pytest.raises(ValueError) as err:
+            EnvPoolEnv(num_envs=1, frame_stack=2, **kw)
+        assert "\n" not in str(err.value) and all(w in str(err.value) for w in words), err.value
 
 
 def test_a_torchrl_env_s_image_entries_pass_through_as_uint8_chw():
@@ -478,3 +506,25 @@ def test_a_dict_of_nested_images_and_vectors_trains_from_the_cli_through_workers
     assert images["cam.front"]["shape"] == [6, 6, 5]  # 2 frames x 3 channels, H 6, W 5
     assert images["cam.front"]["source_layout"] == "stack_hwc"
     assert images["depth"]["shape"] == [2, 4, 7]  # 2 grey [4, 7] frames
+
+
+@pytest.mark.parametrize(
+    ("overrides", "words"),
+    [
+        (["env.frame_stack=-1"], ["env.frame_stack=-1 must be 0 to 64"]),
+        (["env.frame_stack=65"], ["env.frame_stack=65 must be 0 to 64"]),
+        (['env.image_keys=[""]'], ["env.image_keys=['']", "a list of observation keys"]),
+        (["env=cart_pole", "env.image_keys=[cam]"], ["env.image_keys", "'native'"]),
+        (["env.backend=torchrl", "env.frame_stack=2"], ["env.frame_stack=2", "'torchrl'"]),
+    ],
+)
+def test_frame_stack_and_image_keys_rules_are_one_line_config_errors(overrides, words):
+    from conftest import compose
+    from rlexp.config.validate import ConfigError, to_root_config
+
+    with pytest.raises(ConfigError) as err:
+        to_root_config(compose(["env=gym", "env.name=gym_image_envs:Image-v0", *overrides]))
+    msg = str(err.value)
+    assert "\n" not in msg
+    for word in words:
+        assert word in msg, msg

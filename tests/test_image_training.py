@@ -69,7 +69,7 @@ def _config(*extra: str):
                 "algorithm.num_epochs=2",
                 "algorithm.compile=false",
                 "algorithm.entropy_coeff=0.01",
-                "algorithm.clip_value=0.3",
+                *([] if "algorithm=grpo" in extra else ["algorithm.clip_value=0.3"]),
                 *extra,
             ]
         )
@@ -333,3 +333,35 @@ def test_the_eval_worker_evaluates_image_snapshots_as_the_training_process_does(
         ]
     assert [s for s, _ in evals["false"]] == [48, 96, 144]
     assert evals["true"] == evals["false"]
+
+
+def test_the_nan_guard_checks_the_vector_of_an_image_rollout():
+    """A NaN in a next observation's vector is named; uint8 images pass (always finite)."""
+    from rlexp.algorithms.base import NonFiniteError
+    from rlexp.runtime.distributed import DistInfo
+    from rlexp.training.loop import check_rollout_finite
+
+    _, env, policy = _setup(10)
+    batch, _ = _rollout(env, policy, steps=3)
+    check_rollout_finite(batch, DistInfo(), torch.device("cpu"), 9)
+    batch["next", "observation", "vector"][2, 1, 3] = float("nan")
+    with pytest.raises(NonFiniteError, match="next/observation from the env at step 9"):
+        check_rollout_finite(batch, DistInfo(), torch.device("cpu"), 9)
+
+
+def test_grpo_updates_a_cnn_policy_that_has_a_critic():
+    """GRPO reads the actor only; with policy=cnn's critic beside it (no gradient there) the update
+    takes the TensorDict path and leaves the critic as it was (the fused step would fail on the
+    missing gradients)."""
+    config, env, policy = _setup(11, "algorithm=grpo", "algorithm.group_size=3")
+    batch, _ = _rollout(env, policy)
+    critic_mlp = copy.deepcopy(policy.critic_net.mlp.state_dict())
+    actor_before = copy.deepcopy(policy.actor_net.mlp.state_dict())
+    algo = make_algorithm(config.algorithm, policy, 4)
+    algo.update(batch)
+    assert algo.fused is None
+    for k, v in policy.critic_net.mlp.state_dict().items():
+        assert torch.equal(v, critic_mlp[k]), k
+    assert any(
+        not torch.equal(v, actor_before[k]) for k, v in policy.actor_net.mlp.state_dict().items()
+    )

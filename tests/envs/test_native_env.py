@@ -77,6 +77,8 @@ def test_push_cube_observation_layout_sorted_and_sized():
         "robot/qf",
         "robot/qpos",
         "robot/qvel",
+        "privileged/cube_to_goal",  # the critic group, after the policy's (#47)
+        "privileged/cube_vel",
     ]
     sizes = {name: stop - start for name, start, stop, _ in env.observation_layout}
     assert sizes == {
@@ -86,8 +88,10 @@ def test_push_cube_observation_layout_sorted_and_sized():
         "robot/qf": 6,
         "robot/qpos": 6,
         "robot/qvel": 6,
+        "privileged/cube_to_goal": 3,
+        "privileged/cube_vel": 3,
     }
-    assert env.obs_dim == 53 and env.action_spec.shape == (2, 6)
+    assert env.obs_dim == 59 and env.action_spec.shape == (2, 6)
     assert [n for n, *_ in cart_env(1).observation_layout] == [
         "robot/qf",
         "robot/qpos",
@@ -103,7 +107,7 @@ def test_observation_values_match_mujoco():
     place(env, 1, arm=env.robot_init_qpos + rng.uniform(-0.5, 0.5, 6))
     env.qvel[1, :6] = rng.uniform(-1, 1, 6)
     env._ctrl[1] += rng.uniform(-0.05, 0.05, 6)
-    obs = torch.from_numpy(env._flatten(env._observation_dict()))[1].double().numpy()
+    obs = torch.from_numpy(env._observe()[0])[1].double().numpy()
     d = mujoco_data(env, 1)
     lay = {name: (start, stop) for name, start, stop, _ in env.observation_layout}
     site = env.model.site("ee_site").id

@@ -76,6 +76,9 @@ def unsupported(algo) -> str | None:
         return "Adam is not the fused kernel on this device"
     if any(g.get("amsgrad") or g.get("weight_decay") for g in algo.optimizer.param_groups):
         return "Adam has amsgrad or weight decay"
+    if algo.cfg.name == "grpo" and getattr(algo.policy, "critic", None) is not None:
+        # torch's Adam skips a parameter without a gradient; the fused step has no such case
+        return "the policy's critic gets no gradient under GRPO (policy=actor_only fuses)"
     return None
 
 

@@ -6,6 +6,7 @@ the events need on either, written once; images stay uint8 in all of them (no fl
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -55,12 +56,9 @@ def all_finite(obs: Observation) -> bool:
 def equal_rows(a: Observation, b: Observation, batch_dims: int) -> torch.Tensor:
     """Per sample (the first ``batch_dims`` dims), whether ``a`` and ``b`` are bit-equal in every
     entry: bool ``[*batch]`` (a byte per element compared, never a float copy)."""
-    out: torch.Tensor | None = None
-    for x, y in zip(leaves(a), leaves(b), strict=True):
-        same = (x == y).flatten(batch_dims).all(-1)
-        out = same if out is None else out & same
-    assert out is not None
-    return out
+    pairs = zip(leaves(a), leaves(b), strict=True)
+    same = [(x == y).flatten(batch_dims).all(-1) for x, y in pairs]
+    return functools.reduce(torch.logical_and, same)
 
 
 def next_is_following(obs: Observation, next_obs: Observation, batch_dims: int) -> torch.Tensor:
@@ -106,10 +104,3 @@ def from_plain(value: Any) -> Observation | None:
     else:  # images only: [..., C, H, W]
         batch = next(iter(leaves(td))).shape[:-3]
     return TensorDict(dict(value), batch_size=batch)
-
-
-def apply(obs: Observation, fn: Callable[[torch.Tensor], torch.Tensor]) -> Observation:
-    """``fn`` on each tensor of the observation (a device move, a detach)."""
-    if isinstance(obs, TensorDictBase):
-        return obs.apply(fn)
-    return fn(obs)

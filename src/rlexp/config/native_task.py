@@ -12,6 +12,7 @@ import difflib
 import math
 import numbers
 import os
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,6 +37,23 @@ class ObservationTermConfig:
     mode: str = "add"  # add | modify
     name: str = "???"  # "group/key" in the observation dict (flattened with sorted keys)
     params: dict[str, Any] = field(default_factory=dict)
+    # the observation group the entry belongs to (what policy.actor/critic.observations select):
+    # policy (the actor's, by default) | critic (privileged: the critic's only, by default) | ...
+    group: str = "policy"
+
+
+#: An observation group's name: a Python identifier (``policy``, ``critic``, ``privileged_2``).
+GROUP_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def check_group(value: Any, where: str) -> str:
+    """An observation term's ``group`` (``where``: its dotted key); one line if it is no name."""
+    if not isinstance(value, str) or not GROUP_NAME.fullmatch(value):
+        raise ValueError(
+            f"{where}={_show(value)} must be an observation group name (letters, digits and _, "
+            "not starting with a digit), e.g. 'policy' (the actor's) or 'critic' (privileged)"
+        )
+    return value
 
 
 @dataclass

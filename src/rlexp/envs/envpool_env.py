@@ -186,7 +186,7 @@ def _stack_option(name: str, n: int, options: dict, where: str) -> dict:
     if "stack_num" not in envpool.make_spec(name).config._fields:
         raise ValueError(
             f"{where}: env.frame_stack={n}, but EnvPool's {name} has no stack_num option to stack "
-            "frames with; use env.frame_stack=0 or env.backend=gymnasium_async"
+            "frames with (EnvPool stacks frames for its Atari tasks); use env.frame_stack=0"
         )
     if "stack_num" in options and int(options["stack_num"]) != n:
         raise ValueError(

@@ -156,7 +156,7 @@ class ObsLayout:
         if self.plain:
             return np.asarray(obs).astype(np.float32)
         part = self.parts[0]
-        return ObsBatch({part.image_key: np.ascontiguousarray(self._encoders[0](obs)).copy()})
+        return ObsBatch({part.image_key: np.array(self._encoders[0](obs), order="C")})
 
     def record(self) -> dict[str, Any]:
         """Plain data for checkpoints and export metadata (compared on load)."""

@@ -5,8 +5,11 @@ alike (docs/batched_envs.md):
 
 - **observations**: every entry of the env's observation spec (nested keys included; non-tensor
   entries left out) flattened per env and concatenated into one float32 vector, depth-first with
-  each level's keys sorted (as a Gymnasium ``Dict``); a part's key is its path joined with ``/``;
-  the layout is recorded in checkpoints and export metadata.
+  each level's keys sorted (as a Gymnasium ``Dict``); a part's key is its path joined with ``/``
+  (selectable as ``a/b``, or ``a`` for every entry under it); the layout is recorded in checkpoints
+  and export metadata. **Groups**: each entry is of group ``policy``, except under a top-level entry
+  named ``critic``, and, when the env has a top-level ``policy`` entry (Isaac Lab's groups), every
+  top-level entry is a group of its own name; the ``policy`` group's entries come first.
   Images (uint8 entries of rank 3, HWC or CHW, or 4, stacked frames; ``images.image_layout``) are
   not flattened: the observation is then a TensorDict of ``vector`` and one uint8 [N, C, H, W]
   entry per image (its key with "/" as "."), as the Gymnasium backends give it.
@@ -46,6 +49,9 @@ from rlexp.envs.env_state import plain_state
 from rlexp.envs.images import VECTOR_KEY, image_key_of, image_layout
 from rlexp.envs.spaces import ActionCoding, ObsLayout, ObsPart, UnsupportedSpace
 
+#: Top-level entries that are observation groups of their own (the rest are the policy's), unless
+#: the env has a ``policy`` entry: then every top-level entry is a group (Isaac Lab's wrappers).
+GROUP_NAMES = ("policy", "critic")
 #: Observation dtypes rlexp reads (cast to float32): floats, integers, booleans.
 OBS_DTYPES = (*FLOATS, torch.bool, torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 
@@ -190,6 +196,14 @@ def _observations(raw: EnvBase, dims: int, where: str) -> tuple[list[Any], ObsLa
     )
     if not keys:
         raise ValueError(f"{where}: the env's observation spec has no tensor entries")
+    groups = {_path(k)[0] for k in keys}
+    declared = "policy" in groups  # Isaac Lab's / rsl_rl's groups: every top-level entry is one
+
+    def group(key: Any) -> str:
+        top = _path(key)[0]
+        return top if declared or top in GROUP_NAMES else "policy"
+
+    keys.sort(key=lambda k: group(k) != "policy")  # stable: the policy group first, sorted within
     parts, offset = [], 0
     for key in keys:
         shape = tuple(int(s) for s in spec[key].shape[dims:])
@@ -199,14 +213,14 @@ def _observations(raw: EnvBase, dims: int, where: str) -> tuple[list[Any], ObsLa
             if image is not None:
                 chw, source = image
                 parts.append(
-                    ObsPart(_name(key), "image", chw, -1, 0, image_key=image_key_of(_name(key)),
-                            source_layout=source)
+                    ObsPart(_name(key), "image", chw, -1, 0, group=group(key),
+                            image_key=image_key_of(_name(key)), source_layout=source)
                 )  # fmt: skip
                 continue
         size = 1
         for s in shape:
             size *= s
-        parts.append(ObsPart(_name(key), "box", shape, offset, size))
+        parts.append(ObsPart(_name(key), "box", shape, offset, size, group=group(key)))
         offset += size
     plain = len(keys) == 1 and len(parts[0].shape) == 1 and parts[0].kind != "image"
     return keys, ObsLayout("Composite", tuple(parts), offset, plain)

@@ -2,8 +2,10 @@
 
 What rlexp reads of the env (docs/batched_envs.md): ``num_envs``, ``num_actions``, ``device``;
 ``get_observations()`` returning the policy's observation as a tensor [N, ...], as rsl_rl 2.x's
-``(obs, extras)``, or as rsl_rl 3.x's TensorDict / dict of observation groups (the ``"policy"``
-group is the policy's); ``step(actions [N, A]) -> (obs, rewards [N], dones [N], extras)`` with the
+``(obs, extras)`` (more groups in ``extras["observations"]``, e.g. ``"critic"``), or as rsl_rl 3.x's
+TensorDict / dict of observation groups (a ``"policy"`` group required). Every group is emitted: each
+a part of the flat vector keyed and grouped by its name (a group that is a dict of terms: one part
+per term, ``group/term``), the ``policy`` group first, the others by name (docs/envs.md); ``step(actions [N, A]) -> (obs, rewards [N], dones [N], extras)`` with the
 time-outs in ``extras["time_outs"]``; optionally ``reset()``, ``seed(seed)``, ``get_state()`` /
 ``set_state(state)``, and a Gymnasium ``single_action_space`` / ``action_space`` (the action bounds,
 or discrete actions; without one: unbounded float actions of ``num_actions``).
@@ -20,6 +22,7 @@ one, so GAE computes the same ``r + gamma * V(s_t) - V(s_t)``.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -27,7 +30,7 @@ import torch
 from tensordict import TensorDictBase
 
 from rlexp.envs.batched_base import FLOATS, BatchedAdapter, check_tensor, flat_layout
-from rlexp.envs.spaces import ActionCoding, action_coding
+from rlexp.envs.spaces import ActionCoding, ObsLayout, ObsPart, action_coding
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +44,29 @@ FLAGS = (torch.bool, torch.uint8, torch.int8, torch.int16, torch.int32, torch.in
 CONTRACT = "rsl_rl's VecEnv: num_envs, num_actions, device, get_observations(), step(actions)"
 
 
-def policy_observation(out: Any, where: str, what: str) -> tuple[Any, str]:
-    """The policy's observation in what ``get_observations()`` / ``step()`` returned, and its
-    group key ("" for a plain tensor): a tensor, ``(obs, extras)``, or a mapping with ``"policy"``."""
+#: A part of the observation: (key, group, tensor [N, ...]).
+Part = tuple[str, str, torch.Tensor]
+
+
+def _group_parts(name: str, value: Any) -> list[Part]:
+    """One group's parts: the group as one part keyed by its name, or (a group that is itself a
+    dict / TensorDict of terms, Isaac Lab's ``concatenate_terms=False``) one part per term, keyed
+    ``group/term``, depth-first with each level's names sorted."""
+    if isinstance(value, Mapping | TensorDictBase):
+        return [
+            p for k in sorted(value.keys(), key=str) for p in _group_parts(f"{name}/{k}", value[k])
+        ]
+    return [(name, name.split("/", 1)[0], value)]
+
+
+def observation_parts(out: Any, where: str, what: str, extras: Any = None) -> list[Part]:
+    """Every observation group in what ``get_observations()`` / ``step()`` returned, as parts in the
+    flat vector's order (the ``policy`` group first, then the others by name): a tensor (one part,
+    key "", group ``policy``), rsl_rl 2.x's ``(obs, extras)`` with the other groups in
+    ``extras["observations"]`` (``critic``: key and group ``critic``), or rsl_rl 3.x's TensorDict /
+    dict of groups (each group a part keyed and grouped by its name)."""
     if isinstance(out, tuple | list) and out:
-        return policy_observation(out[0], where, what)
+        return observation_parts(out[0], where, what, out[1] if len(out) > 1 else extras)
     if isinstance(out, Mapping | TensorDictBase):
         if "policy" not in out.keys():
             raise ValueError(
@@ -53,8 +74,21 @@ def policy_observation(out: Any, where: str, what: str) -> tuple[Any, str]:
                 f"{sorted(map(str, out.keys()))}); rsl_rl 3.x's observation groups name the "
                 "policy's 'policy'"
             )
-        return out["policy"], "policy"
-    return out, ""
+        groups = {str(k): out[k] for k in out.keys()}
+    else:
+        groups = {"": out}
+    more = (
+        extras.get("observations", None) if isinstance(extras, Mapping | TensorDictBase) else None
+    )
+    if isinstance(more, Mapping | TensorDictBase):  # rsl_rl 2.x: extras["observations"]["critic"]
+        for k in more.keys():
+            if str(k) not in groups and str(k) != "policy":
+                groups[str(k)] = more[k]
+    order = sorted(groups, key=lambda g: (g not in ("", "policy"), g))
+    parts = [p for g in order for p in _group_parts(g, groups[g])]
+    if "" in groups:  # a bare tensor: the policy's, at the root
+        parts[0] = ("", "policy", groups[""])
+    return parts
 
 
 class VecEnvAdapter(BatchedAdapter):
@@ -77,25 +111,44 @@ class VecEnvAdapter(BatchedAdapter):
             raise TypeError(
                 f"{where}: num_envs, num_actions or device is unusable ({exc}); {CONTRACT}"
             ) from None
-        obs, key = policy_observation(raw.get_observations(), where, "get_observations()")
-        check_tensor(where, "get_observations()'s observation", obs, None, FLOATS, device)
-        if obs.dim() < 2 or obs.shape[0] != n:
-            raise ValueError(
-                f"{where}: get_observations()'s observation has shape {list(obs.shape)}, expected "
-                f"[num_envs={n}, ...]"
-            )
+        parts = observation_parts(raw.get_observations(), where, "get_observations()")
+        for key, _, obs in parts:
+            check_tensor(where, _what("get_observations()", key), obs, None, FLOATS, device)
+            if obs.dim() < 2 or obs.shape[0] != n:
+                raise ValueError(
+                    f"{where}: {_what('get_observations()', key)} has shape {list(obs.shape)}, "
+                    f"expected [num_envs={n}, ...]"
+                )
         super().__init__(
-            raw, name, n, device, flat_layout(key, tuple(obs.shape[1:])),
-            _coding(raw, n, num_actions, where),
+            raw, name, n, device, _layout(parts), _coding(raw, n, num_actions, where)
         )  # fmt: skip
-        self._obs_shape = tuple(obs.shape)
+        #: each part's key and shape [N, ...], in the flat vector's order
+        self._shapes = {key: tuple(obs.shape) for key, _, obs in parts}
         self._has_reset = callable(getattr(raw, "reset", None))
         self._seedable = callable(getattr(raw, "seed", None))
         self._no_time_outs = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
-        self._live.obs_now = self._flat(obs)
+        self._live.obs_now = self._flat(parts)
 
-    def _flat(self, obs: torch.Tensor) -> torch.Tensor:
-        return obs.reshape(self.num_envs, self.obs_dim).to(torch.float32)
+    def _flat(self, parts: list[Part], fill: torch.Tensor | None = None) -> torch.Tensor:
+        """The parts as the flat float32 vector [N, dim]; a part they lack is taken from ``fill``
+        (a final observation without the other groups: the stand-in's columns) or refused."""
+        n = self.num_envs
+        if len(parts) == 1 and len(self._shapes) == 1:
+            return parts[0][2].reshape(n, self.obs_dim).to(torch.float32)
+        given = {key: obs for key, _, obs in parts}
+        cols = []
+        for part in self.obs_layout.parts:
+            obs = given.get(part.key)
+            if obs is None:
+                if fill is None:
+                    raise ValueError(
+                        f"{self.where}: the observation has no group {part.key!r} (it had at the "
+                        f"start; it has {sorted(given)})"
+                    )
+                cols.append(fill[:, part.offset : part.offset + part.size])
+            else:
+                cols.append(obs.reshape(n, part.size).to(torch.float32))
+        return torch.cat(cols, -1)
 
     # -- the contract ------------------------------------------------------------------------------
     def _raw_seed(self, seed: int) -> bool:
@@ -106,9 +159,27 @@ class VecEnvAdapter(BatchedAdapter):
     def _raw_reset(self) -> torch.Tensor:
         if self._has_reset:
             self.raw.reset()
-        obs, _ = policy_observation(self.raw.get_observations(), self.where, "get_observations()")
-        what = "get_observations()'s observation after reset()"
-        return self._flat(check_tensor(self.where, what, obs, self._obs_shape, FLOATS, self.device))
+        parts = observation_parts(self.raw.get_observations(), self.where, "get_observations()")
+        what = "get_observations() after reset()"
+        self._check_parts(parts, what)
+        return self._flat(parts)
+
+    def _check_parts(self, parts: list[Part], what: str, partial: bool = False) -> None:
+        """Each part against the shape it had at the start (``partial``: parts may be missing)."""
+        keys = [key for key, _, _ in parts]
+        if not partial and sorted(keys) != sorted(self._shapes):
+            raise ValueError(
+                f"{self.where}: {what} gives the groups {keys}; at the start it gave "
+                f"{list(self._shapes)}"
+            )
+        for key, _, obs in parts:
+            shape = self._shapes.get(key)
+            if shape is None:
+                raise ValueError(
+                    f"{self.where}: {_what(what, key)} is a group the env did not give at the "
+                    f"start ({list(self._shapes)})"
+                )
+            check_tensor(self.where, _what(what, key), obs, shape, FLOATS, self.device)
 
     def _raw_step(
         self, action: torch.Tensor, prev: torch.Tensor
@@ -117,7 +188,7 @@ class VecEnvAdapter(BatchedAdapter):
         if not self._live.checked:  # the first step: what the env returns, then trusted
             self._check_step(out)
         obs_raw, rewards, dones, extras = out
-        obs = self._flat(policy_observation(obs_raw, self.where, "step()'s observation")[0])
+        obs = self._flat(observation_parts(obs_raw, self.where, "step()'s observation", extras))
         reward = rewards.reshape(self.num_envs, 1).to(torch.float32)
         done = dones.reshape(self.num_envs, 1)
         if done.dtype != torch.bool:
@@ -132,8 +203,9 @@ class VecEnvAdapter(BatchedAdapter):
         if final is None:  # rsl_rl's stand-in: V of the observation acted on (module docstring)
             nxt = torch.where(done, prev, obs)
         else:
-            fin = policy_observation(final, self.where, f"extras[{FINAL_OBS_KEY!r}]")[0]
-            nxt = torch.where(done, self._flat(fin), obs)
+            fin = observation_parts(final, self.where, f"extras[{FINAL_OBS_KEY!r}]")
+            # a group the final observation lacks (2.x hands over the policy's): the stand-in's
+            nxt = torch.where(done, self._flat(fin, fill=prev), obs)
         return obs, nxt, reward, done, truncated
 
     def _check_step(self, out: Any) -> None:
@@ -146,8 +218,7 @@ class VecEnvAdapter(BatchedAdapter):
                 + "; expected (obs, rewards, dones, extras)"
             )
         obs_raw, rewards, dones, extras = out
-        obs = policy_observation(obs_raw, w, "step()'s observation")[0]
-        check_tensor(w, "step()'s observation", obs, self._obs_shape, FLOATS, dev)
+        self._check_parts(observation_parts(obs_raw, w, "step()", extras), "step()")
         rows = [(n,), (n, 1)]
         for what, value, dtypes in (("rewards", rewards, FLOATS), ("dones", dones, FLAGS)):
             check_tensor(w, f"step()'s {what}", value, None, dtypes, dev)
@@ -170,9 +241,28 @@ class VecEnvAdapter(BatchedAdapter):
                 "bootstrapping at time limits)", w,
             )  # fmt: skip
         if FINAL_OBS_KEY in keys:
-            fin = policy_observation(extras[FINAL_OBS_KEY], w, f"extras[{FINAL_OBS_KEY!r}]")[0]
-            check_tensor(w, f"extras[{FINAL_OBS_KEY!r}]", fin, self._obs_shape, FLOATS, dev)
+            what = f"extras[{FINAL_OBS_KEY!r}]"
+            self._check_parts(observation_parts(extras[FINAL_OBS_KEY], w, what), what, True)
         self._live.checked = True
+
+
+def _what(where: str, key: str) -> str:
+    """A part's name in messages: ``step()'s observation`` / ``step()'s 'critic' group``."""
+    return f"{where}'s observation" if key in ("", "policy") else f"{where}'s {key!r} group"
+
+
+def _layout(parts: list[Part]) -> ObsLayout:
+    """The flat vector's layout: each part flattened (C order), in ``parts``' order."""
+    if len(parts) == 1:
+        key, _, obs = parts[0]
+        return flat_layout(key, tuple(obs.shape[1:]))
+    out, offset = [], 0
+    for key, group, obs in parts:
+        shape = tuple(int(s) for s in obs.shape[1:])
+        size = math.prod(shape)
+        out.append(ObsPart(key, "box", shape, offset, size, group=group))
+        offset += size
+    return ObsLayout("groups", tuple(out), offset)
 
 
 def _coding(raw: Any, n: int, num_actions: int, where: str) -> ActionCoding:

@@ -10,6 +10,10 @@ same order, so every value it produces is identical to the generic loop's (teste
 the root copies of the previous step's done flags and per-term rewards, which nothing reads (GAE and
 the loss use the ``"next"`` ones). Anything else falls back to TorchRL's loop.
 
+Observations: a flat float32 tensor, or (images, issue #47) a TensorDict of the ``vector`` and uint8
+``[C, H, W]`` images, stacked per entry into the rollout as the env gave them (uint8 stays uint8:
+never a float copy of a rollout's images; the encoder scales each minibatch inside the network).
+
 Devices: env and policy on one device (the CPU, or a batched torch env's GPU with the policy
 there too), nothing leaves it. On two devices, each step moves the observation to the policy's
 device and the action to the env's (once each), and the rollout is handed over on the policy's

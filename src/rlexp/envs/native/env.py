@@ -25,6 +25,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from rlexp.config.native_task import NativeTaskConfig, plain
+from rlexp.envs.native.obs_table import ROBOT_OBSERVATIONS, make_table, observe
 from rlexp.envs.native.scene import load_model
 from rlexp.envs.native.state import SimState
 from rlexp.envs.native.tasks import TaskSpec, get_task
@@ -40,7 +41,7 @@ from rlexp.envs.native.terms import (
 
 log = logging.getLogger(__name__)
 
-ROBOT_OBSERVATIONS = ("robot/qpos", "robot/qvel", "robot/qf")  # every observation starts from these
+__all__ = ["ROBOT_OBSERVATIONS", "NativeEnv", "default_num_threads"]
 
 
 def default_num_threads(num_envs: int) -> int:
@@ -94,15 +95,19 @@ class NativeEnv(EnvBase, SimState):
         self.rng = np.random.default_rng(0)
         self._fire(self._startup_events, np.arange(num_envs))
         self._reset_envs(np.arange(num_envs))
-        obs = self._observation_dict()
+        obs, groups = observe(self, self._observation_terms)
         for key, func, _, _, params in self._reward_terms:
             try:
                 func(self, **params)
             except TERM_ERRORS as exc:
                 raise named_error(exc, f"rewards.{key}") from exc
-        self.observation_layout = self._layout(obs)
-        self.obs_dim = self.observation_layout[-1][2] if self.observation_layout else 0
-        self._v.current_obs = self._flatten(obs)
+        self._table = make_table(obs, groups)  # the vector's entries (policy group first), images
+        #: (name, start, stop, shape) of each vector entry; ``obs_layout``: every part, its group
+        self.observation_layout = list(self._table.entries)
+        self.obs_layout = self._table.layout
+        self.obs_dim = self._table.dim
+        self._v.current_obs = self._table.flatten(obs, num_envs)
+        self._v.current_images = self._table.pixels(obs)
         self._make_specs()
         log.info(
             "native env %s: %d envs, obs %d, action %d, %d physics steps/action, %d physics threads",
@@ -153,8 +158,17 @@ class NativeEnv(EnvBase, SimState):
 
     def _make_specs(self) -> None:
         n, dev = self.num_envs, self.device
+        vector = Unbounded((n, self.obs_dim), dtype=torch.float32, device=dev)
+        if self._table.images:  # DESIGN47 §1: vector + uint8 [C, H, W] images
+            entries = {
+                k: Bounded(0, 255, (n, *chw), dtype=torch.uint8, device=dev)
+                for _, k, chw in self._table.images
+            }
+            vector = Composite(
+                entries, **({"vector": vector} if self.obs_dim else {}), shape=(n,), device=dev
+            )
         self.observation_spec = Composite(
-            observation=Unbounded((n, self.obs_dim), dtype=torch.float32, device=dev),
+            observation=vector,
             rewards=Composite(
                 {k: Unbounded((n, 1), dtype=torch.float32, device=dev) for k in self.reward_names},
                 shape=(n,),
@@ -195,48 +209,22 @@ class NativeEnv(EnvBase, SimState):
         self._v.version += 1
         self._fire(self._reset_events, env_ids)
 
-    def _observation_dict(self) -> dict[str, np.ndarray]:
-        obs = {
-            "robot/qpos": self.robot_qpos(),
-            "robot/qvel": self.robot_qvel(),
-            "robot/qf": self.robot_qf(),
-        }
-        for key, func, mode, name, params in self._observation_terms:
-            if mode == "modify":
-                if name not in obs:
-                    raise KeyError(
-                        f"observations.{key}: mode 'modify' needs an existing entry {name!r}; have {sorted(obs)}"
-                    )
-                try:
-                    obs[name] = func(self, obs[name], **params)
-                except TERM_ERRORS as exc:
-                    raise named_error(exc, f"observations.{key}") from exc
-            else:
-                if name in obs:
-                    raise KeyError(
-                        f"observations.{key}: mode 'add' but {name!r} already exists; use mode 'modify'"
-                    )
-                try:
-                    obs[name] = func(self, **params)
-                except TERM_ERRORS as exc:
-                    raise named_error(exc, f"observations.{key}") from exc
-        return obs
+    def _observe(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Every env's observation now: the vector [N, dim] and the images (obs_table.py)."""
+        obs, _ = observe(self, self._observation_terms)
+        return self._table.flatten(obs, self.num_envs), self._table.pixels(obs)
 
-    def _layout(self, obs: dict[str, np.ndarray]) -> list[tuple[str, int, int, tuple[int, ...]]]:
-        """(name, start, stop, shape) of each entry in the flat observation: keys sorted at every level."""
-        layout, start = [], 0
-        for name in sorted(obs, key=lambda k: tuple(k.split("/"))):
-            shape = tuple(obs[name].shape[1:])
-            size = int(np.prod(shape))
-            layout.append((name, start, start + size, shape))
-            start += size
-        return layout
+    def _keep(self, fresh: tuple, keep: np.ndarray) -> None:
+        """The envs of ``keep`` hold their current observation; the rest take ``fresh``'s."""
+        vector, images = fresh
+        vector[keep] = self._v.current_obs[keep]
+        for key, img in images.items():
+            img[keep] = self._v.current_images[key][keep]
+        self._v.current_obs, self._v.current_images = vector, images
 
-    def _flatten(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        out = np.empty((self.num_envs, self.obs_dim), dtype=np.float32)
-        for name, start, stop, _ in self.observation_layout:
-            out[:, start:stop] = obs[name].reshape(self.num_envs, -1)
-        return out
+    def _current(self) -> Any:
+        """The current observation as the env emits it (a copy: a Tensor, or vector + images)."""
+        return self._table.output(self._v.current_obs.copy(), self._v.current_images, self.device)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self.step_action(tensordict.get("action"))
@@ -246,7 +234,7 @@ class NativeEnv(EnvBase, SimState):
         fresh reset one for envs that finished (reset inside the step); hands those resets out.
         What rlexp's collector uses instead of a masked ``reset()``."""
         self._pending_reset[:] = False
-        return torch.from_numpy(self._v.current_obs.copy())
+        return self._current()
 
     def step_action(self, action: torch.Tensor) -> TensorDictBase:
         """One batched step from an action tensor (the body of ``_step``)."""
@@ -306,20 +294,18 @@ class NativeEnv(EnvBase, SimState):
                 reward += value
             terms[key] = torch.from_numpy(value.astype(np.float32)[:, None])
 
-        obs = self._flatten(self._observation_dict())  # the true final observation of finished envs
+        obs, images = self._observe()  # the true final observation of finished envs
         done = self.terminated | self.truncated
-        self._v.current_obs = obs
+        self._v.current_obs, self._v.current_images = obs, images
         if done.any():
             ids = np.flatnonzero(done)
             self._reset_envs(ids)
             self._pending_reset[ids] = True
-            fresh = self._flatten(self._observation_dict())
-            fresh[~done] = obs[~done]
-            self._v.current_obs = fresh
+            self._keep(self._observe(), ~done)
 
         return self._tensordict(
             {
-                "observation": torch.from_numpy(obs),
+                "observation": self._table.output(obs, images, self.device),
                 "reward": torch.from_numpy(reward.astype(np.float32)[:, None]),
                 "done": torch.from_numpy(done[:, None].copy()),
                 "terminated": torch.from_numpy(self.terminated[:, None].copy()),
@@ -366,11 +352,9 @@ class NativeEnv(EnvBase, SimState):
             self._pending_reset[m] = False
         if ids.size:
             self._reset_envs(ids)
-            fresh = self._flatten(self._observation_dict())
             keep = np.ones(self.num_envs, dtype=bool)
             keep[ids] = False
-            fresh[keep] = self._v.current_obs[keep]
-            self._v.current_obs = fresh
+            self._keep(self._observe(), keep)
         return self.current_tensordict()
 
     def current_tensordict(self) -> TensorDictBase:
@@ -380,7 +364,7 @@ class NativeEnv(EnvBase, SimState):
         false = torch.zeros((n, 1), dtype=torch.bool)
         return self._tensordict(
             {
-                "observation": torch.from_numpy(self._v.current_obs.copy()),
+                "observation": self._current(),
                 "done": false,
                 "terminated": false.clone(),
                 "truncated": false.clone(),
@@ -411,6 +395,11 @@ class NativeEnv(EnvBase, SimState):
             "episode_step": self.episode_step.copy(),
             "targets": {k: v.copy() for k, v in self._targets.items()},
             "current_obs": self._v.current_obs.copy(),
+            **(
+                {"current_images": {k: v.copy() for k, v in self._v.current_images.items()}}
+                if self._table.images
+                else {}
+            ),
             "pending_reset": self._pending_reset.copy(),
             "interval_count": self._v.interval_count,
             "rng": self.rng.bit_generator.state,
@@ -431,6 +420,10 @@ class NativeEnv(EnvBase, SimState):
         self.episode_step[:] = np.asarray(sd["episode_step"])
         self._targets = {k: np.array(v, dtype=float) for k, v in sd["targets"].items()}
         self._v.current_obs = np.array(sd["current_obs"], dtype=np.float32)
+        saved = sd.get("current_images", {})
+        self._v.current_images = {
+            k: np.array(saved[k], dtype=np.uint8) for k in self._v.current_images
+        }
         self._pending_reset[:] = np.asarray(sd["pending_reset"])
         self._v.interval_count = int(sd["interval_count"])
         rng = np.random.default_rng()
@@ -459,11 +452,13 @@ class NativeEnv(EnvBase, SimState):
         up: tuple[float, float, float] = (0.0, 0.0, 1.0),
         fovy: float | None = None,
         intrinsics: tuple[float, float, float, float] | None = None,
+        effects: bool = True,
     ) -> np.ndarray:
         """An RGB frame (H, W, 3) uint8 of env ``env_id`` from a free camera at ``eye`` looking at ``target``.
 
         ``fovy`` (degrees) or pinhole ``intrinsics`` [fx, fy, cx, cy] (pixels) set the projection;
-        neither: the model's default 45 degree field of view.
+        neither: the model's default 45 degree field of view. ``effects=False``: no shadows,
+        reflections or skybox (the camera observation term's frames).
         """
         from rlexp.envs.native.render import render_frame
 
@@ -491,6 +486,7 @@ class NativeEnv(EnvBase, SimState):
             up=up,
             fovy=fovy,
             intrinsics=intrinsics,
+            effects=effects,
         )
 
     def close(self, *args: Any, **kwargs: Any) -> None:

@@ -28,6 +28,7 @@ class _StepVars:
         self.fk_cache: tuple[np.ndarray, np.ndarray] | None = None
         # every env's observation now (post-reset for reset envs)
         self.current_obs: np.ndarray | None = None
+        self.current_images: dict[str, np.ndarray] = {}  # a camera term's uint8 [N, C, H, W]
         self.interval_count = 0
 
 
@@ -190,6 +191,13 @@ class SimState:
                 unknown_name_message("rigid object uid", uid, self._object_qpos_adr)
             ) from None
         return self.qpos[:, adr : adr + 3], self.qpos[:, adr + 3 : adr + 7]
+
+    def object_velocity(self, uid: str) -> tuple[np.ndarray, np.ndarray]:
+        """Linear velocity [N, 3] (world frame) and angular velocity [N, 3] (the body's frame) of
+        rigid object ``uid``: its free joint's qvel (views)."""
+        self.object_pose(uid)  # validates uid
+        adr = self._object_dof_adr[uid]
+        return self.qvel[:, adr : adr + 3], self.qvel[:, adr + 3 : adr + 6]
 
     def object_initial_pose(self, uid: str) -> tuple[np.ndarray, np.ndarray]:
         """The object's initial position [3] and quaternion [4] (from the scene)."""

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, is_dataclass
 from typing import TYPE_CHECKING, Any
 
-from rlexp.config.native_task import Number, Unchecked, check_params, plain
+from rlexp.config.native_task import Number, Unchecked, check_group, check_params, plain
 from rlexp.envs.native.actions import ACTIONS
 from rlexp.envs.native.events import EVENTS
 from rlexp.envs.native.observations import OBSERVATIONS
@@ -109,8 +109,8 @@ def build_event_terms(
 
 def build_observation_terms(
     observations: Mapping[str, Any] | None, env: SimState
-) -> list[tuple[str, Any, str, str, dict[str, Any]]]:
-    """The observation terms, in config order: ``(key, func, mode, name, params)`` each."""
+) -> list[tuple[str, Any, str, str, dict[str, Any], str]]:
+    """The observation terms, in config order: ``(key, func, mode, name, params, group)`` each."""
     terms = []
     for key, term in (observations or {}).items():
         t = as_dict(term)
@@ -122,7 +122,8 @@ def build_observation_terms(
         params = plain(t.get("params") or {})
         skip = 2 if mode == "modify" else 1
         _check_params(func, params, f"observations.{key}", skip=skip, env=env)
-        terms.append((key, func, mode, name, params))
+        group = check_group(t.get("group", "policy"), f"observations.{key}.group")
+        terms.append((key, func, mode, name, params, group))
     return terms
 
 
