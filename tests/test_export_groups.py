@@ -26,7 +26,6 @@ from rlexp.deploy.policy_eval import evaluate, metadata_path
 
 TESTS = Path(__file__).parent
 TINY = [
-    "env=gym",
     "env.num_envs=2",
     "env.num_eval_envs=2",
     "trainer.total_frames=256",
@@ -41,6 +40,7 @@ TINY = [
 RUNS = {
     # the actor reads what a robot measures; the critic (default: every part) the privileged state
     "grouped": [
+        "env=gym",
         "env.name=export_envs:Privileged-v0",
         "policy.actor.observations=[joints,phase]",
         "policy.actor.hidden_sizes=[16,16]",
@@ -49,11 +49,14 @@ RUNS = {
     # Nature CNN (SB3 / CleanRL defaults) on the HWC camera, beside the speed vector; the critic
     # also reads the CHW depth image (its own encoder: shared only where both read an image)
     "image": [
+        "env=gym",
         "env.name=export_envs:Pixels-v0",
         "policy=cnn",
         "policy.actor.observations=[camera,speed]",
         "seed=2",
     ],
+    # push_cube's default asymmetric critic: its privileged group (cube velocity, cube-to-goal)
+    "native": ["env=push_cube", "env.num_envs=4", "seed=4"],
 }
 FORMATS = {"torchscript": ".pt", "onnx": ".onnx"}
 ENV_VARS = {"RLEXP_ENV_MODULES": "export_envs"}
@@ -117,6 +120,22 @@ def test_the_metadata_lists_only_the_actor_s_inputs(runs):
     assert image["inputs"][1]["parts"][0]["source_layout"] == "hwc"
     assert image["critic_observations"] == ["camera", "depth", "speed"]
     assert "depth" not in json.dumps(image["inputs"])
+
+
+def test_a_native_task_s_privileged_group_is_not_an_input(runs, monkeypatch):
+    """push_cube: 59 values in the env's vector, of which the privileged group's 6 (cube velocity
+    [3], cube-to-goal [3]) only the critic reads; the file takes the other 53, names them, and
+    evaluates as its checkpoint."""
+    meta = _meta(runs["native"] / "p.pt")
+    [vector] = meta["inputs"]
+    assert meta["observation_dim"] == 59 and vector["shape"] == ["batch", 53]
+    assert vector["groups"] == ["policy"] and len(meta["observation_names"]) == 53
+    assert not any(n.startswith("privileged/") for n in meta["observation_names"])
+    assert meta["critic_observations"][-2:] == ["privileged/cube_to_goal", "privileged/cube_vel"]
+    want = evaluate(str(runs["native"]), 2, None)
+    for suffix in FORMATS.values():
+        got = evaluate(str(runs["native"] / f"p{suffix}"), 2, None)
+        assert got["mean_return"] == pytest.approx(want["mean_return"], rel=1e-5, abs=1e-6)
 
 
 def _raw_observations(env_id: str, n: int, drop: str | None = None) -> list:
