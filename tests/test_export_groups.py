@@ -442,3 +442,25 @@ def test_the_helper_stacks_frames_and_builds_images_as_rlexp_s_env_does(tmp_path
         raw.close()
     finally:
         env.close()
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"key": "joint"}, "its actor reads the observation 'joint', which the env of its config"),
+        ({"shape": [4]}, "reads the observation 'joints' as {'shape': [4]}; the env of its config"),
+    ],
+)
+def test_an_actor_part_the_env_lacks_is_one_line(runs, tmp_path, monkeypatch, change, words):
+    import shutil
+
+    monkeypatch.setenv("RLEXP_ENV_MODULES", "export_envs")
+    path = tmp_path / "p.onnx"
+    shutil.copy(runs["grouped"] / "p.onnx", path)
+    meta = _meta(runs["grouped"] / "p.onnx")
+    meta["inputs"][0]["parts"][0].update(change)
+    metadata_path(path).write_text(json.dumps(meta))
+    rc, _, err = _cli("eval", path)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2 and len(lines) == 1, err
+    assert words in lines[0], lines[0]

@@ -195,12 +195,12 @@ def _exported_source(path: Path) -> EvalSource:
 
     def build(config: Any, env: Any) -> Callable[[Any], Any]:
         from rlexp.deploy.export_feed import actor_feed
-
-        # the actor's inputs gathered from the env's observation (the critic's are never read)
-        feed = actor_feed(meta, env, f"exported policy {str(path)!r}")
         from rlexp.deploy.export_meta import check_action_space
 
-        check_action_space(meta, env, f"exported policy {str(path)!r}")
+        where = f"exported policy {str(path)!r}"
+        # the actor's inputs gathered from the env's observation (the critic's are never read)
+        feed = actor_feed(meta, env, where)
+        check_action_space(meta, env, where)
         act = load_exported(path, meta)
         space = meta.get("action_space") or {}
         if space.get("kind", "box") != "box":  # the file gives the env's values: back to indices
