@@ -17,7 +17,10 @@ Folded in:
   actions on unclipped, and so does its export. An unbounded side (a batched env's Box without
   bounds) clips nothing; the metadata writes it as null.
 
-Only the actor is exported (PPO's critic is not); actor-critic and actor-only policies alike.
+Only the actor is exported (PPO's critic is not); actor-critic and actor-only policies alike. A
+policy whose actor reads a selection of the observation (groups, an asymmetric critic) or images
+takes the actor's inputs only: its vector parts and uint8 [batch, C, H, W] images, listed in the
+metadata's ``inputs`` (``export_actor.py``; docs/export.md "Grouped and image policies").
 """
 
 from __future__ import annotations
@@ -227,8 +230,8 @@ def _actor_of(
 
 def _sample_observations(base: Any, n: int = 8) -> list[tuple[Any, Any]]:
     """``n`` observations drawn from the Gymnasium observation space of ``base`` (seeded: every
-    export draws the same), each as rlexp's env emits it (``ObsLayout.encode``); [] where the backend does not show
-    the space."""
+    export draws the same), each with what rlexp's env emits for it (``ObsLayout.encode``); []
+    where the backend does not show the space."""
     space = None
     if getattr(base, "_envs", None):
         space = base._envs[0].observation_space
