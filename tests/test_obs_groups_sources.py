@@ -395,3 +395,18 @@ def test_the_camera_term_is_a_uint8_chw_image_entry_that_sees_the_cube_move():
     again = _camera_env(2)
     again.load_env_state(sd)
     assert torch.equal(again.reset()["observation"]["camera.top"], env._current()["camera.top"])
+
+
+def test_the_pixels_preset_composes_and_refuses_overlap_in_one_line():
+    """+experiment=push_cube_pixels: the camera term, the actor on joints + image, a state critic;
+    algorithm.overlap=true (a forked collector cannot render) is one line at the config check."""
+    from conftest import compose
+    from rlexp.config.validate import ConfigError, to_root_config
+
+    cfg = to_root_config(compose(["+experiment=push_cube_pixels"]))
+    assert cfg.env.native.observations["camera"].func == "camera_image"
+    assert cfg.policy.actor.observations == ["robot", "camera"]
+    with pytest.raises(ConfigError) as err:
+        to_root_config(compose(["+experiment=push_cube_pixels", "algorithm.overlap=true"]))
+    msg = str(err.value)
+    assert "\n" not in msg and "env.native.observations.camera" in msg and "overlap=false" in msg
