@@ -410,3 +410,32 @@ def test_the_pixels_preset_composes_and_refuses_overlap_in_one_line():
         to_root_config(compose(["+experiment=push_cube_pixels", "algorithm.overlap=true"]))
     msg = str(err.value)
     assert "\n" not in msg and "env.native.observations.camera" in msg and "overlap=false" in msg
+
+
+def test_a_term_s_group_is_written_to_json_in_the_rlexp_section(tmp_path, monkeypatch):
+    """The users' task format has no group: train_config.json's rlexp section carries it (the
+    task file's terms are written without it), and the pair loads back to the same config."""
+    import json
+
+    from conftest import compose
+    from rlexp.config.json_format import (
+        load_json_experiment,
+        to_json_experiment,
+        write_json_experiment,
+    )
+    from rlexp.config.validate import to_root_config
+    from rlexp.launch.json_entry import compose_json_experiment
+
+    monkeypatch.chdir(tmp_path)
+    config = to_root_config(
+        compose(["env=push_cube", "env.native.observations.robot_ee_pos.group=privileged"])
+    )
+    train, gym = to_json_experiment(config)
+    assert all("group" not in t for t in gym["env"]["observations"].values())
+    assert '"privileged"' in json.dumps(train["rlexp"])
+    write_json_experiment(config, tmp_path)
+    again = compose_json_experiment(load_json_experiment(tmp_path / "train_config.json"))
+    terms = again.env.native.observations
+    assert terms["robot_ee_pos"].group == "privileged" and terms["cube_vel"].group == "critic"
+    assert terms["robot_qpos"].group == "policy"
+    assert again == config
