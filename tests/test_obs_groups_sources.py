@@ -395,3 +395,47 @@ def test_the_camera_term_is_a_uint8_chw_image_entry_that_sees_the_cube_move():
     again = _camera_env(2)
     again.load_env_state(sd)
     assert torch.equal(again.reset()["observation"]["camera.top"], env._current()["camera.top"])
+
+
+def test_the_pixels_preset_composes_and_refuses_overlap_in_one_line():
+    """+experiment=push_cube_pixels: the camera term, the actor on joints + image, a state critic;
+    algorithm.overlap=true (a forked collector cannot render) is one line at the config check."""
+    from conftest import compose
+    from rlexp.config.validate import ConfigError, to_root_config
+
+    cfg = to_root_config(compose(["+experiment=push_cube_pixels"]))
+    assert cfg.env.native.observations["camera"].func == "camera_image"
+    assert cfg.policy.actor.observations == ["robot", "camera"]
+    with pytest.raises(ConfigError) as err:
+        to_root_config(compose(["+experiment=push_cube_pixels", "algorithm.overlap=true"]))
+    msg = str(err.value)
+    assert "\n" not in msg and "env.native.observations.camera" in msg and "overlap=false" in msg
+
+
+def test_a_term_s_group_is_written_to_json_in_the_rlexp_section(tmp_path, monkeypatch):
+    """The users' task format has no group: train_config.json's rlexp section carries it (the
+    task file's terms are written without it), and the pair loads back to the same config."""
+    import json
+
+    from conftest import compose
+    from rlexp.config.json_format import (
+        load_json_experiment,
+        to_json_experiment,
+        write_json_experiment,
+    )
+    from rlexp.config.validate import to_root_config
+    from rlexp.launch.json_entry import compose_json_experiment
+
+    monkeypatch.chdir(tmp_path)
+    config = to_root_config(
+        compose(["env=push_cube", "env.native.observations.robot_ee_pos.group=privileged"])
+    )
+    train, gym = to_json_experiment(config)
+    assert all("group" not in t for t in gym["env"]["observations"].values())
+    assert '"privileged"' in json.dumps(train["rlexp"])
+    write_json_experiment(config, tmp_path)
+    again = compose_json_experiment(load_json_experiment(tmp_path / "train_config.json"))
+    terms = again.env.native.observations
+    assert terms["robot_ee_pos"].group == "privileged" and terms["cube_vel"].group == "critic"
+    assert terms["robot_qpos"].group == "policy"
+    assert again == config
