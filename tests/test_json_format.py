@@ -126,7 +126,14 @@ def test_push_cube_file_maps_key_by_key(tmp_path, monkeypatch):
         "success_bonus",
     ]
     assert [r.weight for r in n.rewards.values()] == [0.03, 0.8, 0.01, 10.0]
-    assert list(n.observations) == ["robot_qpos", "robot_ee_pos", "cube_pos", "goal_pos"]
+    assert list(n.observations) == ["robot_qpos", "robot_ee_pos", "cube_pos", "goal_pos"] + [
+        "cube_vel",  # conf/env/push_cube.yaml's critic group, kept beside the file's terms (#47)
+        "cube_to_goal",
+    ]
+    assert {k: t.group for k, t in n.observations.items() if t.group != "policy"} == {
+        "cube_vel": "critic",
+        "cube_to_goal": "critic",
+    }
     assert list(n.events) == ["randomize_cube", "randomize_goal"]
     assert n.actions["delta_qpos"].params == {"scale": 0.1} and n.extensions == {
         "success_threshold": 0.1
@@ -182,9 +189,9 @@ BUILT = {
     "push_cube": {
         "layout": [
             "object/cube_pos", "object/goal_pos", "robot/ee_pos", "robot/qf", "robot/qpos",
-            "robot/qvel",
+            "robot/qvel", "privileged/cube_to_goal", "privileged/cube_vel",  # conf/env's critic
         ],
-        "obs_dim": 53,
+        "obs_dim": 59,
         "action_dim": 6,
         "rewards": ["reaching_reward", "goal_distance_reward", "action_penalty", "success_bonus"],
         "max_episode_steps": 100,

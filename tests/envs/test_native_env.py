@@ -77,6 +77,8 @@ def test_push_cube_observation_layout_sorted_and_sized():
         "robot/qf",
         "robot/qpos",
         "robot/qvel",
+        "privileged/cube_to_goal",  # the critic group, after the policy's (#47)
+        "privileged/cube_vel",
     ]
     sizes = {name: stop - start for name, start, stop, _ in env.observation_layout}
     assert sizes == {
@@ -86,8 +88,10 @@ def test_push_cube_observation_layout_sorted_and_sized():
         "robot/qf": 6,
         "robot/qpos": 6,
         "robot/qvel": 6,
+        "privileged/cube_to_goal": 3,
+        "privileged/cube_vel": 3,
     }
-    assert env.obs_dim == 53 and env.action_spec.shape == (2, 6)
+    assert env.obs_dim == 59 and env.action_spec.shape == (2, 6)
     assert [n for n, *_ in cart_env(1).observation_layout] == [
         "robot/qf",
         "robot/qpos",

@@ -252,6 +252,16 @@ def validate(config: RootConfig) -> None:
             f"env.backend={e.backend!r} cannot move there: use one of {list(OVERLAP_BACKENDS)}, "
             "or algorithm.overlap=false"
         )
+    cameras = [
+        k for k, t in ((e.native.observations or {}) if e.native is not None else {}).items()
+        if (t.get("func") if isinstance(t, dict) else getattr(t, "func", None)) == "camera_image"
+    ]  # fmt: skip
+    if getattr(a, "overlap", False) and e.backend == "native" and cameras:
+        raise ConfigError(
+            f"algorithm.overlap=true: env.native.observations.{cameras[0]} renders with OpenGL, "
+            "which does not survive the fork into the collection process; set "
+            "algorithm.overlap=false"
+        )
     if getattr(a, "overlap", False) and config.events.train:
         raise ConfigError(
             f"algorithm.overlap=true: events.train ({', '.join(config.events.train)}) act on the "

@@ -17,12 +17,14 @@ Folded in:
   actions on unclipped, and so does its export. An unbounded side (a batched env's Box without
   bounds) clips nothing; the metadata writes it as null.
 
-Only the actor is exported (PPO's critic is not); actor-critic and actor-only policies alike.
+Only the actor is exported (PPO's critic is not); actor-critic and actor-only policies alike. A
+policy whose actor reads a selection of the observation (groups, an asymmetric critic) or images
+takes the actor's inputs only: its vector parts and uint8 [batch, C, H, W] images, listed in the
+metadata's ``inputs`` (``export_actor.py``; docs/export.md "Grouped and image policies").
 """
 
 from __future__ import annotations
 
-import copy
 import json
 import warnings
 from dataclasses import dataclass
@@ -30,9 +32,17 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
 
 from rlexp.checkpoints.files import select_checkpoint
+from rlexp.deploy.export_actor import (
+    DeterministicActor,
+    actor_columns,
+    call_actor,
+    exported_module,
+    input_names,
+    input_records,
+    probe_inputs,
+)
 from rlexp.deploy.export_meta import json_safe
 from rlexp.deploy.policy_eval import (
     EXPORT_SCHEMA,
@@ -46,73 +56,9 @@ from rlexp.deploy.policy_eval import (
 from rlexp.files.fsutil import atomic_write, atomic_write_text, temp_path
 
 #: The exported file's input and output names (ONNX graph names; the metadata states them).
-INPUT_NAME, OUTPUT_NAME = "observation", "action"
+INPUT_NAME, OUTPUT_NAME = "observation", "action"  # (images: export_actor.input_names)
 #: Backends whose envs clip actions to the action bounds before applying them.
 CLIPPING_BACKENDS = ("gymnasium", "gymnasium_async", "envpool", "native", "vecenv", "torchrl")
-
-
-class DeterministicActor(nn.Module):
-    """observation [batch, obs_dim] float32 -> the deterministic action, the normaliser folded in.
-
-    Box actions: the Gaussian's mean [batch, act_dim] float32, (``clamp_actions``) clipped to the
-    action bounds as the env does. Categorical actions (``nvec``): the most likely value of each
-    component, plus its ``start``: int64 [batch, K], the values of the env's own action space
-    (``Discrete``: column 0; ``MultiDiscrete`` / ``MultiBinary``: reshape to the space's shape)."""
-
-    # TorchScript: fixed branches
-    __constants__ = [
-        "normalize", "clip", "clamp_actions", "rescale", "categorical", "uniform", "k", "n"
-    ]  # fmt: skip
-
-    def __init__(
-        self,
-        policy: nn.Module,
-        low: torch.Tensor,
-        high: torch.Tensor,
-        clamp_actions: bool,
-        start: list[int] | None = None,
-        rescale: tuple[torch.Tensor, torch.Tensor] | None = None,
-    ) -> None:
-        super().__init__()
-        norm = policy.actor_net.normalizer
-        self.normalize = bool(norm.enabled)
-        self.clip = float(norm.clip)
-        self.clamp_actions = clamp_actions
-        # the same float32 buffers and ops as ObservationNormalizer.forward: the same numbers
-        self.register_buffer("obs_scale", norm._scale.detach().clone().float())
-        self.register_buffer("obs_shift", norm._shift.detach().clone().float())
-        self.mlp = copy.deepcopy(policy.actor_net.mlp).float().requires_grad_(False)
-        # (an env on a GPU has its bounds there; the file runs on the CPU)
-        self.register_buffer("action_low", low.detach().cpu().clone().float())
-        self.register_buffer("action_high", high.detach().cpu().clone().float())
-        self.categorical = policy.categorical
-        nvec = list(policy.nvec) if policy.categorical else [1]
-        self.nvec = nvec  # TorchScript infers List[int] from the value (no annotation: no warning)
-        self.uniform = len(set(nvec)) == 1
-        self.k, self.n = len(nvec), nvec[0]
-        self.register_buffer("action_start", torch.tensor(start or [0] * self.k, dtype=torch.int64))
-        # env.rescale_actions: [-1, 1] (the clamp's bounds) onto the env's (low, (high - low) / 2)
-        self.rescale = rescale is not None
-        low0, half = rescale if rescale is not None else (torch.zeros(1), torch.ones(1))
-        self.register_buffer("rescale_low", low0.detach().cpu().clone().float())
-        self.register_buffer("rescale_half", half.detach().cpu().clone().float())
-
-    def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        x = observation
-        if self.normalize:
-            x = torch.clamp(torch.addcmul(self.obs_shift, x, self.obs_scale), -self.clip, self.clip)
-        out = self.mlp(x)
-        if self.categorical:
-            if self.uniform:
-                index = out.reshape(-1, self.k, self.n).argmax(-1)
-            else:
-                index = torch.stack([b.argmax(-1) for b in torch.split(out, self.nvec, -1)], -1)
-            return index + self.action_start
-        if self.clamp_actions:
-            out = torch.clamp(out, self.action_low, self.action_high)
-        if self.rescale:
-            out = (out + 1.0) * self.rescale_half + self.rescale_low
-        return out
 
 
 @dataclass
@@ -223,7 +169,7 @@ def _actor_of(
     try:
         check_policy_before_building(ckpt, lambda: policy_for_env(config.policy, e, env))
         policy = policy_for_env(config.policy, e, env)
-        obs_dim = int(env.observation_spec["observation"].shape[-1])
+        obs_dim = int(policy.obs_layout.dim)  # the env's whole vector (every group's parts)
         act_dim = int(env.action_spec.shape[-1])
         from rlexp.envs.spaces import check_layout
 
@@ -253,7 +199,14 @@ def _actor_of(
         info = {
             "observation_dim": obs_dim,
             "action_dim": act_dim,
-            **_names(env, config),
+            # the file's inputs: the actor's vector parts and images only (docs/export.md)
+            "inputs": input_records(actor, policy),
+            # the parts each network read in training, by key: a deployment needs the actor's only
+            "actor_observations": _keys(policy.actor_input_parts),
+            "critic_observations": _keys(policy.critic_input_parts)
+            if policy.critic_net is not None
+            else None,
+            **_names(env, config, actor_columns(policy.actor_net.inputs, obs_dim)),
             # how the env's observation became the input vector (Dict / Tuple / Discrete parts)
             "observation_layout": layout.record() if layout is not None else None,
             # what the output is and how it becomes the env's action (docs/export.md)
@@ -277,8 +230,8 @@ def _actor_of(
 
 def _sample_observations(base: Any, n: int = 8) -> list[tuple[Any, Any]]:
     """``n`` observations drawn from the Gymnasium observation space of ``base`` (seeded: every
-    export draws the same), each with rlexp's flattening of it; [] where the backend does not show
-    the space."""
+    export draws the same), each with what rlexp's env emits for it (``ObsLayout.encode``); []
+    where the backend does not show the space."""
     space = None
     if getattr(base, "_envs", None):
         space = base._envs[0].observation_space
@@ -288,7 +241,7 @@ def _sample_observations(base: Any, n: int = 8) -> list[tuple[Any, Any]]:
         return []
     space.seed(0)
     samples = [space.sample() for _ in range(n)]
-    return [(obs, base.obs_layout.flatten(obs)) for obs in samples]
+    return [(obs, base.obs_layout.encode(obs)) for obs in samples]
 
 
 def _write_helper(
@@ -299,22 +252,24 @@ def _write_helper(
     layout, action = info["observation_layout"], info["action_space"]
     if layout is None or action is None:
         return None
-    from rlexp.deploy.export_obs import check_helper, helper_name, helper_source
+    from rlexp.deploy.export_obs import check_helper, helper_name, helper_source, rlexp_inputs
 
     path = target.parent / helper_name(target)
-    atomic_write_text(path, helper_source(target, config.env.name, layout, action))
+    inputs = info["inputs"]
+    atomic_write_text(path, helper_source(target, config.env.name, layout, action, inputs))
     if samples:
         try:
-            check_helper(path, samples)
+            check_helper(path, [(obs, rlexp_inputs(seen, inputs)) for obs, seen in samples])
         except ValueError:
             path.unlink()
             raise
     return path.name
 
 
-def _names(env: Any, config: Any) -> dict[str, Any]:
+def _names(env: Any, config: Any, columns: list[int]) -> dict[str, Any]:
     """Observation and action names where the env knows them (native tasks: term names, one per
-    element, and each observation term's slice); null for Gymnasium tasks."""
+    element of the file's ``observation`` input, i.e. of the actor's ``columns``, and each
+    observation term's slice of the env's whole vector); null for Gymnasium tasks."""
     base = env
     while hasattr(base, "base_env"):  # under TorchRL transforms
         base = base.base_env
@@ -326,6 +281,8 @@ def _names(env: Any, config: Any) -> dict[str, Any]:
     obs_names = [
         _element(n, i, stop - start) for n, start, stop, _ in layout for i in range(stop - start)
     ]
+    # the actor's elements only (not a critic group's)
+    obs_names = [obs_names[i] for i in columns if i < len(obs_names)]
     action_names = [
         _element(key, i, part.stop - part.start)
         for key, (part, _) in zip(native.actions, terms, strict=True)
@@ -350,13 +307,20 @@ def _finite_or_none(values: torch.Tensor) -> list[float | None]:
     return [float(v) if torch.isfinite(v) else None for v in values]
 
 
+def _keys(records: list[dict[str, Any]]) -> list[str]:
+    """A network's parts by key (an image at the root: its TensorDict key; the root: "")."""
+    return [r.get("image_key") or r["key"] if r["kind"] == "image" else r["key"] for r in records]
+
+
 def _io_fields(info: dict[str, Any]) -> dict[str, Any]:
+    """The first input's name, shape and dtype (every input: ``inputs``) and the output's."""
+    first = info["inputs"][0]
     return {
-        "input_name": INPUT_NAME,
+        "input_name": first["name"],
         "output_name": OUTPUT_NAME,
-        "input_shape": ["batch", info["observation_dim"]],
+        "input_shape": first["shape"],
         "output_shape": ["batch", info["action_dim"]],
-        "dtype": "float32",  # the input's; the output's is action_dtype
+        "dtype": first["dtype"],  # the first input's; the output's is action_dtype
     }
 
 
@@ -398,25 +362,26 @@ def _check_writable(target: Path) -> None:
 def _write_torchscript(actor: DeterministicActor, path: Path) -> None:
     with warnings.catch_warnings():  # torch.jit.script is deprecated in favour of torch.export
         warnings.simplefilter("ignore", DeprecationWarning)
-        torch.jit.save(torch.jit.script(actor), str(path))
+        torch.jit.save(exported_module(actor, torchscript=True), str(path))
 
 
 def _write_onnx(actor: DeterministicActor, path: Path) -> None:
     """torch.export-based exporter (torch's default and future; the TorchScript-based one is
-    deprecated), a dynamic batch axis, weights inside the file (no ``.data`` beside it)."""
-    example = torch.zeros(2, actor.obs_scale.shape[0])
+    deprecated), a dynamic batch axis on every input, weights inside the file (no ``.data``)."""
+    names = input_names(actor)
+    batch = torch.export.Dim("batch")
     with warnings.catch_warnings(), quiet("torch.onnx"), quiet("torch.export"):
         warnings.simplefilter("ignore")
         torch.onnx.export(
-            actor,
-            (example,),
+            exported_module(actor, torchscript=False),
+            tuple(probe_inputs(actor, 2)),
             str(path),
             dynamo=True,
             external_data=False,
             verbose=False,
-            input_names=[INPUT_NAME],
+            input_names=names,
             output_names=[OUTPUT_NAME],
-            dynamic_shapes={"observation": {0: torch.export.Dim("batch")}},
+            dynamic_shapes={name: {0: batch} for name in names},
         )
 
 
@@ -425,14 +390,11 @@ _WRITERS = {"torchscript": _write_torchscript, "onnx": _write_onnx}
 
 def _check_file(path: Path, meta: dict[str, Any], actor: DeterministicActor) -> None:
     """Load the written file as a user would and compare it with the actor on a probe batch
-    (observations around the normaliser's mean, some far out so the clips act)."""
-    gen = torch.Generator().manual_seed(0)
-    probe = torch.randn(16, meta["observation_dim"], generator=gen) * 3.0
-    if actor.normalize:  # x = (probe - shift) / scale: normalised values of about +-3
-        probe = (probe - actor.obs_shift) / actor.obs_scale
+    (vectors around the normaliser's mean, some far out so the clips act; random pixels)."""
+    probe = probe_inputs(actor, 16)
     with torch.no_grad():
-        want = actor(probe)
-        got = load_exported(path, meta)(probe)
+        want = call_actor(actor, probe)
+        got = load_exported(path, meta)(*probe)
     if got.shape != want.shape or not torch.allclose(
         got.double(), want.double(), rtol=1e-5, atol=1e-5
     ):

@@ -11,6 +11,7 @@ Only the standard library is imported at module level (``rlexp.deploy.policy_eva
 
 from __future__ import annotations
 
+import re
 import sys
 from typing import Any
 
@@ -38,9 +39,19 @@ def check_fields(meta: dict[str, Any], where: str) -> None:
 
     if not _int(meta.get("global_step"), 0):
         raise bad("global_step", "a whole number >= 0")
-    for key in ("observation_dim", "action_dim"):
-        if not _int(meta.get(key), 1):
-            raise bad(key, "a whole number >= 1")
+    if not _int(meta.get("action_dim"), 1):
+        raise bad("action_dim", "a whole number >= 1")
+    # an env of images only has no vector (dim 0); one without inputs (older rlexp) has one
+    if not _int(meta.get("observation_dim"), 0 if meta.get("inputs") is not None else 1):
+        raise bad("observation_dim", "a whole number >= 1 (>= 0 with inputs)")
+    if meta.get("inputs") is not None:
+        check_inputs(meta["inputs"], where)
+    for key in ("actor_observations", "critic_observations"):
+        value = meta.get(key)
+        if value is not None and not (
+            isinstance(value, list) and all(isinstance(v, str) for v in value)
+        ):
+            raise bad(key, "a list of observation keys or null")
     for key in ("input_name", "output_name"):
         if meta["format"] == "onnx" and not isinstance(meta.get(key), str):
             raise bad(key, "a string")
@@ -59,6 +70,71 @@ def check_fields(meta: dict[str, Any], where: str) -> None:
         nvec, start = space.get("nvec"), space.get("start")
         if not (_ints(nvec, 1) and _ints(start) and len(nvec) == len(start) == meta["action_dim"]):
             raise bad("action_space", f"categorical with {meta['action_dim']} nvec and start ints")
+
+
+#: An input's kind -> its dtype and the number of dims after the batch.
+INPUT_KINDS = {"vector": ("float32", 1), "image": ("uint8", 3)}
+#: How an env may give an image (envs/images.py image_layout), as the helper converts it.
+SOURCE_LAYOUTS = ("hw", "hwc", "chw", "stack_hwc", "stack_chw")
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+
+
+def check_inputs(inputs: Any, where: str) -> None:
+    """The metadata's ``inputs`` (what the file takes; export_actor.input_records) as an export
+    writes them: a ValueError of one line naming the input and the field otherwise."""
+    if not isinstance(inputs, list) or not inputs or not all(isinstance(i, dict) for i in inputs):
+        raise ValueError(f"{where}: inputs={inputs!r} is not a list of input objects (export "
+                         "metadata is data)")  # fmt: skip
+    names: list[str] = []
+    for n, spec in enumerate(inputs):
+
+        def bad(key: str, want: str, n: int = n, spec: dict = spec) -> ValueError:
+            return ValueError(
+                f"{where}: inputs[{n}].{key}={spec.get(key)!r} is not {want} (export metadata is "
+                "data)"
+            )
+
+        name, kind = spec.get("name"), spec.get("kind")
+        if not isinstance(name, str) or not _NAME.match(name) or name in names:
+            raise bad("name", "a new identifier")
+        names.append(name)
+        if kind not in INPUT_KINDS:
+            raise bad("kind", f"one of {list(INPUT_KINDS)}")
+        dtype, rank = INPUT_KINDS[kind]
+        if spec.get("dtype") != dtype:
+            raise bad("dtype", repr(dtype))
+        shape = spec.get("shape")
+        if not (isinstance(shape, list) and len(shape) == rank + 1 and shape[0] == "batch"
+                and _ints(shape[1:], 1)):  # fmt: skip
+            raise bad("shape", f'["batch", {rank} whole numbers >= 1]')
+        if not isinstance(spec.get("key"), str) or not spec["key"]:
+            raise bad("key", "an observation key")
+        groups = spec.get("groups")
+        if not (isinstance(groups, list) and groups and all(isinstance(g, str) for g in groups)):
+            raise bad("groups", "a list of group names")
+        parts = spec.get("parts")
+        if not (isinstance(parts, list) and parts and all(_part(p) for p in parts)):
+            raise bad("parts", "a list of observation parts (key, kind, shape, offset, size)")
+        if kind == "vector" and sum(p["size"] for p in parts) != shape[1]:
+            raise bad("parts", f"parts whose sizes add up to the input's {shape[1]}")
+        if kind == "image" and (len(parts) != 1 or parts[0]["kind"] != "image"
+                                or parts[0]["shape"] != shape[1:]):  # fmt: skip
+            raise bad("parts", f"one image part of shape {shape[1:]}")
+
+
+def _part(p: Any) -> bool:
+    """An observation part record (envs.spaces.ObsPart.record) with the types it is written with."""
+    return (
+        isinstance(p, dict)
+        and isinstance(p.get("key"), str)
+        and isinstance(p.get("kind"), str)
+        and _ints(p.get("shape"), 0)
+        and _int(p.get("offset"), -1)
+        and _int(p.get("size"), 0)
+        and all(_ints(p[k]) for k in ("nvec", "start") if k in p)
+        and all(isinstance(p[k], str) for k in ("group", "image_key", "source_layout") if k in p)
+        and (p["kind"] != "image" or p.get("source_layout") in SOURCE_LAYOUTS)
+    )
 
 
 def check_env_names(env: Any, where: str) -> None:

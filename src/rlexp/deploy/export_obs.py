@@ -23,15 +23,26 @@ metadata's observation_layout and action_space ({file}.json).
     import {module}
     x = {module}.flatten(obs)            # obs as env.reset() / env.step() give it -> float32 [1, {dim}]
     x = {module}.flatten(obs, batch=True)  # a vector env's batched obs -> float32 [n, {dim}]
+    xs = {module}.inputs(obs)            # every input of the file by name: {names}
     action = {module}.env_action(y[0])   # one row of the file's output -> what env.step() takes
+
+Images are uint8 [n, C, H, W] (the file scales them); FRAME_STACK > 1: the file was trained on the
+env's last FRAME_STACK frames of each image (env.frame_stack), which a deployment keeps itself:
+obs = stack.reset(obs) / stack.step(obs) with stack = {module}.FrameStack().
 """
+
+from collections import deque
 
 import numpy as np
 
 ENV_ID = {env_id!r}
 DIM = {dim}
-#: Dict keys sorted by str(key), depth-first; a part's key is its path joined with "/".
+#: The actor's vector parts in layout order (Dict keys sorted by str(key), depth-first; a part's
+#: key is its path joined with "/"); what only the critic read is not here.
 PARTS = {parts!r}
+#: The file's inputs in order (name, kind, key, dtype, shape; an image's part says its layout).
+INPUTS = {inputs!r}
+FRAME_STACK = {frame_stack!r}
 ACTION = {action!r}
 
 
@@ -67,6 +78,66 @@ def flatten(obs, batch=False):
     return np.concatenate(columns, axis=1)
 
 
+def image(obs, part, batch=False):
+    """An image leaf (``part``: an image part record) as the file's uint8 [n, C, H, W]."""
+    x = np.asarray(_leaf(obs, part["key"]), dtype=np.uint8)
+    if not batch:
+        x = x[None]
+    n, (c, h, w) = x.shape[0], part["shape"]
+    source = part["source_layout"]
+    if source == "hw":
+        x = x[:, None]
+    elif source in ("hwc", "stack_hwc"):
+        x = np.moveaxis(x, -1, -3)
+    return np.ascontiguousarray(x.reshape(n, c, h, w))
+
+
+def inputs(obs, batch=False):
+    """The observation -> {{input name: array}} for every input of the file (the actor's only)."""
+    out = {{}}
+    for spec in INPUTS:
+        if spec["kind"] == "vector":
+            out[spec["name"]] = flatten(obs, batch)
+        else:
+            out[spec["name"]] = image(obs, spec["parts"][0], batch)
+    return out
+
+
+class FrameStack:
+    """The last FRAME_STACK frames of each image leaf, stacked on a new first axis (one env;
+    newest last; reset fills the stack with its first frame), as rlexp stacked them in training."""
+
+    def __init__(self, n=FRAME_STACK):
+        self.n = n
+        self.keys = [s["parts"][0]["key"] for s in INPUTS if s["kind"] == "image"]
+        self.frames = {{}}
+
+    def reset(self, obs):
+        self.frames = {{k: deque([np.array(_leaf(obs, k))] * self.n, self.n) for k in self.keys}}
+        return self._current(obs)
+
+    def step(self, obs):
+        for k in self.keys:
+            self.frames[k].append(np.array(_leaf(obs, k)))
+        return self._current(obs)
+
+    def _current(self, obs):
+        for k in self.keys:
+            frames = list(self.frames[k])
+            stacked = np.concatenate(frames) if frames[0].ndim == 4 else np.stack(frames)
+            obs = _replace(obs, k.split("/") if k else [], stacked)
+        return obs
+
+
+def _replace(obs, path, value):
+    if not path:
+        return value
+    if isinstance(obs, (tuple, list)):
+        i = int(path[0])
+        return type(obs)(_replace(v, path[1:], value) if j == i else v for j, v in enumerate(obs))
+    return {{k: _replace(v, path[1:], value) if str(k) == path[0] else v for k, v in obs.items()}}
+
+
 def env_action(y, batch=False):
     """The file's output (one row; batch=True: every row) -> the action env.step() takes."""
     y = np.asarray(y)
@@ -89,30 +160,65 @@ def helper_name(target: Path) -> str:
     return ("_" if base[0].isdigit() else "") + base + "_obs.py"
 
 
-def helper_source(target: Path, env_id: str, layout: dict[str, Any], action: dict[str, Any]) -> str:
-    """The helper's text for ``layout`` (``ObsLayout.record()``) and ``action`` (the metadata's
-    ``action_space``)."""
+def helper_source(
+    target: Path,
+    env_id: str,
+    layout: dict[str, Any],
+    action: dict[str, Any],
+    inputs: list[dict[str, Any]] | None = None,
+) -> str:
+    """The helper's text for ``layout`` (``ObsLayout.record()``), ``action`` (the metadata's
+    ``action_space``) and ``inputs`` (the metadata's: the actor's; None: the whole vector)."""
+    if inputs is None:
+        vector = [p for p in layout["parts"] if p["kind"] != "image"]
+        inputs = [{"name": "observation", "kind": "vector", "parts": vector}]
+    vector = next((i["parts"] for i in inputs if i["kind"] == "vector"), [])
     return _TEMPLATE.format(
         env_id=env_id,
         file=target.name,
         module=helper_name(target)[:-3],
-        dim=layout["dim"],
-        parts=layout["parts"],
+        dim=sum(p["size"] for p in vector),
+        names=[i["name"] for i in inputs],
+        parts=vector,
+        inputs=inputs,
+        frame_stack=int(layout.get("frame_stack", 1)),
         action=action,
     )
 
 
 def check_helper(path: Path, samples: list[tuple[Any, Any]]) -> None:
-    """``ValueError`` unless the helper at ``path`` flattens each observation of ``samples``
-    (``(observation, rlexp's flat vector)`` pairs) as rlexp does, one at a time and as a batch."""
+    """``ValueError`` unless the helper at ``path`` gives each observation of ``samples``
+    (``(observation, {input name: rlexp's array})`` pairs) the inputs rlexp gives it, one at a time
+    and as a batch."""
     helper = runpy.run_path(str(path))
-    want = np.stack([np.asarray(flat, dtype=np.float32) for _, flat in samples])
-    got = np.concatenate([helper["flatten"](obs) for obs, _ in samples])
-    batched = helper["flatten"](_stack([obs for obs, _ in samples]), batch=True)
-    if not (np.array_equal(got, want) and np.array_equal(batched, want)):
-        raise ValueError(
-            f"the observation helper {str(path)!r} does not flatten as rlexp does; please report it"
-        )
+    batched = helper["inputs"](_stack([obs for obs, _ in samples]), batch=True)
+    for name in samples[0][1]:
+        want = np.stack([np.asarray(arrays[name]) for _, arrays in samples])
+        got = np.concatenate([helper["inputs"](obs)[name] for obs, _ in samples])
+        if not (
+            got.dtype == want.dtype
+            and np.array_equal(got, want)
+            and np.array_equal(batched[name], want)
+        ):
+            raise ValueError(
+                f"the observation helper {str(path)!r} does not give the input {name!r} as rlexp "
+                "does; please report it"
+            )
+
+
+def rlexp_inputs(encoded: Any, inputs: list[dict[str, Any]]) -> dict[str, np.ndarray]:
+    """The file's inputs as rlexp makes them from one observation as its env emits it
+    (``ObsLayout.encode``: the flat vector, or a dict of ``vector`` and images): the actor's
+    columns of the vector, its images by key."""
+    out = {}
+    for spec in inputs:
+        if spec["kind"] == "vector":
+            vector = encoded if isinstance(encoded, np.ndarray) else encoded["vector"]
+            cols = [i for p in spec["parts"] for i in range(p["offset"], p["offset"] + p["size"])]
+            out[spec["name"]] = np.asarray(vector, dtype=np.float32)[cols]
+        else:
+            out[spec["name"]] = np.asarray(encoded[spec["key"]])
+    return out
 
 
 def _stack(samples: list[Any]) -> Any:

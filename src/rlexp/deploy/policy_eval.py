@@ -194,27 +194,23 @@ def _exported_source(path: Path) -> EvalSource:
     meta = read_metadata(path)
 
     def build(config: Any, env: Any) -> Callable[[Any], Any]:
-        obs_dim = int(env.observation_spec["observation"].shape[-1])
-        if obs_dim != meta["observation_dim"]:
-            raise ValueError(
-                f"exported policy {str(path)!r} takes {meta['observation_dim']} observations; "
-                f"the env of its config gives {obs_dim}"
-            )
+        from rlexp.deploy.export_feed import actor_feed
         from rlexp.deploy.export_meta import check_action_space
-        from rlexp.envs.spaces import check_layout
 
-        check_layout(meta.get("observation_layout"), env, f"exported policy {str(path)!r}")
-        check_action_space(meta, env, f"exported policy {str(path)!r}")
+        where = f"exported policy {str(path)!r}"
+        # the actor's inputs gathered from the env's observation (the critic's are never read)
+        feed = actor_feed(meta, env, where)
+        check_action_space(meta, env, where)
         act = load_exported(path, meta)
         space = meta.get("action_space") or {}
         if space.get("kind", "box") != "box":  # the file gives the env's values: back to indices
             import torch
 
             start = torch.tensor(space["start"], dtype=torch.int64)
-            return ExportedPolicy(lambda obs: act(obs) - start)
+            return ExportedPolicy(lambda *xs: act(*xs) - start, feed)
         if meta.get("actions_rescaled"):  # the file gives the env's values; the env maps [-1, 1]
-            return ExportedPolicy(_unit_actions(act, meta))
-        return ExportedPolicy(act)
+            return ExportedPolicy(_unit_actions(act, meta), feed)
+        return ExportedPolicy(act, feed)
 
     return EvalSource(
         str(path), meta["format"], int(meta["global_step"]), meta["config"], build,
@@ -229,11 +225,12 @@ def _unit_actions(act: Callable[[Any], Any], meta: dict[str, Any]) -> Callable[[
 
     low = torch.tensor(meta["action_low"], dtype=torch.float64)
     half = (torch.tensor(meta["action_high"], dtype=torch.float64) - low) / 2.0
-    return lambda obs: ((act(obs).double() - low) / half - 1.0).float()
+    return lambda *xs: ((act(*xs).double() - low) / half - 1.0).float()
 
 
 def load_exported(path: Path, meta: dict[str, Any]) -> Callable[[Any], Any]:
-    """The exported file as a function ``obs [batch, obs_dim] float32 -> action`` (tensors)."""
+    """The exported file as a function of its inputs (``meta["inputs"]``' order; older exports:
+    ``obs [batch, obs_dim] float32``) -> the action (tensors)."""
     import torch
 
     if meta["format"] == "torchscript":
@@ -254,19 +251,26 @@ def load_exported(path: Path, meta: dict[str, Any]) -> Callable[[Any], Any]:
     except Exception as exc:  # onnxruntime's own exception types (InvalidProtobuf, ...)
         text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ValueError(f"exported policy {str(path)!r} does not load: {text}") from None
-    inp, out = meta["input_name"], meta["output_name"]
-    return lambda obs: torch.from_numpy(session.run([out], {inp: obs.numpy()})[0])
+    names = [i["name"] for i in meta.get("inputs") or [{"name": meta["input_name"]}]]
+    out = meta["output_name"]
+
+    def act(*inputs: Any) -> Any:
+        feed = {n: x.numpy() for n, x in zip(names, inputs, strict=True)}
+        return torch.from_numpy(session.run([out], feed)[0])
+
+    return act
 
 
 class ExportedPolicy:
-    """An exported file acting in TorchRL's loop: ``observation`` -> ``action``."""
+    """An exported file acting in TorchRL's loop: ``observation`` -> ``action`` (``feed``: the
+    observation, a tensor or a TensorDict, -> the file's inputs on the CPU)."""
 
-    def __init__(self, act: Callable[[Any], Any]) -> None:
-        self.act = act
+    def __init__(self, act: Callable[..., Any], feed: Callable[[Any], list[Any]]) -> None:
+        self.act, self.feed = act, feed
 
     def __call__(self, td: Any) -> Any:
         obs = td.get("observation")  # the file runs on the CPU; the env may be on a GPU
-        td.set("action", self.act(obs.cpu()).to(obs.device))
+        td.set("action", self.act(*self.feed(obs)).to(obs.device))
         return td
 
 

@@ -77,7 +77,9 @@ def observation_parts(out: Any, where: str, what: str, extras: Any = None) -> li
         groups = {str(k): out[k] for k in out.keys()}
     else:
         groups = {"": out}
-    more = extras.get("observations", None) if isinstance(extras, Mapping | TensorDictBase) else None
+    more = (
+        extras.get("observations", None) if isinstance(extras, Mapping | TensorDictBase) else None
+    )
     if isinstance(more, Mapping | TensorDictBase):  # rsl_rl 2.x: extras["observations"]["critic"]
         for k in more.keys():
             if str(k) not in groups and str(k) != "policy":

@@ -100,6 +100,12 @@ def _format_dicts(config: RootConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         gym["env"] = {
             k: nd[k] for k in ("events", "observations", "rewards", "actions", "extensions")
         }
+        # the format has no observation group (its "group/key" names nest the dict): a term's
+        # group goes to the rlexp section (to_json_experiment), the term here without it
+        gym["env"]["observations"] = {
+            k: {f: v for f, v in t.items() if f != "group"}
+            for k, t in (nd["observations"] or {}).items()
+        }
         scene = dict(nd.get("scene") or {})
         if "init_qpos" in scene:
             gym["robot"] = {"init_qpos": scene["init_qpos"]}

@@ -161,7 +161,8 @@ class NativeEnv(EnvBase, SimState):
         vector = Unbounded((n, self.obs_dim), dtype=torch.float32, device=dev)
         if self._table.images:  # DESIGN47 §1: vector + uint8 [C, H, W] images
             entries = {
-                k: Bounded(0, 255, (n, *chw), torch.uint8, dev) for _, k, chw in self._table.images
+                k: Bounded(0, 255, (n, *chw), dtype=torch.uint8, device=dev)
+                for _, k, chw in self._table.images
             }
             vector = Composite(
                 entries, **({"vector": vector} if self.obs_dim else {}), shape=(n,), device=dev
@@ -451,11 +452,13 @@ class NativeEnv(EnvBase, SimState):
         up: tuple[float, float, float] = (0.0, 0.0, 1.0),
         fovy: float | None = None,
         intrinsics: tuple[float, float, float, float] | None = None,
+        effects: bool = True,
     ) -> np.ndarray:
         """An RGB frame (H, W, 3) uint8 of env ``env_id`` from a free camera at ``eye`` looking at ``target``.
 
         ``fovy`` (degrees) or pinhole ``intrinsics`` [fx, fy, cx, cy] (pixels) set the projection;
-        neither: the model's default 45 degree field of view.
+        neither: the model's default 45 degree field of view. ``effects=False``: no shadows,
+        reflections or skybox (the camera observation term's frames).
         """
         from rlexp.envs.native.render import render_frame
 
@@ -483,6 +486,7 @@ class NativeEnv(EnvBase, SimState):
             up=up,
             fovy=fovy,
             intrinsics=intrinsics,
+            effects=effects,
         )
 
     def close(self, *args: Any, **kwargs: Any) -> None:

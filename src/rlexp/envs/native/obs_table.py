@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from rlexp.envs.images import image_key_of
 from rlexp.envs.native.terms import TERM_ERRORS, named_error
 from rlexp.envs.spaces import ObsLayout, ObsPart
 
@@ -117,7 +118,7 @@ def make_table(obs: dict[str, np.ndarray], groups: dict[str, str]) -> ObsTable:
         value = obs[name]
         if _is_image(value):
             h, w, c = (int(x) for x in value.shape[1:])
-            key = name.replace("/", ".")
+            key = image_key_of(name)
             images.append((name, key, (c, h, w)))
             parts.append(
                 ObsPart(name, "image", (c, h, w), -1, 0, group=groups[name], image_key=key,

@@ -13,7 +13,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rlexp.config.native_task import Entity, Flag, Interval, JointIds, OrNull, Part, Text
+from rlexp.config.native_task import (
+    Entity,
+    Flag,
+    Interval,
+    JointIds,
+    Number,
+    OrNull,
+    Part,
+    Text,
+    Vector,
+)
 from rlexp.envs.native.kinematics import quat_to_mat
 from rlexp.envs.native.registry import Registry
 
@@ -109,3 +119,64 @@ def get_robot_joint_velocity(env: SimState, joint_ids: Sequence[int] | None = No
     """Robot joint velocities [N, k] (all robot joints by default)."""
     qvel = env.robot_qvel()
     return qvel if joint_ids is None else qvel[:, list(joint_ids)]
+
+
+@OBSERVATIONS.register(params={"entity_cfg": Entity(), "angular": Flag()})
+def get_rigid_object_velocity(
+    env: SimState, entity_cfg: dict[str, Any], angular: bool = False
+) -> np.ndarray:
+    """A rigid object's linear velocity [N, 3] (world frame; m/s), or with ``angular`` its angular
+    velocity [N, 3] (the object's frame; rad/s): simulator state a real robot rarely measures
+    (push_cube's ``critic`` group)."""
+    linear, spin = env.object_velocity(entity_cfg["uid"])
+    return (spin if angular else linear).copy()
+
+
+@OBSERVATIONS.register(
+    params={"entity_cfg": Entity(), "target_pose_key": Text(), "use_xy_only": Flag()}
+)
+def object_to_target_offset(
+    env: SimState,
+    entity_cfg: dict[str, Any],
+    target_pose_key: str = "goal_pose",
+    use_xy_only: bool = False,
+) -> np.ndarray:
+    """The stored target's position minus the object's, [N, 3] (world frame; [N, 2] with
+    ``use_xy_only``): how far, and which way, the object still has to go."""
+    pos, _ = env.object_pose(entity_cfg["uid"])
+    offset = env.target(target_pose_key) - pos
+    return offset[:, :2].copy() if use_xy_only else offset
+
+
+#: The side of a camera image, in pixels (the smallest a CNN can take, the largest the scenes'
+#: offscreen buffers hold: push_cube.xml has 1280 x 960).
+IMAGE_SIDE = Number(ge=8, le=960, integer=True, note=" (pixels)")
+
+
+@OBSERVATIONS.register(
+    params={
+        "width": IMAGE_SIDE,
+        "height": IMAGE_SIDE,
+        "eye": OrNull(Vector(), "the task's render camera"),
+        "target": OrNull(Vector(), "the task's render camera"),
+        "fovy": OrNull(Number(gt=0, lt=180, note=" (degrees)"), "the model's field of view"),
+    }
+)
+def camera_image(
+    env: SimState,
+    width: int = 64,
+    height: int = 64,
+    eye: Sequence[float] | None = None,
+    target: Sequence[float] | None = None,
+    fovy: float | None = None,
+) -> np.ndarray:
+    """Every env's RGB image [N, height, width, 3] uint8 from a free camera at ``eye`` looking at
+    ``target`` (MuJoCo's offscreen renderer, ``MUJOCO_GL=egl``; the goal marker is drawn; no
+    shadows, reflections or skybox): an
+    image entry of the observation, [N, 3, height, width] to the policy (docs/envs.md)."""
+    frames = np.empty((env.num_envs, int(height), int(width), 3), dtype=np.uint8)
+    view = {"eye": None if eye is None else tuple(eye), "fovy": fovy, "effects": False}
+    view["target"] = None if target is None else tuple(target)
+    for i in range(env.num_envs):
+        frames[i] = env.render(i, int(width), int(height), **view)
+    return frames

@@ -146,11 +146,14 @@ def render_frame(
     up: tuple[float, float, float],
     fovy: float | None,
     intrinsics: tuple[float, float, float, float] | None,
+    effects: bool = True,
 ) -> np.ndarray:
     """Render ``data`` (already forwarded) from ``eye`` towards ``target``; returns (H, W, 3) uint8.
 
     ``renderers``: the caller's cache of ``mujoco.Renderer`` by frame size (it closes them);
-    ``asset``: the model's MJCF file, named when the frame exceeds its offscreen buffer.
+    ``asset``: the model's MJCF file, named when the frame exceeds its offscreen buffer;
+    ``effects=False``: no shadows, reflections or skybox (a camera observation: ~5x faster with
+    software GL, the scene's geometry and colours unchanged).
     """
     import mujoco
 
@@ -181,6 +184,10 @@ def render_frame(
     cam.azimuth = math.degrees(math.atan2(forward[1], forward[0]))
     cam.elevation = math.degrees(math.asin(float(np.clip(forward[2], -1, 1))))
     renderer.update_scene(data, camera=cam)
+    if not effects:
+        for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION,
+                     mujoco.mjtRndFlag.mjRND_SKYBOX):  # fmt: skip
+            renderer.scene.flags[flag] = False
     # Place the GL cameras exactly (the free camera has no roll) and set the projection.
     near = model.vis.map.znear * model.stat.extent
     for glcam in renderer.scene.camera:

@@ -192,6 +192,13 @@ class SimState:
             ) from None
         return self.qpos[:, adr : adr + 3], self.qpos[:, adr + 3 : adr + 7]
 
+    def object_velocity(self, uid: str) -> tuple[np.ndarray, np.ndarray]:
+        """Linear velocity [N, 3] (world frame) and angular velocity [N, 3] (the body's frame) of
+        rigid object ``uid``: its free joint's qvel (views)."""
+        self.object_pose(uid)  # validates uid
+        adr = self._object_dof_adr[uid]
+        return self.qvel[:, adr : adr + 3], self.qvel[:, adr + 3 : adr + 6]
+
     def object_initial_pose(self, uid: str) -> tuple[np.ndarray, np.ndarray]:
         """The object's initial position [3] and quaternion [4] (from the scene)."""
         self.object_pose(uid)  # validates uid

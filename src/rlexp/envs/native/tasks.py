@@ -207,6 +207,21 @@ def default_task_config(name: str) -> NativeTaskConfig:
                     name="object/goal_pos",
                     params={"target_pose_key": "goal_pose"},
                 ),
+                # the critic group: privileged state the actor does not see
+                "cube_vel": ObservationTermConfig(
+                    func="get_rigid_object_velocity",
+                    mode="add",
+                    name="privileged/cube_vel",
+                    params={"entity_cfg": {"uid": "cube"}},
+                    group="critic",
+                ),
+                "cube_to_goal": ObservationTermConfig(
+                    func="object_to_target_offset",
+                    mode="add",
+                    name="privileged/cube_to_goal",
+                    params={"entity_cfg": {"uid": "cube"}, "target_pose_key": "goal_pose"},
+                    group="critic",
+                ),
             },
             rewards={
                 "reaching_reward": RewardTermConfig(

@@ -1,0 +1,94 @@
+"""``rlexp eval`` of an exported file: the env's observation -> the file's inputs (the actor's only).
+
+The metadata's ``inputs`` name the observation parts the actor reads (key, kind, shape). They are
+looked up by key in the layout of the env ``rlexp eval`` builds, which may lack what only the critic
+read (a deployment env without privileged state): the actor's vector columns are gathered from the
+env's vector, its images taken by their TensorDict key; the critic's parts are never read. A part the
+actor reads that the env does not give, or gives in another shape, is one line naming it.
+
+Exports made before ``inputs`` existed take the env's whole flat vector, checked as they were.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+
+#: The fields of a part record that must agree between the export and the env (not its offset).
+_SAME = ("kind", "shape", "size", "nvec", "start")
+
+
+def actor_feed(meta: dict[str, Any], env: Any, where: str) -> Callable[[Any], list[torch.Tensor]]:
+    """The function ``observation -> [the file's inputs]`` for ``env``; ``ValueError`` (one line)
+    when the env does not give what the actor reads."""
+    if not meta.get("inputs"):
+        return _whole_vector(meta, env, where)
+    from rlexp.policies.inputs import layout_of
+
+    layout = layout_of(env)
+    parts = {p.key: p for p in layout.parts if p.kind != "image"}
+    images = {p.image_key: p for p in layout.images}
+    index: list[int] | None = None
+    keys: list[str] = []
+    for spec in meta["inputs"]:
+        if spec["kind"] == "vector":
+            index = []
+            for saved in spec["parts"]:
+                part = parts.get(saved["key"])
+                _check_part(saved, part, where, sorted(parts))
+                index += range(part.offset, part.offset + part.size)
+        else:
+            part = images.get(spec["key"])
+            _check_part(spec["parts"][0], part, where, sorted(images))
+            keys.append(spec["key"])
+    gather = None
+    if index is not None and index != list(range(layout.dim)):
+        gather = torch.tensor(index, dtype=torch.long)
+
+    def feed(obs: Any) -> list[torch.Tensor]:
+        inputs = []
+        if index is not None:
+            x = obs.get("vector") if isinstance(obs, TensorDictBase) else obs
+            x = x.cpu()
+            inputs.append(x if gather is None else x.index_select(-1, gather))
+        return inputs + [obs.get(k).cpu() for k in keys]
+
+    return feed
+
+
+def _check_part(saved: dict[str, Any], part: Any, where: str, have: list[str]) -> None:
+    name = saved.get("image_key") or saved["key"] or "(root)"
+    if part is None:
+        raise ValueError(
+            f"{where}: its actor reads the observation {name!r}, which the env of its config does "
+            f"not give (it gives {[k or '(root)' for k in have]}); evaluate it on the env it was "
+            "trained on"
+        )
+    now = part.record()
+    diff = {k: now.get(k) for k in _SAME if saved.get(k) != now.get(k)}
+    if diff:
+        said = {k: saved.get(k) for k in diff}
+        raise ValueError(
+            f"{where}: its actor reads the observation {name!r} as {said}; the env of its config "
+            f"gives {diff}: the observation space changed"
+        )
+
+
+def _whole_vector(
+    meta: dict[str, Any], env: Any, where: str
+) -> Callable[[Any], list[torch.Tensor]]:
+    """An export without ``inputs`` (older rlexp): the env's whole flat vector, as then."""
+    from rlexp.envs.spaces import check_layout
+
+    spec = env.observation_spec["observation"]
+    obs_dim = int(spec.shape[-1]) if not hasattr(spec, "keys") else -1
+    if obs_dim != meta["observation_dim"]:
+        raise ValueError(
+            f"{where} takes {meta['observation_dim']} observations; the env of its config gives "
+            f"{obs_dim if obs_dim >= 0 else 'a TensorDict'}"
+        )
+    check_layout(meta.get("observation_layout"), env, where)
+    return lambda obs: [obs.cpu()]
