@@ -330,6 +330,19 @@ def _with_terms(task: str, **terms: ObservationTermConfig) -> NativeTaskConfig:
             ),  # fmt: skip
             ["observations.bad.group='critic'", "'robot/qpos'", "group 'policy'"],
         ),
+        (  # a group named like another group's entries: selecting "robot" would mean both
+            ObservationTermConfig("get_robot_joint_velocity", name="x/v", group="robot"),
+            ["observations.bad.group='robot'", "'robot/q", "group 'policy'"],
+        ),
+        (  # an entry under the name of another group
+            {
+                "bad": ObservationTermConfig("get_robot_joint_velocity", name="critic/v"),
+                "crit": ObservationTermConfig(
+                    "get_robot_joint_velocity", "add", "w", group="critic"
+                ),
+            },
+            ["observations.crit.group='critic'", "'critic/v' (group 'policy')"],
+        ),
         (
             ObservationTermConfig("camera_image", name="cam/rgb", params={"width": 4}),
             ["observations.bad.params.width=4", "integer >= 8"],
@@ -342,7 +355,8 @@ def _with_terms(task: str, **terms: ObservationTermConfig) -> NativeTaskConfig:
 )
 def test_bad_groups_and_camera_sizes_are_one_line(term, words):
     with pytest.raises((ValueError, TypeError)) as err:
-        NativeEnv(_with_terms("cart_pole", bad=term), 1)
+        terms = term if isinstance(term, dict) else {"bad": term}
+        NativeEnv(_with_terms("cart_pole", **terms), 1)
     msg = str(err.value)
     assert "\n" not in msg and all(w in msg for w in words), msg
 
