@@ -426,6 +426,33 @@ def test_the_pixels_preset_composes_and_refuses_overlap_in_one_line():
     assert "\n" not in msg and "env.native.observations.camera" in msg and "overlap=false" in msg
 
 
+def test_the_pixels_preset_trains_the_actor_on_joints_and_image_the_critic_on_state(tmp_path):
+    """+experiment=push_cube_pixels trains end to end (tiny budget, through the CLI): the checkpoint
+    records the image and the critic group; the actor's MLP reads the 34 robot values + the CNN's
+    128 features, the critic's the 59 state values (policy group + critic group), no image."""
+    from conftest import only_run_dir, run_train
+
+    _render_or_skip(lambda: _camera_env(1))
+    run_train(
+        ["+experiment=push_cube_pixels", "env.num_envs=2", "env.num_eval_envs=1",
+         "env.max_episode_steps=20", "trainer.total_frames=128", "trainer.frames_per_batch=64",
+         "trainer.eval_every=128", "trainer.eval_episodes=1", "trainer.save_every=128",
+         "algorithm.mini_batch_size=32", "algorithm.num_epochs=1"],
+        cwd=tmp_path,
+    )  # fmt: skip
+    ckpt = only_run_dir(tmp_path) / "checkpoints" / "best.pt"
+    saved = torch.load(ckpt, map_location="cpu", weights_only=False)
+    parts = {p["key"]: p for p in saved["observation_layout"]["parts"]}
+    assert parts["camera/top"]["kind"] == "image" and parts["camera/top"]["shape"] == [3, 64, 64]
+    assert parts["privileged/cube_vel"]["group"] == "critic" and "group" not in parts["robot/qf"]
+    assert saved["observation_layout"]["dim"] == 59
+    weights = saved["policy"]
+    assert weights["actor_net.mlp.0.weight"].shape[1] == 6 + 6 + 6 + 16 + 128
+    assert weights["critic_net.mlp.0.weight"].shape[1] == 59
+    image = saved["pending_observation"]["camera.top"]
+    assert image.dtype == torch.uint8 and tuple(image.shape) == (2, 3, 64, 64)
+
+
 def test_a_term_s_group_is_written_to_json_in_the_rlexp_section(tmp_path, monkeypatch):
     """The users' task format has no group: train_config.json's rlexp section carries it (the
     task file's terms are written without it), and the pair loads back to the same config."""
