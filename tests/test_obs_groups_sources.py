@@ -330,6 +330,19 @@ def _with_terms(task: str, **terms: ObservationTermConfig) -> NativeTaskConfig:
             ),  # fmt: skip
             ["observations.bad.group='critic'", "'robot/qpos'", "group 'policy'"],
         ),
+        (  # a group named like another group's entries: selecting "robot" would mean both
+            ObservationTermConfig("get_robot_joint_velocity", name="x/v", group="robot"),
+            ["observations.bad.group='robot'", "'robot/q", "group 'policy'"],
+        ),
+        (  # an entry under the name of another group
+            {
+                "bad": ObservationTermConfig("get_robot_joint_velocity", name="critic/v"),
+                "crit": ObservationTermConfig(
+                    "get_robot_joint_velocity", "add", "w", group="critic"
+                ),
+            },
+            ["observations.crit.group='critic'", "'critic/v' (group 'policy')"],
+        ),
         (
             ObservationTermConfig("camera_image", name="cam/rgb", params={"width": 4}),
             ["observations.bad.params.width=4", "integer >= 8"],
@@ -342,7 +355,8 @@ def _with_terms(task: str, **terms: ObservationTermConfig) -> NativeTaskConfig:
 )
 def test_bad_groups_and_camera_sizes_are_one_line(term, words):
     with pytest.raises((ValueError, TypeError)) as err:
-        NativeEnv(_with_terms("cart_pole", bad=term), 1)
+        terms = term if isinstance(term, dict) else {"bad": term}
+        NativeEnv(_with_terms("cart_pole", **terms), 1)
     msg = str(err.value)
     assert "\n" not in msg and all(w in msg for w in words), msg
 
@@ -410,6 +424,33 @@ def test_the_pixels_preset_composes_and_refuses_overlap_in_one_line():
         to_root_config(compose(["+experiment=push_cube_pixels", "algorithm.overlap=true"]))
     msg = str(err.value)
     assert "\n" not in msg and "env.native.observations.camera" in msg and "overlap=false" in msg
+
+
+def test_the_pixels_preset_trains_the_actor_on_joints_and_image_the_critic_on_state(tmp_path):
+    """+experiment=push_cube_pixels trains end to end (tiny budget, through the CLI): the checkpoint
+    records the image and the critic group; the actor's MLP reads the 34 robot values + the CNN's
+    128 features, the critic's the 59 state values (policy group + critic group), no image."""
+    from conftest import only_run_dir, run_train
+
+    _render_or_skip(lambda: _camera_env(1))
+    run_train(
+        ["+experiment=push_cube_pixels", "env.num_envs=2", "env.num_eval_envs=1",
+         "env.max_episode_steps=20", "trainer.total_frames=128", "trainer.frames_per_batch=64",
+         "trainer.eval_every=128", "trainer.eval_episodes=1", "trainer.save_every=128",
+         "algorithm.mini_batch_size=32", "algorithm.num_epochs=1"],
+        cwd=tmp_path,
+    )  # fmt: skip
+    ckpt = only_run_dir(tmp_path) / "checkpoints" / "best.pt"
+    saved = torch.load(ckpt, map_location="cpu", weights_only=False)
+    parts = {p["key"]: p for p in saved["observation_layout"]["parts"]}
+    assert parts["camera/top"]["kind"] == "image" and parts["camera/top"]["shape"] == [3, 64, 64]
+    assert parts["privileged/cube_vel"]["group"] == "critic" and "group" not in parts["robot/qf"]
+    assert saved["observation_layout"]["dim"] == 59
+    weights = saved["policy"]
+    assert weights["actor_net.mlp.0.weight"].shape[1] == 6 + 6 + 6 + 16 + 128
+    assert weights["critic_net.mlp.0.weight"].shape[1] == 59
+    image = saved["pending_observation"]["camera.top"]
+    assert image.dtype == torch.uint8 and tuple(image.shape) == (2, 3, 64, 64)
 
 
 def test_a_term_s_group_is_written_to_json_in_the_rlexp_section(tmp_path, monkeypatch):

@@ -62,7 +62,21 @@ def observe(env: SimState, terms: list) -> tuple[dict[str, np.ndarray], dict[str
             except TERM_ERRORS as exc:
                 raise named_error(exc, f"observations.{key}") from exc
             groups[name] = group
+    _no_group_collision(terms, groups)
     return obs, groups
+
+
+def _no_group_collision(terms: list, groups: dict[str, str]) -> None:
+    """One line when a group's name is also the key (or a key prefix) of an entry in another group:
+    ``policy.*.observations`` selecting that name would mean both."""
+    for key, _func, _mode, _name, _params, group in terms:
+        clash = [n for n, g in groups.items() if g != group and (n + "/").startswith(group + "/")]
+        if clash:
+            raise ValueError(
+                f"observations.{key}.group={group!r} is also the key of {clash[0]!r} (group "
+                f"{groups[clash[0]]!r}): selecting {group!r} would mean both; name the group "
+                f"otherwise (e.g. {group + '_group'!r})"
+            )
 
 
 def _is_image(value: np.ndarray) -> bool:
