@@ -152,6 +152,18 @@ def test_a_vecenv_group_that_disappears_is_one_line():
     assert "\n" not in msg and "'aux/a'" in msg and "groups" in msg
 
 
+def test_a_vecenv_image_group_is_one_line():
+    class Pixels(GroupsVecEnv):
+        def form_obs(self, t):
+            g = {**self.groups(t), "camera": torch.zeros(N, 3, 8, 6, dtype=torch.uint8)}
+            return TensorDict(g, batch_size=[N])
+
+    with pytest.raises(TypeError) as err:
+        VecEnvAdapter(Pixels("v3"), "px")
+    msg = str(err.value)
+    assert "\n" not in msg and "'camera' group is a uint8 image [2, 3, 8, 6]" in msg
+
+
 # --------------------------------------------------------------------------- TorchRL EnvBase
 
 
