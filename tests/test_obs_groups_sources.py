@@ -152,6 +152,18 @@ def test_a_vecenv_group_that_disappears_is_one_line():
     assert "\n" not in msg and "'aux/a'" in msg and "groups" in msg
 
 
+def test_a_vecenv_image_group_is_one_line():
+    class Pixels(GroupsVecEnv):
+        def form_obs(self, t):
+            g = {**self.groups(t), "camera": torch.zeros(N, 3, 8, 6, dtype=torch.uint8)}
+            return TensorDict(g, batch_size=[N])
+
+    with pytest.raises(TypeError) as err:
+        VecEnvAdapter(Pixels("v3"), "px")
+    msg = str(err.value)
+    assert "\n" not in msg and "'camera' group is a uint8 image [2, 3, 8, 6]" in msg
+
+
 # --------------------------------------------------------------------------- TorchRL EnvBase
 
 
@@ -348,6 +360,14 @@ def _with_terms(task: str, **terms: ObservationTermConfig) -> NativeTaskConfig:
             ["observations.bad.params.width=4", "integer >= 8"],
         ),
         (
+            ObservationTermConfig("camera_image", name="cam/rgb", params={"camera": "nope"}),
+            ["observations.bad: params.camera='nope'", "its cameras: []"],
+        ),
+        (
+            ObservationTermConfig("camera_image", name="c/r", params={"camera": "x", "fovy": 40}),
+            ["params.camera='x'", "leave out eye, target and fovy"],
+        ),
+        (
             ObservationTermConfig("camera_image", name="cam/rgb", params={"height": 64.5}),
             ["observations.bad.params.height=64.5"],
         ),
@@ -409,6 +429,33 @@ def test_the_camera_term_is_a_uint8_chw_image_entry_that_sees_the_cube_move():
     again = _camera_env(2)
     again.load_env_state(sd)
     assert torch.equal(again.reset()["observation"]["camera.top"], env._current()["camera.top"])
+
+
+def test_a_named_model_camera_rides_on_the_arm():
+    """camera: wrist (push_cube.xml's camera on the wrist link): the frames are MuJoCo's own from
+    that camera (mujoco.Renderer here, the env's state and goal marker), and they change when only
+    the arm moves."""
+    cam = ObservationTermConfig(
+        "camera_image", name="camera/wrist", params={"width": 20, "height": 12, "camera": "wrist"}
+    )
+    env = _render_or_skip(lambda: NativeEnv(_with_terms("push_cube", camera=cam), 2))
+    env.set_seed(3)
+    img = env.reset()["observation"]["camera.wrist"]
+    assert img.dtype == torch.uint8 and img.shape == (2, 3, 12, 20)
+    data, model = mujoco.MjData(env.model), env.model
+    mujoco.mj_setState(model, data, env._state[1], mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    data.mocap_pos[model.body("goal").mocapid[0]] = env._targets["goal_pose"][1]
+    mujoco.mj_forward(model, data)
+    with mujoco.Renderer(model, height=12, width=20) as renderer:
+        renderer.update_scene(data, camera="wrist")
+        for flag in ("mjRND_SHADOW", "mjRND_REFLECTION", "mjRND_SKYBOX"):
+            renderer.scene.flags[getattr(mujoco.mjtRndFlag, flag)] = False
+        want = renderer.render()
+    assert torch.equal(img[1], torch.from_numpy(want).permute(2, 0, 1))
+    env.qpos[0, 0] += 0.6  # env 0's shoulder turns; the cube and the goal stay
+    env._v.version += 1
+    out = env.step_action(torch.zeros(2, 6))["observation"]["camera.wrist"]
+    assert (out[0] != img[0]).sum() > 20
 
 
 def test_the_pixels_preset_composes_and_refuses_overlap_in_one_line():

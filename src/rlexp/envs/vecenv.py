@@ -113,6 +113,12 @@ class VecEnvAdapter(BatchedAdapter):
             ) from None
         parts = observation_parts(raw.get_observations(), where, "get_observations()")
         for key, _, obs in parts:
+            if isinstance(obs, torch.Tensor) and obs.dtype == torch.uint8 and obs.dim() >= 4:
+                raise TypeError(
+                    f"{where}: {_what('get_observations()', key)} is a uint8 image "
+                    f"{list(obs.shape)}; env.backend='vecenv' reads float groups only (images come "
+                    "through env.backend=torchrl, gymnasium, gymnasium_async, envpool or native)"
+                )
             check_tensor(where, _what("get_observations()", key), obs, None, FLOATS, device)
             if obs.dim() < 2 or obs.shape[0] != n:
                 raise ValueError(

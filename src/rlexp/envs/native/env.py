@@ -453,8 +453,10 @@ class NativeEnv(EnvBase, SimState):
         fovy: float | None = None,
         intrinsics: tuple[float, float, float, float] | None = None,
         effects: bool = True,
+        camera: str | None = None,
     ) -> np.ndarray:
-        """An RGB frame (H, W, 3) uint8 of env ``env_id`` from a free camera at ``eye`` looking at ``target``.
+        """An RGB frame (H, W, 3) uint8 of env ``env_id`` from a free camera at ``eye`` looking at
+        ``target`` (or the model's camera named ``camera``).
 
         ``fovy`` (degrees) or pinhole ``intrinsics`` [fx, fy, cx, cy] (pixels) set the projection;
         neither: the model's default 45 degree field of view. ``effects=False``: no shadows,
@@ -487,6 +489,7 @@ class NativeEnv(EnvBase, SimState):
             fovy=fovy,
             intrinsics=intrinsics,
             effects=effects,
+            camera=camera,
         )
 
     def close(self, *args: Any, **kwargs: Any) -> None:

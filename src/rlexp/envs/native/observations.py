@@ -160,6 +160,7 @@ IMAGE_SIDE = Number(ge=8, le=960, integer=True, note=" (pixels)")
         "eye": OrNull(Vector(), "the task's render camera"),
         "target": OrNull(Vector(), "the task's render camera"),
         "fovy": OrNull(Number(gt=0, lt=180, note=" (degrees)"), "the model's field of view"),
+        "camera": OrNull(Text(), "a free camera at eye, looking at target"),
     }
 )
 def camera_image(
@@ -169,14 +170,31 @@ def camera_image(
     eye: Sequence[float] | None = None,
     target: Sequence[float] | None = None,
     fovy: float | None = None,
+    camera: str | None = None,
 ) -> np.ndarray:
     """Every env's RGB image [N, height, width, 3] uint8 from a free camera at ``eye`` looking at
     ``target`` (MuJoCo's offscreen renderer, ``MUJOCO_GL=egl``; the goal marker is drawn; no
     shadows, reflections or skybox): an
-    image entry of the observation, [N, 3, height, width] to the policy (docs/envs.md)."""
+    image entry of the observation, [N, 3, height, width] to the policy (docs/envs.md).
+    ``camera``: the model's camera of that name instead (e.g. push_cube's ``wrist``, on the arm)."""
+    if camera is not None and (eye, target, fovy) != (None, None, None):
+        raise ValueError(
+            f"params.camera={camera!r} is the model's camera (its pose and field of view); "
+            "leave out eye, target and fovy, or leave out camera"
+        )
+    if camera is not None and camera not in (have := _cameras(env.model)):
+        raise ValueError(
+            f"params.camera={camera!r} is not a camera of the model (its cameras: {have})"
+        )
     frames = np.empty((env.num_envs, int(height), int(width), 3), dtype=np.uint8)
     view = {"eye": None if eye is None else tuple(eye), "fovy": fovy, "effects": False}
+    view["camera"] = camera
     view["target"] = None if target is None else tuple(target)
     for i in range(env.num_envs):
         frames[i] = env.render(i, int(width), int(height), **view)
     return frames
+
+
+def _cameras(model: Any) -> list[str]:
+    """The names of the model's cameras (``camera_image``'s ``camera`` choices)."""
+    return [model.camera(i).name for i in range(model.ncam)]

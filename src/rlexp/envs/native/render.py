@@ -147,8 +147,11 @@ def render_frame(
     fovy: float | None,
     intrinsics: tuple[float, float, float, float] | None,
     effects: bool = True,
+    camera: str | None = None,
 ) -> np.ndarray:
-    """Render ``data`` (already forwarded) from ``eye`` towards ``target``; returns (H, W, 3) uint8.
+    """Render ``data`` (already forwarded) from ``eye`` towards ``target``, or from the model's
+    camera named ``camera`` (fixed or mounted on a body; eye, target and fovy unused); returns
+    (H, W, 3) uint8.
 
     ``renderers``: the caller's cache of ``mujoco.Renderer`` by frame size (it closes them);
     ``asset``: the model's MJCF file, named when the frame exceeds its offscreen buffer;
@@ -165,6 +168,13 @@ def render_frame(
             f"{model.vis.global_.offwidth}x{model.vis.global_.offheight} of {asset}"
         )
     renderer = _renderer(model, renderers, width, height)
+    if camera is not None:
+        if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera) < 0:
+            have = [model.camera(i).name for i in range(model.ncam)]
+            raise ValueError(f"camera {camera!r} is not a camera of {asset} (its cameras: {have})")
+        renderer.update_scene(data, camera=camera)
+        _no_effects(renderer, effects)
+        return renderer.render()
     eye_a, target_a = np.asarray(eye, float), np.asarray(target, float)
     forward = target_a - eye_a
     dist = float(np.linalg.norm(forward))
@@ -184,10 +194,7 @@ def render_frame(
     cam.azimuth = math.degrees(math.atan2(forward[1], forward[0]))
     cam.elevation = math.degrees(math.asin(float(np.clip(forward[2], -1, 1))))
     renderer.update_scene(data, camera=cam)
-    if not effects:
-        for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION,
-                     mujoco.mjtRndFlag.mjRND_SKYBOX):  # fmt: skip
-            renderer.scene.flags[flag] = False
+    _no_effects(renderer, effects)
     # Place the GL cameras exactly (the free camera has no roll) and set the projection.
     near = model.vis.map.znear * model.stat.extent
     for glcam in renderer.scene.camera:
@@ -210,3 +217,13 @@ def render_frame(
             glcam.frustum_center = 0.0
             glcam.frustum_width = glcam.frustum_top * width / height
     return renderer.render()
+
+
+def _no_effects(renderer: mujoco.Renderer, effects: bool) -> None:
+    """``effects=False``: shadows, reflections and skybox off in the renderer's scene."""
+    import mujoco
+
+    if not effects:
+        for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION,
+                     mujoco.mjtRndFlag.mjRND_SKYBOX):  # fmt: skip
+            renderer.scene.flags[flag] = False
