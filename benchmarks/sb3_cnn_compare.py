@@ -1,0 +1,184 @@
+"""CNN PPO on Atari Pong (EnvPool): rlexp against Stable-Baselines3's ``PPO("CnnPolicy")``, as whole
+processes (launch to exit), issue #47 "Measured" (docs/performance.md "CNN PPO").
+
+Both sides run CleanRL's ``ppo_atari_envpool.py`` settings (``conf/experiment/pong_ppo.yaml``): 8
+EnvPool envs of ``Pong-v5`` (84x84x4 uint8, frame skip 4, ``episodic_life`` and ``reward_clip``),
+128 steps per env per rollout, 4 minibatches of 256, 4 epochs, the Nature CNN shared by linear
+actor and critic heads, Adam lr 2.5e-4 annealed, eps 1e-5, clip 0.1 (the value clipped too), ent
+0.01, vf 0.5, grad norm 0.5, one torch thread; EnvPool's thread pool on every CPU (rlexp's
+``env.num_threads=0``, EnvPool's default for SB3). rlexp is ``python train.py +experiment=pong_ppo``
+without evaluation (it still writes its final checkpoint and TensorBoard scalars); SB3 runs in its
+own interpreter (``--sb3-python``, a venv with stable-baselines3 and envpool) through a small SB3
+``VecEnv`` over EnvPool (EnvPool's documented SB3 adapter: a finished env is reset at once, its last
+observation in ``terminal_observation``) inside ``VecMonitor``.
+
+The runs alternate (rlexp, SB3, rlexp, SB3, ...) so a shared machine's load falls on both; each
+line is one process: wall seconds from launch to exit, env steps / wall second, peak RSS. The last
+line is the ratio of the median rates (rlexp / SB3).
+
+    python benchmarks/sb3_cnn_compare.py --sb3-python /work/sb3venv/bin/python --steps 16384
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def sb3_worker(args: argparse.Namespace) -> None:
+    """The SB3 side, run in the SB3 interpreter: what an SB3 user writes for this job."""
+    import envpool
+    import numpy as np
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecEnvWrapper, VecMonitor
+
+    torch.set_num_threads(args.threads)
+
+    class VecAdapter(VecEnvWrapper):
+        """EnvPool (gymnasium API) as an SB3 VecEnv: a finished env is reset in the same step."""
+
+        def __init__(self, venv) -> None:
+            super().__init__(venv=venv)  # num_envs and the spaces from EnvPool's own attributes
+
+        def step_async(self, actions) -> None:
+            self.actions = actions
+
+        def reset(self):
+            return self.venv.reset()[0]
+
+        def step_wait(self):
+            obs, rewards, terms, truncs, _ = self.venv.step(self.actions)
+            dones = terms | truncs
+            infos = [{} for _ in range(self.num_envs)]
+            for i in np.flatnonzero(dones):
+                infos[i]["terminal_observation"] = obs[i].copy()
+                infos[i]["TimeLimit.truncated"] = bool(truncs[i] and not terms[i])
+                obs[i] = self.venv.reset(np.array([i]))[0][0]
+            return obs, rewards, dones, infos
+
+    pool = envpool.make_gymnasium(
+        "Pong-v5",
+        num_envs=args.num_envs,
+        seed=args.seed,
+        episodic_life=True,
+        reward_clip=True,
+    )
+    env = VecMonitor(VecAdapter(pool))
+    lr = 2.5e-4
+    model = PPO(
+        "CnnPolicy",
+        env,
+        learning_rate=lambda remaining: lr * remaining,
+        n_steps=128,
+        batch_size=256,
+        n_epochs=4,
+        gamma=0.99,
+        gae_lambda=0.95,
+        clip_range=0.1,
+        clip_range_vf=0.1,
+        ent_coef=0.01,
+        vf_coef=0.5,
+        max_grad_norm=0.5,
+        normalize_advantage=True,
+        policy_kwargs={"optimizer_kwargs": {"eps": 1e-5}},
+        device="cpu",
+        seed=args.seed,
+        verbose=0,
+    )
+    model.learn(total_timesteps=args.steps)
+    buf = model.ep_info_buffer
+    ret = float(np.mean([ep["r"] for ep in buf])) if buf else None
+    print(json.dumps({"steps": int(model.num_timesteps), "return": ret}))
+
+
+def run(cmd: list[str], env: dict[str, str] | None = None) -> dict:
+    """Launch to exit: wall seconds and the child's peak RSS (MiB)."""
+    start = time.perf_counter()
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    out = proc.stdout.read() if proc.stdout else b""
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - start
+    if os.waitstatus_to_exitcode(status) != 0:
+        sys.stderr.write(out.decode(errors="replace")[-3000:])
+        raise SystemExit(f"failed: {' '.join(cmd)}")
+    return {"wall_s": wall, "peak_rss_mib": usage.ru_maxrss / 1024, "out": out.decode()[-400:]}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sb3-python", help="the interpreter with stable-baselines3 and envpool")
+    p.add_argument("--steps", type=int, default=16384, help="env steps per run (both sides)")
+    p.add_argument("--rounds", type=int, default=2, help="rlexp/SB3 pairs, alternating")
+    p.add_argument("--num-envs", type=int, default=8)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--threads", type=int, default=1, help="torch threads (both sides)")
+    p.add_argument("--only", choices=("rlexp", "sb3"), help="run one side only")
+    p.add_argument("--rlexp-arg", action="append", default=[], help="extra train.py override")
+    p.add_argument("--sb3-worker", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.sb3_worker:
+        sb3_worker(args)
+        return
+    if args.only != "rlexp" and not args.sb3_python:
+        p.error("--sb3-python is required (or --only rlexp)")
+    env = dict(os.environ, PYTHONPATH=str(REPO / "src"))
+    rates: dict[str, list[float]] = {"rlexp": [], "sb3": []}
+    with tempfile.TemporaryDirectory(prefix="sb3_cnn_") as tmp:
+        for r in range(args.rounds):
+            for side in ("rlexp", "sb3"):
+                if args.only and side != args.only:
+                    continue
+                if side == "rlexp":
+                    cmd = [
+                        sys.executable,
+                        str(REPO / "train.py"),
+                        "+experiment=pong_ppo",
+                        f"seed={args.seed}",
+                        f"env.num_envs={args.num_envs}",
+                        f"trainer.total_frames={args.steps}",
+                        "trainer.eval_every=0",
+                        "trainer.save_every=0",
+                        f"trainer.torch_threads={args.threads}",
+                        f"hydra.run.dir={tmp}/rlexp_{r}",
+                        *args.rlexp_arg,
+                    ]
+                    res = run(cmd, env)
+                else:
+                    cmd = [
+                        args.sb3_python,
+                        str(Path(__file__).resolve()),
+                        "--sb3-worker",
+                        f"--steps={args.steps}",
+                        f"--num-envs={args.num_envs}",
+                        f"--seed={args.seed}",
+                        f"--threads={args.threads}",
+                    ]
+                    res = run(cmd)
+                rate = args.steps / res["wall_s"]
+                rates[side].append(rate)
+                line = {
+                    "side": side,
+                    "round": r,
+                    "steps": args.steps,
+                    "wall_s": round(res["wall_s"], 1),
+                    "steps_per_s": round(rate, 1),
+                    "peak_rss_mib": round(res["peak_rss_mib"]),
+                }
+                print(json.dumps(line), flush=True)
+    if rates["rlexp"] and rates["sb3"]:
+        ratio = statistics.median(rates["rlexp"]) / statistics.median(rates["sb3"])
+        print(json.dumps({"ratio_rlexp_over_sb3": round(ratio, 2)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
