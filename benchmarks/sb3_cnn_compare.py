@@ -1,30 +1,22 @@
-"""CNN PPO env-steps/s: rlexp against Stable-Baselines3's ``PPO("CnnPolicy")``, whole processes
-(issue #47, "Speed": goal rlexp >= 1.5x SB3; docs/performance.md).
+"""CNN PPO on Atari Pong (EnvPool): rlexp against Stable-Baselines3's ``PPO("CnnPolicy")``, as whole
+processes (launch to exit), issue #47 "Measured" (docs/performance.md "CNN PPO").
 
-Both train the same Atari game through EnvPool (84x84 greyscale, 4 frames stacked, frame skip 4:
-``conf/env/pong.yaml``'s settings) with CleanRL's Atari PPO settings (``cleanrl/ppo_atari_envpool.py``,
-rlexp's ``+experiment=pong_ppo``): 8 envs x 128 steps, 4 minibatches of 256, 4 epochs, the Nature
-CNN (32x8x8/4, 64x4x4/2, 64x3x3/1, Linear 512) shared by a linear actor and critic, lr 2.5e-4
-annealed, clip 0.1 (value clipped too), entropy 0.01, value 0.5, max grad norm 0.5, Adam eps 1e-5.
-Evaluation and checkpoints are off on both sides (rlexp: ``trainer.eval_episodes=0``, saving past
-the budget, only the final checkpoint; SB3: no callbacks), so
-the number is the training loop's own. Each contender runs as its own process, launch to exit
-(imports, env start, the first compile included: what a user waits for), ``--rounds`` times in
-alternating order; the table gives env steps / wall seconds, median over rounds.
+Both sides run CleanRL's ``ppo_atari_envpool.py`` settings (``conf/experiment/pong_ppo.yaml``): 8
+EnvPool envs of ``Pong-v5`` (84x84x4 uint8, frame skip 4, ``episodic_life`` and ``reward_clip``),
+128 steps per env per rollout, 4 minibatches of 256, 4 epochs, the Nature CNN shared by linear
+actor and critic heads, Adam lr 2.5e-4 annealed, eps 1e-5, clip 0.1 (the value clipped too), ent
+0.01, vf 0.5, grad norm 0.5, one torch thread; EnvPool's thread pool on every CPU (rlexp's
+``env.num_threads=0``, EnvPool's default for SB3). rlexp is ``python train.py +experiment=pong_ppo``
+without evaluation (it still writes its final checkpoint and TensorBoard scalars); SB3 runs in its
+own interpreter (``--sb3-python``, a venv with stable-baselines3 and envpool) through a small SB3
+``VecEnv`` over EnvPool (EnvPool's documented SB3 adapter: a finished env is reset at once, its last
+observation in ``terminal_observation``) inside ``VecMonitor``.
 
-SB3 is not in rlexp's venv: give its interpreter. A venv for it, once:
+The runs alternate (rlexp, SB3, rlexp, SB3, ...) so a shared machine's load falls on both; each
+line is one process: wall seconds from launch to exit, env steps / wall second, peak RSS. The last
+line is the ratio of the median rates (rlexp / SB3).
 
-    python -m venv /tmp/sb3venv
-    /tmp/sb3venv/bin/pip install "stable-baselines3>=2.3" envpool torch numpy
-
-then (``--steps``: env steps per run; 8 envs x 128 steps = 1024 per PPO iteration):
-
-    PYTHONPATH=src python benchmarks/sb3_cnn_compare.py --sb3-python /tmp/sb3venv/bin/python \
-        --steps 102400 --rounds 3 --threads 4 --device auto
-
-``--device``: rlexp's ``trainer.device`` and SB3's ``device`` (auto: CUDA when present). A smoke
-run (``--steps 2048 --rounds 1``) checks both sides start and finish. Prints the table and one JSON
-line; nothing is written outside ``--work`` (a temporary folder by default).
+    python benchmarks/sb3_cnn_compare.py --sb3-python /work/sb3venv/bin/python --steps 16384
 """
 
 from __future__ import annotations
@@ -41,144 +33,151 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: CleanRL's ppo_atari_envpool.py settings (rlexp: conf/experiment/pong_ppo.yaml holds the same).
-NUM_ENVS, NUM_STEPS, MINIBATCHES, EPOCHS = 8, 128, 4, 4
 
-#: The SB3 side, run by the SB3 interpreter: EnvPool behind SB3's VecEnv (EnvPool's own SB3
-#: example's adapter: a finished copy is reset at once, its last observation in the info), PPO with
-#: the CnnPolicy (SB3's NatureCNN, /255 inside, shared by pi and vf: share_features_extractor).
-SB3_SCRIPT = r"""
-import json, sys, time
-import envpool, numpy as np, torch
-from stable_baselines3 import PPO
-from stable_baselines3.common.vec_env import VecEnvWrapper, VecMonitor
+def sb3_worker(args: argparse.Namespace) -> None:
+    """The SB3 side, run in the SB3 interpreter: what an SB3 user writes for this job."""
+    import envpool
+    import numpy as np
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecEnvWrapper, VecMonitor
 
-a = json.loads(sys.argv[1])
-torch.set_num_threads(a["threads"])
+    torch.set_num_threads(args.threads)
 
+    class VecAdapter(VecEnvWrapper):
+        """EnvPool (gymnasium API) as an SB3 VecEnv: a finished env is reset in the same step."""
 
-class VecAdapter(VecEnvWrapper):
-    def __init__(self, venv):
-        venv.num_envs = venv.spec.config.num_envs
-        super().__init__(venv=venv)
+        def __init__(self, venv) -> None:
+            super().__init__(venv=venv)  # num_envs and the spaces from EnvPool's own attributes
 
-    def step_async(self, actions):
-        self.actions = actions
+        def step_async(self, actions) -> None:
+            self.actions = actions
 
-    def reset(self):
-        return self.venv.reset()[0]
+        def reset(self):
+            return self.venv.reset()[0]
 
-    def seed(self, seed=None):
-        pass
+        def step_wait(self):
+            obs, rewards, terms, truncs, _ = self.venv.step(self.actions)
+            dones = terms | truncs
+            infos = [{} for _ in range(self.num_envs)]
+            for i in np.flatnonzero(dones):
+                infos[i]["terminal_observation"] = obs[i].copy()
+                infos[i]["TimeLimit.truncated"] = bool(truncs[i] and not terms[i])
+                obs[i] = self.venv.reset(np.array([i]))[0][0]
+            return obs, rewards, dones, infos
 
-    def step_wait(self):
-        obs, rewards, terms, truncs, info = self.venv.step(self.actions)
-        dones = terms | truncs
-        infos = []
-        for i in range(self.num_envs):
-            infos.append({"TimeLimit.truncated": bool(truncs[i] and not terms[i])})
-            if dones[i]:
-                infos[i]["terminal_observation"] = obs[i]
-                obs[i] = self.venv.reset(np.array([i]))[0]
-        return obs, rewards, dones, infos
-
-
-env = envpool.make(a["env_id"], env_type="gymnasium", num_envs=a["num_envs"], seed=a["seed"],
-                   episodic_life=True, reward_clip=True)
-env = VecMonitor(VecAdapter(env))
-model = PPO(
-    "CnnPolicy", env, n_steps=a["num_steps"], batch_size=a["batch_size"], n_epochs=a["epochs"],
-    learning_rate=lambda f: 2.5e-4 * f, clip_range=0.1, clip_range_vf=0.1, ent_coef=0.01,
-    vf_coef=0.5, max_grad_norm=0.5, gamma=0.99, gae_lambda=0.95, normalize_advantage=True,
-    seed=a["seed"], device=a["device"], verbose=0,
-)
-start = time.time()
-model.learn(total_timesteps=a["steps"])
-print(json.dumps({"steps": int(model.num_timesteps), "learn_s": time.time() - start}))
-"""
-
-
-def rlexp_cmd(args: argparse.Namespace, run_dir: Path) -> list[str]:
-    """``python train.py +experiment=pong_ppo`` on ``--env-id`` for ``--steps``, eval and saving
-    past the budget (off), console quiet."""
-    never = args.steps * 10
-    return [
-        sys.executable, str(REPO / "train.py"), "+experiment=pong_ppo",
-        f"env.name={args.env_id}", f"env.num_envs={NUM_ENVS}",
-        f"trainer.total_frames={args.steps}", f"trainer.frames_per_batch={NUM_ENVS * NUM_STEPS}",
-        f"algorithm.mini_batch_size={NUM_ENVS * NUM_STEPS // MINIBATCHES}",
-        f"algorithm.num_epochs={EPOCHS}", f"trainer.eval_every={never}", "trainer.eval_episodes=0",
-        f"trainer.save_every={never}", f"trainer.torch_threads={args.threads}",
-        f"trainer.device={args.device}", "trainer.progress=false", f"seed={args.seed}",
-        f"hydra.run.dir={run_dir}",
-    ]  # fmt: skip
+    pool = envpool.make_gymnasium(
+        "Pong-v5",
+        num_envs=args.num_envs,
+        seed=args.seed,
+        episodic_life=True,
+        reward_clip=True,
+    )
+    env = VecMonitor(VecAdapter(pool))
+    lr = 2.5e-4
+    model = PPO(
+        "CnnPolicy",
+        env,
+        learning_rate=lambda remaining: lr * remaining,
+        n_steps=128,
+        batch_size=256,
+        n_epochs=4,
+        gamma=0.99,
+        gae_lambda=0.95,
+        clip_range=0.1,
+        clip_range_vf=0.1,
+        ent_coef=0.01,
+        vf_coef=0.5,
+        max_grad_norm=0.5,
+        normalize_advantage=True,
+        policy_kwargs={"optimizer_kwargs": {"eps": 1e-5}},
+        device="cpu",
+        seed=args.seed,
+        verbose=0,
+    )
+    model.learn(total_timesteps=args.steps)
+    buf = model.ep_info_buffer
+    ret = float(np.mean([ep["r"] for ep in buf])) if buf else None
+    print(json.dumps({"steps": int(model.num_timesteps), "return": ret}))
 
 
-def sb3_cmd(args: argparse.Namespace) -> list[str]:
-    device = args.device
-    settings = {
-        "env_id": args.env_id, "num_envs": NUM_ENVS, "num_steps": NUM_STEPS,
-        "batch_size": NUM_ENVS * NUM_STEPS // MINIBATCHES, "epochs": EPOCHS,
-        "steps": args.steps, "threads": args.threads, "device": device, "seed": args.seed,
-    }  # fmt: skip
-    return [args.sb3_python, "-c", SB3_SCRIPT, json.dumps(settings)]
-
-
-def timed(cmd: list[str], log: Path, env: dict[str, str]) -> float:
-    """Wall seconds of ``cmd`` from launch to exit; its output to ``log``; exit code checked."""
+def run(cmd: list[str], env: dict[str, str] | None = None) -> dict:
+    """Launch to exit: wall seconds and the child's peak RSS (MiB)."""
     start = time.perf_counter()
-    with open(log, "w") as out:
-        proc = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, check=False)
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    out = proc.stdout.read() if proc.stdout else b""
+    _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - start
-    if proc.returncode != 0:
-        tail = log.read_text().strip().splitlines()[-5:]
-        raise SystemExit(f"{cmd[0]} exited {proc.returncode}; {log}:\n" + "\n".join(tail))
-    return wall
+    if os.waitstatus_to_exitcode(status) != 0:
+        sys.stderr.write(out.decode(errors="replace")[-3000:])
+        raise SystemExit(f"failed: {' '.join(cmd)}")
+    return {"wall_s": wall, "peak_rss_mib": usage.ru_maxrss / 1024, "out": out.decode()[-400:]}
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--sb3-python", help="the interpreter of a venv with SB3 + envpool")
-    p.add_argument("--only", choices=("rlexp", "sb3"), help="run one side (a smoke test)")
-    p.add_argument("--env-id", default="Pong-v5", help="an EnvPool Atari id")
-    p.add_argument("--steps", type=int, default=102_400, help="env steps per run (x 1024)")
-    p.add_argument("--rounds", type=int, default=3)
-    p.add_argument("--threads", type=int, default=1, help="torch threads, both sides")
-    p.add_argument("--device", default="cpu", help="cpu | cuda | auto, both sides")
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sb3-python", help="the interpreter with stable-baselines3 and envpool")
+    p.add_argument("--steps", type=int, default=16384, help="env steps per run (both sides)")
+    p.add_argument("--rounds", type=int, default=2, help="rlexp/SB3 pairs, alternating")
+    p.add_argument("--num-envs", type=int, default=8)
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--work", type=Path, default=None, help="run dirs and logs (default: a tmp dir)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (both sides)")
+    p.add_argument("--only", choices=("rlexp", "sb3"), help="run one side only")
+    p.add_argument("--rlexp-arg", action="append", default=[], help="extra train.py override")
+    p.add_argument("--sb3-worker", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
-    if args.steps % (NUM_ENVS * NUM_STEPS):
-        raise SystemExit(f"--steps {args.steps}: give a multiple of {NUM_ENVS * NUM_STEPS}")
-    sides = (args.only,) if args.only else ("rlexp", "sb3")
-    if "sb3" in sides and not (args.sb3_python and Path(args.sb3_python).is_file()):
-        raise SystemExit(f"--sb3-python {args.sb3_python!r} does not exist (see this file's doc)")
-    work = args.work or Path(tempfile.mkdtemp(prefix="sb3_cnn_"))
-    work.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
-    sb3_env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    walls: dict[str, list[float]] = {"rlexp": [], "sb3": []}
-    for r in range(args.rounds):
-        order = sides if r % 2 == 0 else sides[::-1]
-        for who in order:
-            log = work / f"{who}_{r}.log"
-            if who == "rlexp":
-                wall = timed(rlexp_cmd(args, work / f"rlexp_{r}"), log, env)
-            else:
-                wall = timed(sb3_cmd(args), log, sb3_env)
-            walls[who].append(wall)
-            print(
-                f"round {r} {who}: {args.steps / wall:,.0f} env-steps/s ({wall:.1f} s)", flush=True
-            )
-    sps = {who: args.steps / statistics.median(w) for who, w in walls.items() if w}
-    print(f"\n| {args.env_id}, {args.steps} env steps, median of {args.rounds} | env-steps/s |")
-    print("|---|---|")
-    for who in sps:
-        print(f"| {who} | {sps[who]:,.0f} |")
-    if len(sps) == 2:
-        print(f"| rlexp / SB3 | {sps['rlexp'] / sps['sb3']:.2f}x |")
-    print()
-    print(json.dumps({"env_id": args.env_id, "steps": args.steps, "walls": walls, "sps": sps}))
+    if args.sb3_worker:
+        sb3_worker(args)
+        return
+    if args.only != "rlexp" and not args.sb3_python:
+        p.error("--sb3-python is required (or --only rlexp)")
+    env = dict(os.environ, PYTHONPATH=str(REPO / "src"))
+    rates: dict[str, list[float]] = {"rlexp": [], "sb3": []}
+    with tempfile.TemporaryDirectory(prefix="sb3_cnn_") as tmp:
+        for r in range(args.rounds):
+            for side in ("rlexp", "sb3"):
+                if args.only and side != args.only:
+                    continue
+                if side == "rlexp":
+                    cmd = [
+                        sys.executable,
+                        str(REPO / "train.py"),
+                        "+experiment=pong_ppo",
+                        f"seed={args.seed}",
+                        f"env.num_envs={args.num_envs}",
+                        f"trainer.total_frames={args.steps}",
+                        "trainer.eval_every=0",
+                        "trainer.save_every=0",
+                        f"trainer.torch_threads={args.threads}",
+                        f"hydra.run.dir={tmp}/rlexp_{r}",
+                        *args.rlexp_arg,
+                    ]
+                    res = run(cmd, env)
+                else:
+                    cmd = [
+                        args.sb3_python,
+                        str(Path(__file__).resolve()),
+                        "--sb3-worker",
+                        f"--steps={args.steps}",
+                        f"--num-envs={args.num_envs}",
+                        f"--seed={args.seed}",
+                        f"--threads={args.threads}",
+                    ]
+                    res = run(cmd)
+                rate = args.steps / res["wall_s"]
+                rates[side].append(rate)
+                line = {
+                    "side": side,
+                    "round": r,
+                    "steps": args.steps,
+                    "wall_s": round(res["wall_s"], 1),
+                    "steps_per_s": round(rate, 1),
+                    "peak_rss_mib": round(res["peak_rss_mib"]),
+                }
+                print(json.dumps(line), flush=True)
+    if rates["rlexp"] and rates["sb3"]:
+        ratio = statistics.median(rates["rlexp"]) / statistics.median(rates["sb3"])
+        print(json.dumps({"ratio_rlexp_over_sb3": round(ratio, 2)}), flush=True)
 
 
 if __name__ == "__main__":
