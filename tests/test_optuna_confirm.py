@@ -290,3 +290,33 @@ def test_a_real_sweep_confirms_on_fresh_seeds_resumes_and_writes_a_preset_that_c
     assert math.isclose(composed["algorithm"]["lr"], rows[0].params["algorithm.lr"])
     assert np.isfinite(rows[0].iqm)
     assert optuna.__version__  # the study was read through optuna (imported above)
+
+
+def test_confirm_without_an_optuna_study_is_one_line_before_anything_is_written(tmp_path):
+    import subprocess
+    import sys
+
+    sweep = tmp_path / "s"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(Path(__file__).resolve().parents[1] / "train.py"),
+            "-m",
+            "+hydra.sweeper.confirm={top_k:1,seeds:2}",
+            "trainer=smoke",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [x for x in proc.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].endswith(
+        "hydra.sweeper.confirm: only rlexp's Optuna sweeper has it (hydra/sweeper=optuna, or "
+        "+sweep=ppo_optuna); this sweep's sweeper "
+        "'hydra._internal.core_plugins.basic_sweeper.BasicSweeper' keeps no study of trials"
+    )
+    assert not sweep.exists()

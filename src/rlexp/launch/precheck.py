@@ -229,6 +229,13 @@ def check_sweeper(sweeper: Any, overrides: Sequence[str], job_cfg: Any = None) -
     import re
 
     if not str(sweeper.get("_target_", "")).startswith("hydra_plugins.rlexp_sweeper."):
+        for key in ("confirm", "pruner", "trial_seeds", "trial_objective", "async_trials"):
+            if key in sweeper:  # Hydra's own sweepers would fail on it with a traceback
+                raise ConfigError(
+                    f"hydra.sweeper.{key}: only rlexp's Optuna sweeper has it (hydra/sweeper="
+                    f"optuna, or +sweep=ppo_optuna); this sweep's sweeper "
+                    f"{sweeper.get('_target_')!r} keeps no study of trials"
+                )
         return
     from rlexp.extras import require
 
