@@ -16,6 +16,7 @@ from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import OmegaConf
 
 from rlexp.launch.optuna_study import StudyConfigError, job_of, jobs_of
+from rlexp.run.rundir import final_value
 
 log = logging.getLogger(__name__)
 
@@ -102,17 +103,14 @@ def finished_value(job_dir: Path, overrides: Sequence[str] = ()) -> float | None
         status = json.loads((job_dir / "status.json").read_text())
     except (OSError, ValueError):
         return None
-    if not isinstance(status, dict) or status.get("state") not in ("finished", "stopped_early"):
+    value = final_value(status, OBJECTIVE, ("finished", "stopped_early"))
+    if value is None:
         return None
     missing = sorted(set(overrides) - set(_job_overrides(job_dir)))
     if missing:
         log.warning("job dir %s did not run with %s: its result is not taken", job_dir, missing)
         return None
-    final = status.get("final_eval")
-    value = final.get(OBJECTIVE) if isinstance(final, dict) else None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        return None
-    return float(value)
+    return value
 
 
 def _job_overrides(job_dir: Path) -> list[str]:

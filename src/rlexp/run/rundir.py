@@ -97,6 +97,18 @@ def read_status(run_dir: Path) -> dict[str, Any]:
     return status if isinstance(status, dict) else {}
 
 
+def final_value(status: Any, metric: str, states: tuple[str, ...]) -> float | None:
+    """A ``status.json``'s final evaluation of ``metric`` when the run ended in one of ``states``
+    (None: another state, no such value, or not a finite number)."""
+    if not isinstance(status, dict) or status.get("state") not in states:
+        return None
+    final = status.get("final_eval")
+    value = final.get(metric) if isinstance(final, dict) else None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
 def write_status(
     run_dir: Path, state: str, global_step: int, final_eval: dict | None = None, **extra: Any
 ) -> None:

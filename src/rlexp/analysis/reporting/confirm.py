@@ -47,19 +47,9 @@ class Confirmed:
 
 
 def _job_value(job_dir: Path) -> float | None:
-    from rlexp.files.safe_read import load_json
+    from rlexp.run.rundir import final_value, read_status
 
-    try:
-        status = load_json(job_dir / "status.json")
-    except Exception:
-        return None
-    if not isinstance(status, dict) or status.get("state") not in ("finished", "stopped_early"):
-        return None
-    final = status.get("final_eval")
-    value = final.get(OBJECTIVE) if isinstance(final, dict) else None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        return None
-    return float(value)
+    return final_value(read_status(job_dir), OBJECTIVE, ("finished", "stopped_early"))
 
 
 def read_confirmation(sweep_dir: Path) -> tuple[dict[str, Any], list[Confirmed]] | None:
