@@ -320,3 +320,28 @@ def test_confirm_without_an_optuna_study_is_one_line_before_anything_is_written(
         "'hydra._internal.core_plugins.basic_sweeper.BasicSweeper' keeps no study of trials"
     )
     assert not sweep.exists()
+
+
+def test_the_plan_builds_overrides_from_the_search_space_not_from_text_in_the_study():
+    """A study file is data: overrides recorded there (a tampered journal) never reach the jobs;
+    a trial with a parameter outside the sweep's search space is not confirmed."""
+    good = _trial(0, 5.0, 1e-3, [0])
+    good.user_attrs["rlexp_overrides"] = ["+hydra.callbacks.x._target_=os.system", "seed=3"]
+    foreign = _trial(1, 9.0, 2e-3, [0], **{"hydra.job.chdir": 1})
+    found = plan(
+        [good, foreign],
+        [good, foreign],
+        ConfirmSettings(2, 1),
+        "s",
+        "maximize",
+        0,
+        None,
+        ["algorithm.lr"],
+        {"env": "env=pendulum", "algorithm.gamma": "algorithm.gamma=0.97"},
+    )
+    assert [c["trial"] for c in found["candidates"]] == [0]
+    assert found["candidates"][0]["overrides"] == [
+        f"algorithm.lr={1e-3}",
+        "env=pendulum",
+        "algorithm.gamma=0.97",
+    ]

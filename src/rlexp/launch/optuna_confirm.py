@@ -25,13 +25,14 @@ from __future__ import annotations
 import json
 import logging
 import zlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from rlexp.analysis.reporting.confirm import CONFIRM_FILE, confirm_lines
 from rlexp.files.fsutil import atomic_write_text
+from rlexp.launch.optuna_space import trial_overrides
 from rlexp.launch.optuna_study import (
     StudyConfigError,
     jobs_of,
@@ -118,13 +119,30 @@ def plan(
     direction: str,
     base_seed: int,
     previous: Mapping[str, Any] | None,
+    space: Sequence[str] | None = None,
+    fixed: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
     """The confirmation plan: the ``top_k`` best COMPLETE trials of ``trials`` (this sweep's),
     seeds fresh for ``all_trials`` (the whole study), job numbers kept from ``previous`` (an
-    earlier ``confirm.json``) for the (trial, seed) pairs it already had."""
+    earlier ``confirm.json``) for the (trial, seed) pairs it already had.
+
+    ``space`` (the sweep's search-space names) and ``fixed`` (its fixed overrides): a job's
+    overrides are made from the trial's parameters inside ``space`` and ``fixed``, never taken as
+    text from the storage (a study file is data: an override written there could reach Hydra's
+    own keys); a trial with a parameter outside ``space`` is not confirmed. None (tests): the
+    trial's recorded overrides."""
     from optuna.trial import TrialState
 
     done = [t for t in trials if t.state == TrialState.COMPLETE and t.value is not None]
+    if space is not None:
+        outside = [t.number for t in done if set(t.params) - set(space)]
+        if outside:
+            log.warning(
+                "hydra.sweeper.confirm: trial(s) %s have parameters outside this sweep's search "
+                "space: not confirmed",
+                outside,
+            )
+        done = [t for t in done if not set(t.params) - set(space)]
     best = sorted(done, key=lambda t: t.value, reverse=direction == "maximize")
     top = best[: settings.top_k]
     if len(top) < settings.top_k:
@@ -155,7 +173,9 @@ def plan(
                 "search_jobs": jobs_of(t),
                 "search_seeds": seeds_of(t),
                 "params": {k: _plain(v) for k, v in t.params.items()},
-                "overrides": overrides_of(t),
+                "overrides": overrides_of(t)
+                if space is None
+                else list(trial_overrides(t.params, space, fixed or {})),
                 "jobs": jobs,
             }
         )
@@ -188,7 +208,9 @@ def read_plan(sweep_dir: Path) -> dict[str, Any] | None:
     return data if isinstance(data, dict) and data.get("version") == 1 else None
 
 
-def confirm(sweep: Any, settings: ConfirmSettings, direction: str, base_seed: int) -> None:
+def confirm(
+    sweep: Any, settings: ConfirmSettings, direction: str, base_seed: int, spec: Any = None
+) -> None:
     """Plan, write ``confirm.json``, run the jobs not finished on the sweep's launcher
     (``sweep.run_jobs``), and log the ranking (``rlexp.analysis.reporting.confirm``)."""
     study = sweep.study
@@ -198,7 +220,15 @@ def confirm(sweep: Any, settings: ConfirmSettings, direction: str, base_seed: in
         return
     sweep_dir = Path(sweep.sweep_dir)
     found = plan(
-        mine, everyone, settings, study.study_name, direction, base_seed, read_plan(sweep_dir)
+        mine,
+        everyone,
+        settings,
+        study.study_name,
+        direction,
+        base_seed,
+        read_plan(sweep_dir),
+        list(spec.dists) if spec is not None else None,
+        dict(spec.fixed) if spec is not None else None,
     )
     atomic_write_text(sweep_dir / CONFIRM_FILE, json.dumps(found, indent=2) + "\n")
     # no pruning hook: a confirmation job trains to its end

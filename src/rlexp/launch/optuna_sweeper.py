@@ -240,7 +240,7 @@ class OptunaSweep:
         confirmation of the best trials on fresh seeds (``rlexp.launch.optuna_confirm``)."""
         settings = optuna_confirm.confirm_settings(_plain(self.confirm), len(spec.directions))
         if settings is not None:
-            optuna_confirm.confirm(self, settings, spec.directions[0], self.base_seed(spec))
+            optuna_confirm.confirm(self, settings, spec.directions[0], self.base_seed(spec), spec)
 
     def run_jobs(self, jobs: list[tuple[int, list[str]]]) -> dict[int, Any]:
         """``jobs`` (job number, overrides) on the sweep's launcher, ``n_jobs`` at a time, each
