@@ -328,10 +328,11 @@ def test_the_plan_builds_overrides_from_the_search_space_not_from_text_in_the_st
     good = _trial(0, 5.0, 1e-3, [0])
     good.user_attrs["rlexp_overrides"] = ["+hydra.callbacks.x._target_=os.system", "seed=3"]
     foreign = _trial(1, 9.0, 2e-3, [0], **{"hydra.job.chdir": 1})
+    custom = _trial(2, 7.0, 3e-3, [0], **{"trainer.frames_per_batch": 512})  # custom space
     found = plan(
-        [good, foreign],
-        [good, foreign],
-        ConfirmSettings(2, 1),
+        [good, foreign, custom],
+        [good, foreign, custom],
+        ConfirmSettings(3, 1),
         "s",
         "maximize",
         0,
@@ -339,8 +340,12 @@ def test_the_plan_builds_overrides_from_the_search_space_not_from_text_in_the_st
         ["algorithm.lr"],
         {"env": "env=pendulum", "algorithm.gamma": "algorithm.gamma=0.97"},
     )
-    assert [c["trial"] for c in found["candidates"]] == [0]
-    assert found["candidates"][0]["overrides"] == [
+    assert [c["trial"] for c in found["candidates"]] == [2, 0]
+    assert found["candidates"][0]["overrides"][:2] == [
+        f"algorithm.lr={3e-3}",
+        "trainer.frames_per_batch=512",
+    ]
+    assert found["candidates"][1]["overrides"] == [
         f"algorithm.lr={1e-3}",
         "env=pendulum",
         "algorithm.gamma=0.97",

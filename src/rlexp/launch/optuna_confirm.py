@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -135,14 +136,14 @@ def plan(
 
     done = [t for t in trials if t.state == TrialState.COMPLETE and t.value is not None]
     if space is not None:
-        outside = [t.number for t in done if set(t.params) - set(space)]
+        outside = [t.number for t in done if not _in_space(t.params, space)]
         if outside:
             log.warning(
                 "hydra.sweeper.confirm: trial(s) %s have parameters outside this sweep's search "
                 "space: not confirmed",
                 outside,
             )
-        done = [t for t in done if not set(t.params) - set(space)]
+        done = [t for t in done if _in_space(t.params, space)]
     best = sorted(done, key=lambda t: t.value, reverse=direction == "maximize")
     top = best[: settings.top_k]
     if len(top) < settings.top_k:
@@ -187,6 +188,16 @@ def plan(
         "seeds": seeds,
         "candidates": candidates,
     }
+
+
+#: A parameter a custom search space (``custom_search_space``) suggested: a config key, not Hydra's.
+_CONFIG_KEY = re.compile(r"(?!hydra\.)[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+def _in_space(params: Mapping[str, Any], space: Sequence[str]) -> bool:
+    """Every parameter is one of the search space's, or a plain config key outside ``hydra.``
+    (what a ``custom_search_space`` function suggests)."""
+    return all(n in space or _CONFIG_KEY.fullmatch(str(n)) for n in params)
 
 
 def _plain(value: Any) -> Any:
