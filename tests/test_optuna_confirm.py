@@ -17,8 +17,9 @@ from omegaconf import OmegaConf
 from optuna.distributions import FloatDistribution, IntDistribution
 from optuna.trial import TrialState, create_trial
 from scipy.stats import trim_mean
-from test_optuna_async import run_train, study_of
+from test_optuna_async import study_of
 
+from conftest import Children
 from rlexp.analysis.reporting.confirm import (
     ConfirmError,
     confirm_lines,
@@ -217,6 +218,17 @@ def _command(sweep: Path, *extra: str) -> list[str]:
     ]
 
 
+def _sweep(cmd: list[str], cwd: Path, name: str) -> str:
+    """The sweep's console; its process group (the jobs too) is killed however this ends."""
+    log = cwd / f"{name}.log"
+    with Children() as children:
+        proc = children.train(cmd, cwd, log)
+        proc.wait(timeout=600)
+    out = log.read_text()
+    assert proc.returncode == 0, out[-3000:]
+    return out
+
+
 def _configs_equal_but_the_runs_own(preset_cfg: dict, run_cfg: dict) -> list[str]:
     from rlexp.analysis.reporting.confirm import NOT_PRESET
 
@@ -240,8 +252,7 @@ def test_a_real_sweep_confirms_on_fresh_seeds_resumes_and_writes_a_preset_that_c
     tmp_path,
 ):
     sweep = tmp_path / "s"
-    first = run_train(_command(sweep), cwd=tmp_path)
-    out = first.stdout + first.stderr
+    out = _sweep(_command(sweep), tmp_path, "first")
     assert "Confirmation on fresh seeds" in out and "Traceback" not in out
     plan_ = json.loads((sweep / "confirm.json").read_text())
     trials = study_of(sweep).get_trials()
@@ -260,8 +271,7 @@ def test_a_real_sweep_confirms_on_fresh_seeds_resumes_and_writes_a_preset_that_c
     import shutil
 
     shutil.rmtree(lost)
-    again = run_train(_command(sweep), cwd=tmp_path)
-    log = again.stdout + again.stderr
+    log = _sweep(_command(sweep), tmp_path, "again")
     # the search's trials are done (not launched again); the finished confirmation jobs skip
     assert log.count("already finished at step 512: skipping") == len(jobs) - 1
     assert log.count(f"run dir: {lost} ") == 1
