@@ -464,3 +464,25 @@ def test_an_actor_part_the_env_lacks_is_one_line(runs, tmp_path, monkeypatch, ch
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert rc == 2 and len(lines) == 1, err
     assert words in lines[0], lines[0]
+
+
+def test_input_names_are_identifiers_that_never_shadow_the_wrapper_s_own_names():
+    """The TorchScript wrapper's argument names come from image keys: anything but a word
+    character becomes "_", and a name that would shadow ``self`` / ``torch`` or start with a
+    digit gets a prefix; duplicates get a suffix."""
+    from types import SimpleNamespace
+
+    from rlexp.deploy.export_actor import input_names
+
+    actor = SimpleNamespace(
+        reads_vector=True, image_keys=["torch", "self", "cam.front", "cam_front", "1x", "a);b"]
+    )
+    assert input_names(actor) == [
+        "observation",
+        "image_torch",
+        "image_self",
+        "cam_front",
+        "cam_front_",
+        "image_1x",
+        "a__b",
+    ]

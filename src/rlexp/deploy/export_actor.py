@@ -137,7 +137,7 @@ def input_names(actor: DeterministicActor) -> list[str]:
     names = [VECTOR_INPUT] if actor.reads_vector else []
     for key in actor.image_keys:
         name = re.sub(r"\W", "_", key)
-        if name[0].isdigit() or keyword.iskeyword(name) or name == "self":
+        if name[0].isdigit() or keyword.iskeyword(name) or name in ("self", "torch"):
             name = "image_" + name
         while name in names:
             name += "_"
