@@ -207,6 +207,22 @@ def no_train_run_outlives_the_session() -> Iterator[None]:
     )
 
 
+def train_side_by_side(
+    runs: dict[str, list[str]], dirs: dict[str, Path], root: Path, env_extra: dict[str, str]
+) -> None:
+    """``python train.py`` for each of ``runs`` (its overrides) at once, into ``dirs[name]``,
+    logs in ``root``; each must exit 0 (its log otherwise); every process ended on return."""
+    with Children() as children:
+        procs = {
+            name: children.train(
+                [*args, f"hydra.run.dir={dirs[name]}"], root, root / f"{name}.log", env_extra
+            )
+            for name, args in runs.items()
+        }
+        for name, proc in procs.items():
+            assert proc.wait(timeout=300) == 0, (root / f"{name}.log").read_text()
+
+
 def only_run_dir(root: Path) -> Path:
     """The single run dir Hydra created under ``root/outputs``."""
     dirs = [p.parent for p in root.glob("outputs/*/*/config.yaml")]

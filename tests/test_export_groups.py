@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import REPO, Children
+from conftest import REPO, train_side_by_side
 from conftest import rlexp_cli as _cli
 from rlexp.deploy.policy_eval import evaluate, metadata_path
 
@@ -68,18 +68,7 @@ def runs(tmp_path_factory) -> Iterator[dict[str, Path]]:
     root = tmp_path_factory.mktemp("export_groups")
     dirs = {name: root / name for name in RUNS}
     extra = {"PYTHONPATH": os.pathsep.join([str(REPO / "src"), str(TESTS)]), **ENV_VARS}
-    with Children() as children:
-        procs = {
-            name: children.train(
-                [*TINY, *RUNS[name], f"hydra.run.dir={dirs[name]}"],
-                root,
-                root / f"{name}.log",
-                env_extra=extra,
-            )  # fmt: skip
-            for name in RUNS
-        }
-        for name, proc in procs.items():
-            assert proc.wait(timeout=300) == 0, (root / f"{name}.log").read_text()
+    train_side_by_side({n: [*TINY, *RUNS[n]] for n in RUNS}, dirs, root, extra)
     old = os.environ.get("RLEXP_ENV_MODULES")
     os.environ["RLEXP_ENV_MODULES"] = "export_envs"
     try:

@@ -23,7 +23,7 @@ import torch
 from gymnasium import spaces
 from test_docs_envs import _example
 
-from conftest import REPO, Children
+from conftest import REPO, train_side_by_side
 from conftest import rlexp_cli as _cli
 from rlexp.deploy.export_obs import helper_name, helper_source
 from rlexp.deploy.policy_eval import evaluate, metadata_path
@@ -63,18 +63,7 @@ def runs(tmp_path_factory) -> Iterator[dict[str, Path]]:
     (root / "corridor.py").write_text(_example())
     dirs = {"throttle": root / "throttle", "corridor": root / DOC_RUN}
     extra = {"PYTHONPATH": os.pathsep.join([str(REPO / "src"), str(TESTS), str(root)])}
-    with Children() as children:
-        procs = {
-            name: children.train(
-                [*TINY, *RUNS[name], f"hydra.run.dir={dirs[name]}"],
-                root,
-                root / f"{name}.log",
-                env_extra=extra,
-            )  # fmt: skip
-            for name in RUNS
-        }
-        for name, proc in procs.items():
-            assert proc.wait(timeout=300) == 0, (root / f"{name}.log").read_text()
+    train_side_by_side({n: [*TINY, *RUNS[n]] for n in RUNS}, dirs, root, extra)
     sys.path.insert(0, str(root))  # corridor importable here (toy_envs is: tests/)
     try:
         yield _export_all(root, dirs)
