@@ -107,6 +107,16 @@ def test_the_generator_is_the_buffers_own():
     torch.manual_seed(123)  # the global RNG does not decide the draw
     torch.rand(7)
     assert torch.equal(b.sample(16)["observation"][:, 0], first)
+    # the very draw TorchRL's own sampler makes from the same generator state, on the same rows
+    a.extend(rollout(3, 30, 20))  # 110 rows through a ring of 100
+    state = a.generator.get_state()
+    ours = a.sample(64)
+    a.generator.set_state(state)
+    torchrls = a._rb.sample(64)
+    assert len(a._rb) == len(a) == 100
+    assert set(ours.keys(True, True)) == set(torchrls.keys(True, True))
+    for key in ours.keys(True, True):
+        assert torch.equal(ours.get(key), torchrls.get(key)), key
     c = Replay(100, seed=4)
     c.extend(rollout(2, 10, 0))
     assert not torch.equal(c.sample(16)["observation"][:, 0], first)
@@ -152,6 +162,36 @@ def test_auto_storage_memory_maps_a_buffer_too_big_for_a_share_of_ram(tmp_path, 
     big.extend(rollout(1, 3, 0))
     assert big.storage_kind == "memmap" and any((tmp_path / "b" / "memmap").rglob("*.memmap"))
     assert ids_at_positions(big) == [0, 1, 2]
+
+
+def image_rollout(num_envs: int, steps: int, first: int) -> TensorDict:
+    """Observations that are TensorDicts (a vector and a uint8 image), as image tasks give."""
+    td = rollout(num_envs, steps, first, obs=3)
+    for key in ("observation", ("next", "observation")):
+        vector = td.get(key)
+        pixels = (
+            (vector[..., :1, None, None] % 251).to(torch.uint8).expand(num_envs, steps, 2, 4, 4)
+        )
+        td.set(key, TensorDict({"vector": vector, "pixels": pixels.clone()}, [num_envs, steps]))
+    return td
+
+
+@pytest.mark.parametrize("n_step", [1, 2])
+def test_dict_observations_are_stored_sampled_and_saved(tmp_path, n_step):
+    replay = Replay(40, directory=tmp_path, seed=3, n_step=n_step, gamma=0.5)
+    replay.extend(image_rollout(2, 15, 0))
+    state = replay.save()
+    batch = replay.sample(8)
+    assert batch["observation", "pixels"].shape == (8, 2, 4, 4)
+    assert batch["observation", "pixels"].dtype == torch.uint8
+    ids = batch["observation", "vector"][:, 0]
+    assert torch.equal(batch["observation", "pixels"][:, 0, 0, 0], (ids % 251).to(torch.uint8))
+    loaded = Replay(40, directory=tmp_path, seed=0, n_step=n_step, gamma=0.5)
+    loaded.load_state_dict(state)
+    replay.generator.set_state(state["generator"])
+    want, got = replay.sample(8), loaded.sample(8)
+    for key in want.keys(True, True):
+        assert torch.equal(got.get(key), want.get(key)), key
 
 
 def chunk_files(directory: Path) -> list[str]:

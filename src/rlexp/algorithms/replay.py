@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, RandomSampler, ReplayBuffer
 
 from rlexp.algorithms import nstep, replay_files
@@ -47,6 +47,22 @@ TRANSITION_KEYS = (
     ("next", "truncated"),
     ("next", "done"),
 )
+
+
+def _nested(columns: dict[tuple[str, ...], Any], shape: torch.Size) -> TensorDict:
+    """A TensorDict of ``columns`` (keys as tuples), built without per-entry checks."""
+    top: dict[str, Any] = {}
+    for key, value in columns.items():
+        node = top
+        for part in key[:-1]:
+            node = node.setdefault(part, {})
+        node[key[-1]] = value
+
+    def build(tree: dict[str, Any]) -> TensorDict:
+        items = {k: build(v) if isinstance(v, dict) else v for k, v in tree.items()}
+        return TensorDict._new_unsafe(items, batch_size=shape)
+
+    return build(top)
 
 
 def physical_memory() -> int:
@@ -96,6 +112,7 @@ class Replay:
         self.layout: replay_files.Layout | None = None
         self.storage_kind: str | None = None  # memory or memmap, once decided
         self._rb: ReplayBuffer | None = None
+        self._leaves: list[tuple[tuple[str, ...], torch.Tensor]] = []  # the storage's tensors
         self._pending: nstep.NStepState | None = None
         self._chunks: list[dict[str, Any]] = []  # the chunks the rows up to _saved_upto are in
         self._saved_upto = 0
@@ -114,15 +131,45 @@ class Replay:
         count = rows.batch_size[0]
         if count == 0:
             return
-        if self._rb is None:
-            self._build(rows)
-        else:
-            self._check_layout(rows)
         if count > self.capacity:  # only the last capacity rows survive: write them where they go
             rows = rows[count - self.capacity :]
-        self._set_cursor(self.written + count - rows.batch_size[0])
-        self._rb.extend(rows)
+        start = self.written + count - rows.batch_size[0]
+        if self._rb is None:  # TorchRL allocates the storage from the first rows
+            self._build(rows)
+            self._set_cursor(start)
+            self._rb.extend(rows)
+            self._leaves = self._storage_leaves()
+        else:
+            self._write(rows, start)
         self.written += count
+
+    def _write(self, rows: TensorDictBase, start: int) -> None:
+        """Write ``rows`` at ring positions ``start % capacity, ...`` straight into the TorchRL
+        storage's tensors (where its RoundRobinWriter puts them, without its per-call overhead:
+        SAC adds a few rows per gradient step)."""
+        count, at = rows.batch_size[0], start % self.capacity
+        first = min(count, self.capacity - at)
+        for key, dst in self._leaves:
+            src = rows.get(key)
+            if src.dtype != dst.dtype or src.shape[1:] != dst.shape[1:]:
+                self._check_layout(rows)  # raises, naming both layouts
+            dst[at : at + first] = src[:first]
+            if first < count:  # wraps round
+                dst[: count - first] = src[first:]
+        store = self._rb.storage
+        store._len = min(start + count, self.capacity)
+        self._set_cursor(start + count)
+
+    def _storage_leaves(self) -> list[tuple[tuple[str, ...], torch.Tensor]]:
+        """The storage's tensors by key (memory-mapped ones as plain tensor views of the map)."""
+        stored = self._rb.storage._storage
+        leaves = []
+        for key in stored.keys(include_nested=True, leaves_only=True):
+            value = stored.get(key)
+            leaves.append(
+                ((key,) if isinstance(key, str) else tuple(key), value.as_subclass(torch.Tensor))
+            )
+        return sorted(leaves, key=lambda kv: kv[0])
 
     def sample(self, batch_size: int) -> TensorDictBase:
         """``batch_size`` transitions drawn uniformly (with replacement) from the valid rows, by
@@ -131,31 +178,45 @@ class Replay:
         if size == 0:
             raise ValueError("the replay buffer is empty: nothing to sample (learning_starts=0?)")
         index = torch.randint(0, size, (batch_size,), generator=self.generator)
-        storage = self._rb.storage
-        out = storage.get(index.to(storage.device) if storage.device != index.device else index)
-        return out.to(self.device) if out.device != self.device else out
+        if self._leaves[0][1].device != index.device:
+            index = index.to(self._leaves[0][1].device)
+        out: dict[str, Any] = {}
+        nxt: dict[str, torch.Tensor] = {}
+        for key, leaf in self._leaves:
+            value = leaf[index]
+            if value.device != self.device:  # memory-mapped storage feeding an accelerator
+                value = value.to(self.device, non_blocking=True)
+            if len(key) == 1:
+                out[key[0]] = value
+            elif len(key) == 2 and key[0] == "next":
+                nxt[key[1]] = value
+            else:  # an observation that is itself a TensorDict: the general path
+                return self._rb.storage.get(index).to(self.device)
+        shape = torch.Size([batch_size])
+        out["next"] = TensorDict._new_unsafe(nxt, batch_size=shape, device=self.device)
+        return TensorDict._new_unsafe(out, batch_size=shape, device=self.device)
 
     def _transitions(self, batch: TensorDictBase) -> TensorDictBase:
         """The rollout's transition entries; n-step windows applied; flat ``[N]``."""
-        if ("next", "done") not in batch.keys(include_nested=True):
-            batch = batch.clone(False)
-            batch.set(
-                ("next", "done"),
-                batch.get(("next", "terminated")) | batch.get(("next", "truncated")),
-            )
-        missing = [k for k in TRANSITION_KEYS if k not in batch.keys(include_nested=True)]
-        if missing:
-            raise KeyError(
-                f"a replay transition needs {missing}; the batch holds {list(batch.keys(True, True))}"
-            )
-        rows = batch.select(*TRANSITION_KEYS)
+        dims = batch.batch_dims
+        columns: dict[tuple[str, ...], torch.Tensor] = {}
+        for key in TRANSITION_KEYS:
+            value = batch.get(key, None)
+            if value is None and key == ("next", "done"):
+                value = columns[("next", "terminated")] | columns[("next", "truncated")]
+            if value is None:
+                missing = [k for k in TRANSITION_KEYS[:-1] if batch.get(k, None) is None]
+                raise KeyError(f"a replay transition needs {missing}; the batch has none")
+            columns[(key,) if isinstance(key, str) else key] = value
         if self.n_step == 1:
-            return rows.reshape(-1)
-        if rows.batch_dims != 2:
+            flat = torch.Size([batch.batch_size.numel()])
+            return _nested({k: v.reshape(*flat, *v.shape[dims:]) for k, v in columns.items()}, flat)
+        if dims != 2:
             raise ValueError(
                 f"algorithm.n_step={self.n_step} needs the rollout as [num_envs, T]; got "
-                f"{tuple(rows.batch_size)}"
+                f"{tuple(batch.batch_size)}"
             )
+        rows = _nested(columns, batch.batch_size)
         out, self._pending = nstep.nstep_transitions(rows, self._pending, self.n_step, self.gamma)
         return out
 
@@ -287,7 +348,7 @@ class Replay:
             raise ValueError("loading a replay buffer needs its directory (Replay(directory=...))")
         parts = [(c, replay_files.read_chunk(self.directory, c, layout)) for c in chunks]
 
-        self.layout, self._rb, self.written = layout, None, 0
+        self.layout, self._rb, self._leaves, self.written = layout, None, [], 0
         first = written - min(written, capacity)
         for entry, rows in parts:
             lo = max(entry["start"], first)
@@ -298,6 +359,7 @@ class Replay:
         self.written = written
         if self._rb is not None:
             self._set_cursor(written)
+            self._leaves = self._storage_leaves()
             if len(self._rb.storage) != len(self):
                 raise ReplayFileError(
                     f"the chunks filled {len(self._rb.storage)} rows, expected {len(self)}"
