@@ -191,10 +191,20 @@ class Replay:
             elif len(key) == 2 and key[0] == "next":
                 nxt[key[1]] = value
             else:  # an observation that is itself a TensorDict: the general path
-                return self._rb.storage.get(index).to(self.device)
+                return self._gather(index).to(self.device)
         shape = torch.Size([batch_size])
         out["next"] = TensorDict._new_unsafe(nxt, batch_size=shape, device=self.device)
         return TensorDict._new_unsafe(out, batch_size=shape, device=self.device)
+
+    def _gather(self, index: torch.Tensor) -> TensorDict:
+        """The rows at ring positions ``index``, on the CPU (the storage may be on an accelerator)."""
+        index = index.to(self._device())
+        rows = {key: leaf[index].cpu() for key, leaf in self._leaves}
+        return _nested(rows, torch.Size([index.numel()]))
+
+    def _device(self) -> torch.device:
+        """Where the storage's tensors are: ``device``, or the CPU for memory-mapped ones."""
+        return torch.device("cpu") if self.storage_kind == "memmap" else self.device
 
     def _transitions(self, batch: TensorDictBase) -> TensorDictBase:
         """The rollout's transition entries; n-step windows applied; flat ``[N]``."""
@@ -279,7 +289,7 @@ class Replay:
                     "saving a replay buffer needs its directory (Replay(directory=...))"
                 )
             positions = torch.arange(start, self.written) % self.capacity
-            rows = self._rb.storage.get(positions).to("cpu")
+            rows = self._gather(positions)
             self._chunks.append(replay_files.write_chunk(self.directory, rows, start))
         self._chunks = [c for c in self._chunks if c["stop"] > first]
         self._saved_upto = self.written
@@ -355,7 +365,9 @@ class Replay:
             rows = rows[lo - entry["start"] :]
             if self._rb is None:
                 self._build(rows)
-            self._rb.storage.set(torch.arange(lo, entry["stop"]) % capacity, rows)
+            self._rb.storage.set(
+                torch.arange(lo, entry["stop"]) % capacity, rows.to(self._device())
+            )
         self.written = written
         if self._rb is not None:
             self._set_cursor(written)
