@@ -165,6 +165,16 @@ def test_auto_storage_memory_maps_a_buffer_too_big_for_a_share_of_ram(tmp_path, 
     assert ids_at_positions(big) == [0, 1, 2]
 
 
+def test_a_memory_buffer_larger_than_the_ram_is_one_line_before_it_is_allocated(monkeypatch):
+    monkeypatch.setattr(replay_mod, "physical_memory", lambda: 100_000)
+    replay = Replay(1000, storage="memory")
+    with pytest.raises(ValueError) as err:
+        replay.extend(rollout(1, 3, 0))
+    text = str(err.value)
+    assert "algorithm.buffer_size=1000 x 167 bytes per transition = 0.0 GB" in text
+    assert "algorithm.buffer_storage=memmap" in text and "\n" not in text
+
+
 def image_rollout(num_envs: int, steps: int, first: int) -> TensorDict:
     """Observations that are TensorDicts (a vector and a uint8 image), as image tasks give."""
     td = rollout(num_envs, steps, first, obs=3)

@@ -233,19 +233,31 @@ class Replay:
     def _build(self, rows: TensorDictBase) -> None:
         """The TorchRL buffer, its storage chosen now that a row's size is known."""
         self.layout = replay_files.layout_of(rows)
+        need = self.capacity * replay_files.row_bytes(self.layout)
         kind = self.storage
         if kind == "auto":
-            big = (
-                self.capacity * replay_files.row_bytes(self.layout)
-                > AUTO_MEMMAP_SHARE * physical_memory()
-            )
+            big = need > AUTO_MEMMAP_SHARE * physical_memory()
             kind = "memmap" if big and self.directory is not None else "memory"
         if kind == "memmap":
             scratch = self.directory / "memmap"
             shutil.rmtree(scratch, ignore_errors=True)  # a dead run's storage: never a checkpoint
             scratch.mkdir(parents=True, exist_ok=True)
+            free = shutil.disk_usage(scratch).free
+            if need > free:
+                raise ValueError(
+                    f"algorithm.buffer_size={self.capacity} x {need // self.capacity} bytes per "
+                    f"transition = {need / 1e9:.1f} GB; {scratch} has {free / 1e9:.1f} GB free: "
+                    "a smaller buffer_size, or a run dir on a larger disk"
+                )
             store = LazyMemmapStorage(self.capacity, scratch_dir=scratch, existsok=True)
         else:
+            ram = physical_memory()
+            if self.device.type == "cpu" and ram and need > ram:
+                raise ValueError(
+                    f"algorithm.buffer_size={self.capacity} x {need // self.capacity} bytes per "
+                    f"transition = {need / 1e9:.1f} GB, more than this machine's {ram / 1e9:.1f} GB "
+                    "of RAM: algorithm.buffer_storage=memmap (or auto), or a smaller buffer_size"
+                )
             store = LazyTensorStorage(self.capacity, device=self.device)
         self.storage_kind = kind
         self._rb = ReplayBuffer(
