@@ -4,6 +4,7 @@ its next observation), windows completed by a later batch, and across a save/loa
 
 from __future__ import annotations
 
+import pytest
 import torch
 from tensordict import TensorDict
 
@@ -108,14 +109,16 @@ def test_nstep_matches_a_hand_loop_across_episode_ends_and_batches():
     assert_same(contents(replay), want)
 
 
-def test_nstep_state_survives_a_save_and_load(tmp_path):
+@pytest.mark.parametrize("split", [5, 1])  # 1: nothing stored yet, only waiting steps
+def test_nstep_state_survives_a_save_and_load(tmp_path, split):
     td = rollout()
     first = Replay(64, directory=tmp_path, n_step=N, gamma=GAMMA, seed=1)
-    first.extend(td[:, :5])
+    first.extend(td[:, :split])
+    assert len(first) == (0 if split == 1 else 8)  # env 0: t=0-2; env 1: t=0-4
     state = first.save("a")
     second = Replay(64, directory=tmp_path, n_step=N, gamma=GAMMA, seed=1)
     second.load_state_dict(state)
-    second.extend(td[:, 5:])
+    second.extend(td[:, split:])
     assert_same(contents(second), expected(td))
 
 

@@ -315,11 +315,18 @@ class Replay:
             "gamma": self.gamma,
             "storage": self.storage_kind,
             "generator": self.generator.get_state(),
-            "layout": [[list(k), d, list(s)] for k, d, s in self.layout or []],
+            "layout": [[list(k), d, list(s)] for k, d, s in self._layout_to_save()],
             "chunks": [dict(c) for c in self._chunks],
             "saved": {t: list(names) for t, names in self._saved.items()},
             "pending": nstep.nstep_state_dict(self._pending),
         }
+
+    def _layout_to_save(self) -> replay_files.Layout:
+        """The storage's layout; before its first row, the one the waiting n-step steps give."""
+        if self.layout is not None or self._pending is None:
+            return self.layout or []
+        steps = replay_files.layout_of(self._pending.steps)
+        return sorted([*steps, ((nstep.STEPS_KEY,), str(torch.int64), (1,))])
 
     def commit(self, keep: Iterable[str] | None = None) -> list[str]:
         """Call once the checkpoint holding the last save's manifest is on disk (and old ones
@@ -351,7 +358,7 @@ class Replay:
                 f"{self.capacity}: resume with the run's buffer_size"
             )
         n_step = replay_files._int(state.get("n_step"), "n_step", 1, 1 << 20)
-        if n_step != self.n_step or state.get("gamma") != self.gamma:
+        if n_step != self.n_step or (n_step > 1 and state.get("gamma") != self.gamma):
             raise ReplayFileError(
                 f"the checkpoint's buffer has n_step={n_step}, gamma={state.get('gamma')!r}; this "
                 f"run has {self.n_step}, {self.gamma}: resume with the run's settings"
