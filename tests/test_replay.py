@@ -309,6 +309,28 @@ def test_chunks_are_deleted_only_once_a_later_save_commits(tmp_path):
     assert chunk_files(tmp_path) == sorted(c["file"] for c in state_c["chunks"])
 
 
+def test_commit_can_keep_the_last_n_saves(tmp_path):
+    """``commit(n)``: the chunks of the last n saves stay (a trainer keeping n checkpoints)."""
+    replay = Replay(10, directory=tmp_path)
+    states = []
+    for first in (0, 6, 12):
+        replay.extend(rollout(1, 6, first))
+        states.append(replay.save())  # tags save-6, save-12, save-18
+        assert replay.commit(0) == []  # <= 0: every save is kept
+    c1 = states[0]["chunks"][0]["file"]
+    assert [c["start"] for c in states[2]["chunks"]] == [6, 12]  # [0, 6) all overwritten
+    assert replay.commit(2) == []  # the save at 12 still needs [0, 6)
+    assert replay.commit(1) == [c1]
+    # a buffer loaded from the newest save goes on with the saves its manifest names
+    loaded = Replay(10, directory=tmp_path)
+    loaded.load_state_dict(states[2])
+    loaded.extend(rollout(1, 6, 18))
+    state = loaded.save()
+    assert [c["start"] for c in state["chunks"]] == [12, 18]
+    assert loaded.commit(2) == []  # save-18 (its own manifest) still needs [6, 12)
+    assert loaded.commit(None) == [states[1]["chunks"][1]["file"]]
+
+
 def test_a_chunk_no_save_names_is_removed_at_the_next_commit(tmp_path):
     """A crash between writing a chunk and committing its checkpoint leaves the chunk behind."""
     replay = Replay(100, directory=tmp_path)

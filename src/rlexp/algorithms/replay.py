@@ -290,9 +290,11 @@ class Replay:
         """``save()``: a manifest is only ever one whose rows are on disk."""
         return self.save()
 
-    def save(self, tag: str = "latest") -> dict[str, Any]:
+    def save(self, tag: str | None = None) -> dict[str, Any]:
         """Write the rows added since the last save as one new chunk file; the small manifest for
-        the checkpoint ``tag`` names (its file name, say). Deletes nothing: see ``commit``."""
+        the checkpoint ``tag`` names (its file name, say; default ``save-<written>``). Deletes
+        nothing: see ``commit``."""
+        tag = f"save-{self.written}" if tag is None else tag
         first = self.written - len(self)
         start = max(self._saved_upto, first)
         if start < self.written:
@@ -305,6 +307,7 @@ class Replay:
             self._chunks.append(replay_files.write_chunk(self.directory, rows, start))
         self._chunks = [c for c in self._chunks if c["stop"] > first]
         self._saved_upto = self.written
+        self._saved.pop(tag, None)  # in save order: a tag saved again is the newest
         self._saved[tag] = [c["file"] for c in self._chunks]
         self._last_tag = tag
         return {
@@ -328,14 +331,20 @@ class Replay:
         steps = replay_files.layout_of(self._pending.steps)
         return sorted([*steps, ((nstep.STEPS_KEY,), str(torch.int64), (1,))])
 
-    def commit(self, keep: Iterable[str] | None = None) -> list[str]:
+    def commit(self, keep: Iterable[str] | int | None = None) -> list[str]:
         """Call once the checkpoint holding the last save's manifest is on disk (and old ones
-        pruned): forget the saves whose tags are not in ``keep`` (``None``: keep only the last)
-        and delete the chunk files no remaining save names. The deleted names."""
-        keep = set(keep) if keep is not None else set()
-        if self._last_tag is not None:
-            keep.add(self._last_tag)
-        self._saved = {t: names for t, names in self._saved.items() if t in keep}
+        pruned): forget the saves not kept and delete the chunk files no remaining save names.
+        ``keep``: the tags of the checkpoints still on disk (the last save is always kept); an
+        int ``n``: the last ``n`` saves (``<= 0``: all); ``None``: the last save only. The
+        deleted names."""
+        tags = list(self._saved)
+        if keep is None:
+            kept = set(tags[-1:])
+        elif isinstance(keep, int):
+            kept = set(tags if keep <= 0 else tags[-keep:])
+        else:
+            kept = set(keep) | ({self._last_tag} if self._last_tag is not None else set())
+        self._saved = {t: names for t, names in self._saved.items() if t in kept}
         needed = {n for names in self._saved.values() for n in names}
         needed.update(c["file"] for c in self._chunks)  # the buffer's own, saved or loaded
         deleted = []
