@@ -134,6 +134,9 @@ def test_the_ring_overwrites_the_oldest_rows_in_place():
     assert ids_at_positions(replay) == [30, 31, 32, 33, 34, 25, 26, 27, 28, 29]
     replay.extend(rollout(1, 1, 35))
     assert ids_at_positions(replay)[5] == 35
+    fresh = Replay(10)  # the first batch already longer than the ring
+    fresh.extend(rollout(1, 23, 0))
+    assert ids_at_positions(fresh) == [20, 21, 22, 13, 14, 15, 16, 17, 18, 19]
 
 
 def test_bad_settings_are_one_line_naming_the_key(tmp_path):
