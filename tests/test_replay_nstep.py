@@ -130,3 +130,22 @@ def test_nstep_one_is_the_plain_transition():
     assert len(replay) == E * T and "steps_to_next_obs" not in rows.keys()
     assert torch.equal(rows["next", "reward"], td["next", "reward"].reshape(-1, 1))
     assert torch.equal(rows["next", "truncated"], td["next", "truncated"].reshape(-1, 1))
+
+
+def test_a_bad_waiting_step_in_the_manifest_is_one_line(tmp_path):
+    from rlexp.algorithms.replay_files import ReplayFileError
+
+    replay = Replay(64, directory=tmp_path, n_step=N, gamma=GAMMA)
+    replay.extend(rollout()[:, :4])
+    state = replay.save()
+    bad_obs = {**state["pending"]["steps"], "observation": torch.zeros(E, N - 1, 5)}
+    for pending, says in [
+        ({**state["pending"], "valid": state["pending"]["valid"].int()}, "pending.valid"),
+        ({**state["pending"], "steps": bad_obs}, "pending.steps.observation is not torch.float32"),
+        ({"valid": torch.ones(E, N, dtype=torch.bool), "steps": {}}, "holds 3 steps; n_step=3"),
+    ]:
+        with pytest.raises(ReplayFileError) as err:
+            Replay(64, directory=tmp_path, n_step=N, gamma=GAMMA).load_state_dict(
+                {**state, "pending": pending}
+            )
+        assert says in str(err.value) and "\n" not in str(err.value), str(err.value)
