@@ -174,7 +174,7 @@ def encoded_space(layout: Any) -> spaces.Space:
     for part in layout.images:
         entries[part.image_key] = spaces.Box(0, 255, part.shape, np.uint8)
     if layout.mask is not None:
-        entries[MASK_ENTRY] = spaces.Box(False, True, (layout.mask.width,), bool)
+        entries[MASK_ENTRY] = spaces.Box(0, 1, (layout.mask.width,), np.bool_)
     return spaces.Dict(entries)
 
 

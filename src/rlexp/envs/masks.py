@@ -89,9 +89,21 @@ def resolve_mask(
         if size != sum(nvec):
             raise ValueError(_width_message(where, f"observation key {key!r}", size, nvec))
         return MaskSpec("observation", key, tuple(nvec))
-    if mode == "auto" and (probe_info is None or key not in probe_info()):
+    info = probe_info() if probe_info is not None else None
+    if info is not None and key not in info:
+        if mode == "auto":
+            return None
+        raise ValueError(
+            f"{where}: env.action_mask=info reads info[{key!r}]; the env's reset gives info keys "
+            f"{sorted(map(str, info))}: set env.action_mask_key to the mask's key, or "
+            "env.action_mask=observation|off"
+        )
+    if info is None and mode == "auto":
         return None
-    return MaskSpec("info", key, tuple(nvec))
+    spec = MaskSpec("info", key, tuple(nvec))
+    if info is not None:
+        mask_encoder(spec, where)(info[key])  # the width and validity, now (one line if wrong)
+    return spec
 
 
 def _dict_key(space: spaces.Dict, key: str) -> Any:
