@@ -7,6 +7,12 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import pickle
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
 import mask_envs  # noqa: F401  (registers the MaskedMulti / MaskedBits / MaskedBox envs)
 import numpy as np
@@ -293,3 +299,105 @@ def test_pick_valid_learns_with_masking_and_fails_without(
     unmasked = _final_eval(tmp_path / "off", ["env.action_mask=off"], frames)
     assert masked >= masked_at_least, (masked, unmasked)
     assert unmasked <= unmasked_at_most, (masked, unmasked)
+
+
+_DEPLOY = textwrap.dedent(
+    """
+    import pickle, sys
+    sys.path = [p for p in sys.path if not p.rstrip("/").endswith("/src")]  # (a checkout's src/)
+    class NoRlexp:
+        def find_spec(self, name, path=None, target=None):
+            if name == "rlexp" or name.startswith("rlexp."):
+                raise ModuleNotFoundError(f"No module named {name!r}")
+    sys.meta_path.insert(0, NoRlexp())
+    sys.path.insert(0, sys.argv[1])  # tests/: mask_envs
+    sys.path.insert(0, "run/exported")
+    import gymnasium as gym
+    import mask_envs
+    import numpy as np
+    import torch
+    import best_pt_obs
+    policy = torch.jit.load("run/exported/best.pt")
+    try:
+        import onnxruntime as ort
+        import best_onnx_obs
+        session = ort.InferenceSession("run/exported/best.onnx", providers=["CPUExecutionProvider"])
+    except ImportError:
+        session = None
+    env = gym.make("mask_envs:MaskedMulti-v0", mask_in=sys.argv[2])
+    rows = []
+    for seed in range(3):
+        obs, info = env.reset(seed=seed)
+        done = False
+        while not done:
+            xs = best_pt_obs.inputs(obs, info=info)
+            y = policy(*[torch.from_numpy(x) for x in xs.values()]).numpy()
+            if session is not None:
+                z = session.run(["action"], best_onnx_obs.inputs(obs, info=info))[0]
+                assert np.array_equal(y, z), (y, z)
+            mask = xs["action_mask"]
+            rows.append((xs, best_pt_obs.env_action(y[0])))
+            obs, r, term, trunc, info = env.step(best_pt_obs.env_action(y[0]))
+            done = term or trunc
+    assert not any(m == "rlexp" or m.startswith("rlexp.") for m in sys.modules)
+    pickle.dump((rows, env.unwrapped.invalid), open("rows.pkl", "wb"))
+    """
+)
+
+
+@pytest.mark.parametrize("mask_in", ["observation", "info"])
+def test_the_export_takes_the_mask_and_acts_as_the_policy_without_rlexp(tmp_path, mask_in):
+    """A masked MultiDiscrete policy exported (TorchScript and ONNX): the file's action_mask input
+    in the metadata; episodes stepped through the file and its helper without rlexp take the
+    policy's own argmax over valid values, never an invalid one."""
+    from conftest import rlexp_cli
+    from rlexp.deploy.policy_eval import open_source, typed_config
+
+    tests = Path(__file__).parent
+    run = tmp_path / "run"
+    run_train(
+        ["env=gym", "env.name=mask_envs:MaskedMulti-v0", f"+env.kwargs.mask_in={mask_in}",
+         "trainer=smoke", "trainer.total_frames=512", "trainer.frames_per_batch=256",
+         "trainer.eval_every=256", "trainer.save_every=256", "trainer.eval_episodes=2",
+         "trainer.progress=false", f"hydra.run.dir={run}"],
+        cwd=tmp_path,
+        env_extra={"PYTHONPATH": os.pathsep.join([str(tests.parent / "src"), str(tests)])},
+    )  # fmt: skip
+    for fmt in ("torchscript", "onnx"):
+        rc, _, err = rlexp_cli("export", run, "--format", fmt, "--checkpoint", "best")
+        assert rc == 0, err
+    meta = json.loads((run / "exported" / "best.pt.json").read_text())
+    assert meta["inputs"][-1] == {
+        "name": "action_mask", "kind": "action_mask", "key": "action_mask", "dtype": "bool",
+        "shape": ["batch", 7], "source": mask_in, "mask_key": "action_mask", "nvec": [3, 4],
+    }  # fmt: skip
+    (tmp_path / "deploy.py").write_text(_DEPLOY)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run(
+        [sys.executable, "-I", "deploy.py", str(tests), mask_in],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows, invalid = pickle.loads((tmp_path / "rows.pkl").read_bytes())
+    assert invalid == 0 and len(rows) >= 3
+    best = run / "checkpoints" / "best.pt"
+    source = open_source(best)
+    config = typed_config(source.config, str(best))
+    built = make_env(config.env, 1, seed=0)
+    try:
+        policy = source.build(config, built)
+        obs = TensorDict(
+            {
+                "vector": torch.from_numpy(np.concatenate([x["observation"] for x, _ in rows])),
+                "action_mask": torch.from_numpy(
+                    np.concatenate([x["action_mask"] for x, _ in rows])
+                ),
+            },
+            batch_size=[len(rows)],
+        )
+        with torch.no_grad():
+            want = policy(TensorDict({"observation": obs}, batch_size=[len(rows)]))["action"]
+    finally:
+        built.close()
+    got = np.stack([np.asarray(a).reshape(-1) for _, a in rows])
+    assert np.array_equal(got, want.numpy())
