@@ -284,18 +284,19 @@ def _final_eval(tmp_path, extra: list[str], frames: int) -> float:
 
 
 @pytest.mark.parametrize(
-    ("frames", "masked_at_least", "unmasked_at_most"),
+    ("frames", "eval_async", "masked_at_least", "unmasked_at_most"),
     [
-        (8192, 15.0, 2.0),  # seconds
-        pytest.param(49152, 19.0, 2.0, marks=pytest.mark.slow),
+        (8192, "true", 15.0, 2.0),  # seconds; the masked run evaluates in the eval worker
+        pytest.param(49152, "false", 19.0, 2.0, marks=pytest.mark.slow),
     ],
 )
 def test_pick_valid_learns_with_masking_and_fails_without(
-    tmp_path, frames, masked_at_least, unmasked_at_most
+    tmp_path, frames, eval_async, masked_at_least, unmasked_at_most
 ):
     """PickValid-v0 (20 steps, best valid action +1, invalid -1 and the end): a random masked
-    policy earns ~12, the best 20; unmasked episodes end at the first invalid action."""
-    masked = _final_eval(tmp_path / "masked", [], frames)
+    policy earns ~12, the best 20; unmasked episodes end at the first invalid action. The eval's
+    argmax is over valid actions (in the eval worker, or in process)."""
+    masked = _final_eval(tmp_path / "masked", [f"trainer.eval_async={eval_async}"], frames)
     unmasked = _final_eval(tmp_path / "off", ["env.action_mask=off"], frames)
     assert masked >= masked_at_least, (masked, unmasked)
     assert unmasked <= unmasked_at_most, (masked, unmasked)
