@@ -5,7 +5,8 @@
   entries) with at least one valid value per component, component 1 often a single one; the mask
   in a ``Dict`` observation key (``mask_in=observation``, key ``mask_key``) or ``info``
   (``mask_in=info``); ``width`` makes it the wrong width. An invalid action ends the episode
-  (reward -1); the env counts them (``invalid``) so a test can tell.
+  (reward -1); the env counts them (``invalid``) so a test can tell. ``empty_after=N``: from
+  its N-th step on, a mask with no valid value.
 - ``MaskedBits-v0``: ``MultiBinary(3)`` actions, mask bool [6] in ``info`` (pairs: value 0, 1).
 - ``MaskedBox-v0``: ``Box`` actions and an ``info["action_mask"]`` (refused with masking on).
 """
@@ -18,8 +19,15 @@ from gymnasium import spaces
 
 
 class MaskedMulti(gym.Env):
-    def __init__(self, mask_in: str = "observation", mask_key: str = "action_mask", width: int = 7):
+    def __init__(
+        self,
+        mask_in: str = "observation",
+        mask_key: str = "action_mask",
+        width: int = 7,
+        empty_after: int = 0,
+    ):
         self.mask_in, self.mask_key, self.width = mask_in, mask_key, width
+        self.empty_after, self.steps = empty_after, 0  # empty_after > 0: then a mask of zeros
         pos = spaces.Box(-1.0, 1.0, (2,), np.float32)
         if mask_in == "observation":
             self.observation_space = spaces.Dict({"pos": pos, mask_key: spaces.MultiBinary(width)})
@@ -39,6 +47,8 @@ class MaskedMulti(gym.Env):
             b |= rng.random(4) < 0.5
         self._mask = np.concatenate([a, b])
         mask = np.resize(self._mask.astype(np.int8), self.width)
+        if self.empty_after and self.steps >= self.empty_after:
+            mask[:] = 0
         self._pos = rng.uniform(-1, 1, 2).astype(np.float32)
         if self.mask_in == "observation":
             return {"pos": self._pos, self.mask_key: mask}, {}
@@ -54,6 +64,7 @@ class MaskedMulti(gym.Env):
         ok = bool(self._mask[a] and self._mask[3 + b])
         self.invalid += not ok
         self._t += 1
+        self.steps += 1
         obs, info = self._draw()
         return obs, 1.0 if ok else -1.0, not ok, self._t >= 10, info
 

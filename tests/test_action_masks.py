@@ -402,3 +402,20 @@ def test_the_export_takes_the_mask_and_acts_as_the_policy_without_rlexp(tmp_path
         built.close()
     got = np.stack([np.asarray(a).reshape(-1) for _, a in rows])
     assert np.array_equal(got, want.numpy())
+
+
+def test_a_mask_with_no_valid_value_mid_run_fails_the_run_in_one_line(tmp_path):
+    tests = Path(__file__).parent
+    proc = run_train(
+        ["env=gym", "env.name=mask_envs:MaskedMulti-v0", "+env.kwargs.empty_after=40",
+         "trainer=smoke", "trainer.total_frames=512", "trainer.frames_per_batch=256",
+         "env.num_eval_envs=0", "trainer.progress=false", f"hydra.run.dir={tmp_path / 'run'}"],
+        cwd=tmp_path,
+        check=False,
+        env_extra={"PYTHONPATH": os.pathsep.join([str(tests.parent / "src"), str(tests)])},
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr
+    line = "the action mask (observation key 'action_mask') allows no action of a component"
+    assert [x for x in (proc.stdout + proc.stderr).splitlines() if line in x]
+    status = json.loads((tmp_path / "run" / "status.json").read_text())
+    assert status["state"] == "failed"
