@@ -9,12 +9,14 @@
   its N-th step on, a mask with no valid value.
 - ``MaskedBits-v0``: ``MultiBinary(3)`` actions, mask bool [6] in ``info`` (pairs: value 0, 1).
 - ``MaskedBox-v0``: ``Box`` actions and an ``info["action_mask"]`` (refused with masking on).
+- ``make_masked_vecenv``: an rsl_rl-style VecEnv with the mask in its extras (env.backend=vecenv).
 """
 
 from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
+import torch
 from gymnasium import spaces
 
 
@@ -111,3 +113,51 @@ for _name, _cls in (
 ):
     if _name not in gym.registry:
         gym.register(_name, entry_point=f"{__name__}:{_cls.__name__}", max_episode_steps=50)
+
+
+class MaskedVecEnv:
+    """rsl_rl's VecEnv contract with ``MultiDiscrete([3, 4])`` actions and the action mask in
+    ``extras["action_mask"]`` of ``get_observations()`` and ``step()`` (``mask_key``; ``width``
+    wrong on purpose); invalid actions end the episode and are counted (``invalid``).
+    ``env.name=mask_envs:make_masked_vecenv``."""
+
+    def __init__(self, num_envs: int = 4, seed: int = 0, width: int = 7):
+        self.num_envs, self.num_actions, self.device = num_envs, 2, "cpu"
+        self.single_action_space = spaces.MultiDiscrete([3, 4])
+        self.gen = np.random.default_rng(seed)
+        self.width, self.invalid, self.t = width, 0, np.zeros(num_envs, int)
+        self._draw()
+
+    def _draw(self):
+        n = self.num_envs
+        a = self.gen.random((n, 3)) < 0.5
+        a[np.arange(n), self.gen.integers(0, 3, n)] = True
+        b = np.zeros((n, 4), bool)
+        b[np.arange(n), self.gen.integers(0, 4, n)] = True
+        self.mask = np.concatenate([a, b], 1)
+        self.obs = torch.as_tensor(self.gen.uniform(-1, 1, (n, 3)), dtype=torch.float32)
+
+    def _extras(self):
+        mask = torch.as_tensor(np.resize(self.mask, (self.num_envs, self.width)).astype(np.int8))
+        return {"action_mask": mask}
+
+    def get_observations(self):
+        return self.obs, self._extras()
+
+    def step(self, actions):
+        a = actions.numpy()
+        rows = np.arange(self.num_envs)
+        ok = self.mask[rows, a[:, 0]] & self.mask[rows, 3 + a[:, 1]]
+        self.invalid += int((~ok).sum())
+        self.t += 1
+        time_out = self.t >= 8
+        dones = ~ok | time_out
+        self.t[dones] = 0
+        self._draw()
+        extras = {**self._extras(), "time_outs": torch.as_tensor(time_out & ok)}
+        reward = torch.as_tensor(np.where(ok, 1.0, -1.0), dtype=torch.float32)
+        return self.obs, reward, torch.as_tensor(dones), extras
+
+
+def make_masked_vecenv(num_envs: int = 4, seed: int = 0, width: int = 7) -> MaskedVecEnv:
+    return MaskedVecEnv(num_envs, seed, width)

@@ -419,3 +419,33 @@ def test_a_mask_with_no_valid_value_mid_run_fails_the_run_in_one_line(tmp_path):
     assert [x for x in (proc.stdout + proc.stderr).splitlines() if line in x]
     status = json.loads((tmp_path / "run" / "status.json").read_text())
     assert status["state"] == "failed"
+
+
+def test_a_vecenv_mask_from_its_extras_is_used_in_collection_and_refused_when_wrong(monkeypatch):
+    """env.backend=vecenv: extras["action_mask"] of get_observations() and step(); the lean
+    collector's rollout never sends an invalid action; the wrong width is one line."""
+    from rlexp.training.collector import RolloutCollector
+
+    monkeypatch.setenv("RLEXP_ENV_MODULES", "mask_envs")
+    torch.manual_seed(0)
+    cfg = EnvConfig(name="mask_envs:make_masked_vecenv", backend="vecenv", num_envs=4)
+    env = make_env(cfg, 4, seed=0)
+    assert env.obs_layout.mask.source == "info" and env.obs_layout.mask.width == 7
+    pol = policy_for_env(PolicyConfig(), cfg, env)
+    col = RolloutCollector(env, pol.sampling_policy(), frames_per_batch=4 * 40, total_frames=-1,
+                           trust_policy=True, track_traj_ids=False)  # fmt: skip
+    batch = next(iter(col))
+    assert batch["next", "done"].any()
+    assert batch["observation", "action_mask"].dtype == torch.bool
+    assert env.raw.invalid == 0
+    with torch.no_grad():
+        dist = pol.actor.get_dist(batch.select("observation"))
+    torch.testing.assert_close(dist.log_prob(batch["action"]), batch["action_log_prob"])
+    col.shutdown()
+    off = make_env(EnvConfig(**{**cfg.__dict__, "action_mask": "off"}), 4, seed=0)
+    assert off.obs_layout.mask is None
+    with pytest.raises(ValueError) as info:
+        make_env(EnvConfig(**{**cfg.__dict__, "kwargs": {"width": 6}}), 4, seed=0)
+    assert "extras['action_mask'] is [4, 6]; the action mask is [num_envs=4, sum(nvec)=7]" in str(
+        info.value
+    )

@@ -43,8 +43,9 @@ RESCALE_BACKENDS = ("gymnasium", "gymnasium_async", "envpool")
 #: Backends that detect image observations and stack frames (env.frame_stack, env.image_keys): the
 #: Gymnasium-shaped adapters; a torchrl env's uint8 entries pass as they are.
 IMAGE_BACKENDS = ("gymnasium", "gymnasium_async", "envpool")
-#: Backends that read action masks from the env (env.action_mask: info | observation; docs/envs.md).
-MASK_BACKENDS = ("gymnasium", "gymnasium_async")
+#: Backends that read action masks from the env (env.action_mask: info | observation; docs/envs.md;
+#: vecenv: its extras, info only).
+MASK_BACKENDS = ("gymnasium", "gymnasium_async", "vecenv")
 #: Backends whose env is built by a callable the config names (``env.name=package.module:callable``).
 CALLABLE_BACKENDS = ("vecenv", "torchrl")
 #: The metrics an evaluation round logs: what ``trainer.best_metric`` may follow.
