@@ -183,6 +183,21 @@ def test_collection_log_probs_are_the_updates_and_no_invalid_action_reaches_the_
     assert (algo.fused is not None) == fused
     assert all(math.isfinite(v) for v in stats.values()), stats
     col.shutdown()
+    # GRPO (actor only, a KL term to the reference policy: over valid values only) likewise
+    from rlexp.algorithms import make_algorithm as make_any
+    from rlexp.config.schema import ActorOnlyConfig, GRPOConfig
+
+    actor_only = policy_for_env(ActorOnlyConfig(), EnvConfig(), env)
+    actor_only.actor_net.load_state_dict(pol.actor_net.state_dict())
+    grpo = make_any(
+        GRPOConfig(num_epochs=2, mini_batch_size=64, kl_coeff=0.1, group_size=2, lr=3e-3),
+        actor_only,
+        total_iterations=10,
+    )
+    grpo.use_fused_step = fused
+    stats = grpo.update(batch.exclude("state_value", "advantage", "value_target"))
+    assert (grpo.fused is not None) == fused
+    assert all(math.isfinite(v) for v in stats.values()), stats
 
 
 def test_multibinary_mask_from_info_in_process_and_in_async_workers_alike():
