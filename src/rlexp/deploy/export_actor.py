@@ -161,7 +161,7 @@ def input_names(actor: DeterministicActor) -> list[str]:
         while name in names:
             name += "_"
         names.append(name)
-    if actor.masked:  # last, under its own name (an image key "action_mask" gets a "_")
+    if getattr(actor, "masked", False):  # last, under its own name (an image key "action_mask" gets a "_")
         names = [n + "_" if n == MASK_INPUT else n for n in names] + [MASK_INPUT]
     return names
 
