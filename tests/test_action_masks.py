@@ -82,6 +82,16 @@ def test_masked_distribution_equals_hand_computed_probabilities_entropy_and_log_
     torch.testing.assert_close(probs[0], torch.tensor([p0, 0.0, p2]))
     assert torch.equal(probs[1], torch.tensor([0.0, 0.0, 1.0, 0.0]))
     assert dist.mode.tolist() == [[0, 2]]
+    # TorchRL's MaskedCategorical (the reference the issue names) agrees per component
+    from torchrl.modules import MaskedCategorical
+
+    blocks = torch.tensor([logits, logits]).split(NVEC, -1)
+    masks = mask.bool().expand(2, 7).split(NVEC, -1)
+    ref = [MaskedCategorical(logits=b, mask=m) for b, m in zip(blocks, masks, strict=True)]
+    torch.testing.assert_close(dist.entropy(), sum(r.entropy() for r in ref)[:1])
+    torch.testing.assert_close(
+        log_prob[:2], sum(r.log_prob(actions[:2, i]) for i, r in enumerate(ref))
+    )
     # the collection sampler scores its draws as the loss's distribution does
     torch.manual_seed(0)
     obs = _obs(mask.expand(4000, 7))
