@@ -37,7 +37,10 @@ TINY_RUN = [
         ),
         (["algorithm.overlap=true"], "policy.memory.type=gru: algorithm.overlap=true collects"),
         (["algorithm.compile=true"], "policy.memory.type=gru: algorithm.compile=true, but"),
-        (["events=noise"], "policy.memory.type=gru: events.train.observation_noise fires at every step"),
+        (
+            ["events=noise"],
+            "policy.memory.type=gru: events.train.observation_noise fires at every step",
+        ),
     ],
     ids=["grpo", "torchrl_gym", "overlap", "compile", "step-events"],
 )
@@ -131,3 +134,21 @@ def test_distributed_ranks_train_a_recurrent_policy_in_step(tmp_path):
         for n in ("train.log", "train_rank1.log")
     ]
     assert all(digests) and digests[0].group(1) == digests[1].group(1)
+
+
+def test_a_checkpoints_carried_state_is_checked_as_data():
+    import torch
+
+    from rlexp.checkpoints import fields
+
+    good = {"state": {"actor_h": torch.zeros(3, 2, 4)}, "is_init": torch.ones(3, 1, dtype=bool)}
+    fields._check_recurrent_carry(good)
+    bad = [
+        ({**good, "is_init": torch.ones(3, 1)}, "recurrent_carry.is_init is torch.float32"),
+        ({**good, "state": {"actor_h": torch.zeros(2, 2, 4)}}, "recurrent_carry.state.actor_h has"),
+        ({**good, "state": {"os.system": torch.zeros(3, 2, 4)}}, "recurrent_carry.state['os.sys"),
+        ({**good, "state": {"actor_h": torch.full((3, 2, 4), float("nan"))}}, "non-finite"),
+    ]
+    for carry, text in bad:
+        with pytest.raises(fields.FieldError, match=re.escape(text)):
+            fields._check_recurrent_carry(carry)

@@ -151,8 +151,12 @@ class RolloutCollector(Collector):
         ``carried`` state (``carried_state``); None: what the envs' reset gave."""
         if obs is not None:
             self.set_next_observation(obs)
-        if carried is not None and self._recurrent:
-            self._carry = Carry.from_plain(carried, module_device(self._sampler))
+        if carried is None or not self._recurrent:
+            return
+        carry = Carry.from_plain(carried, module_device(self._sampler))
+        fresh = self._sampler.initial_state(int(self.env.batch_size.numel()))
+        if {k: v.shape for k, v in carry.state.items()} == {k: v.shape for k, v in fresh.items()}:
+            self._carry = carry  # (else another num_envs or memory: every env starts anew)
 
     def _recurrent_rollout(self) -> TensorDictBase:
         """A recurrent policy's rollout: the lean loop with the hidden state carried."""
