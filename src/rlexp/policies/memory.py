@@ -85,6 +85,8 @@ class RecurrentCore(nn.Module):
         before it is zeroed, at each such cut (GAE's bootstrap values of ended episodes)."""
         steps = x.shape[1]
         cuts = torch.nonzero(is_init[:, 1:].any(0)).flatten().add(1).tolist()
+        if at_reset is None and len(cuts) > 1:
+            return self.episodes(x, hx, is_init), hx  # (the state after: not needed there)
         bounds = [0, *cuts, steps]
         outputs = []
         for start, end in zip(bounds[:-1], bounds[1:], strict=True):
@@ -95,6 +97,32 @@ class RecurrentCore(nn.Module):
             y, hx = self._call(x[:, start:end], hx)
             outputs.append(y)
         return (outputs[0] if len(outputs) == 1 else torch.cat(outputs, 1)), hx
+
+    def episodes(self, x: torch.Tensor, hx: TorchState, is_init: torch.Tensor) -> torch.Tensor:
+        """``sequence``'s outputs in one call: each row of ``x`` split where an episode starts,
+        every piece its own row (left-aligned, zero-padded: sb3-contrib's layout), the first piece
+        of a row from ``hx``, the others from zeros. Causal, so the padding changes no output."""
+        batch, steps = is_init.shape
+        starts = is_init.clone()
+        starts[:, 0] = True
+        piece = starts.long().cumsum(1) - 1  # [B, T]: the piece of its row each step is in
+        count = piece[:, -1] + 1
+        first = count.cumsum(0) - count  # the row of each sequence's first piece
+        time = torch.arange(steps, device=x.device).expand(batch, steps)
+        begin = torch.where(starts, time, 0).cummax(1).values
+        row, pos = first.unsqueeze(1) + piece, time - begin
+        rows = int(count.sum())
+        packed = x.new_zeros(rows, steps, x.shape[-1]).index_put((row, pos), x)
+        keep = (~is_init[:, 0]).to(x.dtype).reshape(1, -1, 1)
+        h0 = tuple(
+            h.new_zeros(h.shape[0], rows, h.shape[-1]).index_put(
+                (torch.arange(h.shape[0], device=x.device).unsqueeze(1), first.unsqueeze(0)),
+                h * keep,
+            )
+            for h in hx
+        )
+        y, _ = self._call(packed, h0)
+        return y[row, pos]
 
 
 def to_torch(state: dict[str, torch.Tensor], prefix: str, parts: tuple[str, ...]) -> TorchState:
