@@ -5,9 +5,9 @@ carries between steps and which envs start an episode next."""
 from __future__ import annotations
 
 import torch
+from test_resume import _assert_resume_is_exact
 
 from rlexp.checkpoints.files import load_checkpoint, step_checkpoints
-from test_resume import _assert_resume_is_exact
 
 LSTM = [
     "policy.memory.type=lstm",
