@@ -39,3 +39,17 @@ def test_sigkill_mid_episode_and_resume_is_bit_identical_lstm_native_cart_pole(t
 def test_sigkill_mid_episode_and_resume_is_bit_identical_gru_gymnasium(tmp_path):
     gru = [*LSTM[1:], "policy.memory.type=gru", "policy.memory.shared=true"]
     _assert_resume_is_exact(tmp_path, "inverted_pendulum", frames=512, batch=256, extra=gru)
+
+
+def test_resume_with_overlap_is_bit_identical_lstm(tmp_path):
+    """algorithm.overlap=true: the collection process carries the state; a checkpoint reads it
+    from there after the rollout in flight (which it holds as pending_rollout, stored states
+    included), and a resume hands it to the new child."""
+    extra = [*LSTM, "algorithm.overlap=true", "trainer.keep_last=0"]
+    _assert_resume_is_exact(tmp_path, "cart_pole", frames=512, batch=256, extra=extra)
+    mid = load_checkpoint(
+        next(p for p in step_checkpoints(tmp_path / "whole" / "checkpoints") if "512" in p.stem)
+    )
+    assert mid["pending_rollout"] is not None
+    assert "recurrent_state" in mid["pending_rollout"]["data"]
+    _assert_mid_episode(tmp_path / "broken", 512, 4)

@@ -35,14 +35,13 @@ TINY_RUN = [
             ["env.backend=torchrl_gym"],
             "policy.memory.type=gru: env.backend='torchrl_gym' is stepped by TorchRL's generic loop",
         ),
-        (["algorithm.overlap=true"], "policy.memory.type=gru: algorithm.overlap=true collects"),
         (["algorithm.compile=true"], "policy.memory.type=gru: algorithm.compile=true, but"),
         (
             ["events=noise"],
             "policy.memory.type=gru: events.train.observation_noise fires at every step",
         ),
     ],
-    ids=["grpo", "torchrl_gym", "overlap", "compile", "step-events"],
+    ids=["grpo", "torchrl_gym", "compile", "step-events"],
 )
 def test_what_cannot_carry_the_state_is_refused_in_one_line(overrides, message):
     with pytest.raises(ConfigError) as err:

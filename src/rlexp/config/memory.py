@@ -27,11 +27,6 @@ def memory_problem(config: Any) -> str | None:
             f"not carry the hidden state; use one of {list(MEMORY_BACKENDS)} (e.g. "
             "env.backend=gymnasium), or policy.memory.type=none"
         )
-    if getattr(a, "overlap", False):
-        return (
-            f"{what}: algorithm.overlap=true collects in a forked process, which would own the "
-            "hidden state between rollouts; set algorithm.overlap=false"
-        )
     if str(a.compile).strip().lower() == "true":
         return (
             f"{what}: algorithm.compile=true, but the recurrent sequence loss runs eager (its "

@@ -139,6 +139,11 @@ class RolloutCollector(Collector):
             batch["next"] = batch["next"].to(to_policy)
         return TensorDict(batch, batch_size=size, device=to_policy)
 
+    @property
+    def carries_state(self) -> bool:
+        """Whether the policy is recurrent: the collector carries its state between steps."""
+        return self._recurrent
+
     def carried_state(self) -> dict[str, Any] | None:
         """A recurrent policy's carried state and episode starts, as a checkpoint holds them (None:
         not recurrent, or every env starts an episode next)."""

@@ -151,5 +151,5 @@ def check_ranks_in_sync(policy: torch.nn.Module, world_size: int) -> None:
 def carried_state(collector: Any, resumed: dict[str, Any] | None) -> dict[str, Any] | None:
     """The checkpoint's ``recurrent_carry``: the collector's (a recurrent policy's hidden state and
     episode starts between steps), or what a resumed run has not handed to its collector yet."""
-    carried = getattr(collector, "carried_state", None)  # (an overlap collector: never recurrent)
+    carried = getattr(collector, "carried_state", None)  # (overlap: the child's, after a rollout)
     return resumed if carried is None else carried()
