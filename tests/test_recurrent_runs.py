@@ -86,16 +86,30 @@ def test_a_refused_run_exits_2_before_its_run_dir(tmp_path):
         ["env=cart_pole", "env.num_envs=4"],  # native
         ["env=hopper", "env.backend=vecenv", "env.name=batched_toy:make_vecenv", "env.num_envs=4"],
         ["env=hopper", "env.backend=torchrl", "env.name=batched_toy:make_torchrl_env"],
+        [  # images: a CNN encoder before the core, uint8 images in the rollout
+            "env=hopper",
+            "env.backend=torchrl",
+            "env.name=image_envs:make_image_env",
+            "env.num_envs=3",
+            "policy=cnn",
+            "policy.encoder.channels=[6,8]",
+            "policy.encoder.kernel_sizes=[3,3]",
+            "policy.encoder.strides=[2,1]",
+            "policy.encoder.features_dim=12",
+            "trainer.frames_per_batch=48",
+            "trainer.total_frames=96",
+            "algorithm.mini_batch_size=16",
+        ],  # fmt: skip
     ],
-    ids=["gymnasium_async", "envpool", "native", "vecenv", "torchrl"],
+    ids=["gymnasium_async", "envpool", "native", "vecenv", "torchrl", "images"],
 )
 def test_a_recurrent_policy_trains_on_every_rlexp_stepped_backend(tmp_path, backend):
     if "env.backend=envpool" in backend:
         pytest.importorskip("envpool")
     extra = {"PYTHONPATH": f"{REPO / 'src'}{os.pathsep}{REPO / 'tests'}"}
-    extra["RLEXP_ENV_MODULES"] = "batched_toy"
-    run_train([*backend, *GRU, *TINY_RUN], cwd=tmp_path, env_extra=extra)
-    assert list((only_run_dir(tmp_path) / "checkpoints").glob("*_step_000000512.pt"))
+    extra["RLEXP_ENV_MODULES"] = "batched_toy,image_envs"
+    run_train([*GRU, *TINY_RUN, *backend], cwd=tmp_path, env_extra=extra)
+    assert list((only_run_dir(tmp_path) / "checkpoints").glob("*_step_*.pt"))
 
 
 @pytest.mark.slow
