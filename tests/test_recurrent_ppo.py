@@ -407,3 +407,16 @@ def test_an_update_trains_sequences_and_leaves_the_mlp_path_alone():
     # 6 sequences, 2 per minibatch (6 steps // 3), 2 epochs: 6 optimiser steps on every parameter
     assert all(not torch.equal(a, b) for a, b in zip(before, algo.params, strict=True))
     assert int(algo.optimizer.state[algo.params[0]]["step"]) == 6
+
+
+def test_the_sequence_heads_logits_are_masked_where_the_observation_has_an_action_mask():
+    policy = _policy("lstm")
+    y = torch.randn(2, 4, 5)
+    mask = torch.ones(2, 4, 3, dtype=torch.bool)
+    mask[0, 1, 2] = mask[1, 3, 0] = False
+    (logits,) = policy.head_params(y, TensorDict({"action_mask": mask}, [2, 4]))
+    low = torch.finfo(logits.dtype).min
+    assert logits[0, 1, 2] == low and logits[1, 3, 0] == low
+    plain = mlp(policy.actor_net.mlp, y)
+    torch.testing.assert_close(logits[mask], plain[mask])
+    assert D.Categorical(logits=logits[0, 1]).probs[2] == 0

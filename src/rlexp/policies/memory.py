@@ -29,6 +29,8 @@ from rlexp.config.schema import MemoryConfig
 from rlexp.policies.actor_critic import RECURRENT, ActorCritic, SamplingPolicy, _as_function
 from rlexp.policies.heads import GaussianActorNet, ReadsObservation
 
+#: The observation entry holding an action mask (issue #48's masking: bool [..., sum(nvec)]).
+MASK_KEY = "action_mask"
 #: A state in torch's layout: (h,) or (h, c), each [num_layers, batch, hidden].
 TorchState = tuple[torch.Tensor, ...]
 
@@ -225,12 +227,19 @@ class RecurrentActorCritic(ActorCritic):
         return RecurrentSamplingPolicy(self, deterministic)
 
     # -- training ----------------------------------------------------------------------------------
-    def head_params(self, y: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """The actor head's distribution parameters (``dist_keys`` order) from core outputs."""
+    def head_params(
+        self, y: torch.Tensor, obs: torch.Tensor | TensorDictBase | None = None
+    ) -> tuple[torch.Tensor, ...]:
+        """The actor head's distribution parameters (``dist_keys`` order) from core outputs; a
+        categorical head's logits masked where ``obs`` carries an ``action_mask`` (invalid
+        actions at the dtype's minimum, as the collection sampler masks them)."""
         net = self.actor_net
         out = net.mlp(y)
         if isinstance(net, GaussianActorNet):
             return out, net.log_scale().exp().expand_as(out)
+        mask = obs.get(MASK_KEY, None) if isinstance(obs, TensorDictBase) else None
+        if mask is not None:
+            out = out.masked_fill(~mask.to(torch.bool), torch.finfo(out.dtype).min)
         return (out,)
 
     def sequence_outputs(
@@ -251,7 +260,7 @@ class RecurrentActorCritic(ActorCritic):
             critic_x = flat_features(self.critic_net, obs)
             hx = to_torch(state, "critic", self.critic_core.parts)
             critic_y, _ = self.critic_core.sequence(critic_x, hx, is_init)
-        return self.head_params(y), self.critic_net.mlp(critic_y)
+        return self.head_params(y, obs), self.critic_net.mlp(critic_y)
 
     @torch.no_grad()
     def rollout_values(
