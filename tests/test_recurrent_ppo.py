@@ -15,7 +15,7 @@ from torchrl.data import Bounded
 from torchrl.data import MultiCategorical as MultiCategoricalSpec
 
 from rlexp.algorithms import make_algorithm
-from rlexp.algorithms.recurrent_ppo import RecurrentPPO, cut_sequences
+from rlexp.algorithms.recurrent_ppo import RecurrentPPO, cut_sequences, log_prob_entropy
 from rlexp.config.schema import AlgorithmConfig, EnvConfig, MemoryConfig, PolicyConfig
 from rlexp.envs.factory import make_env
 from rlexp.policies.actor_critic import make_policy, policy_for_env
@@ -420,3 +420,35 @@ def test_the_sequence_heads_logits_are_masked_where_the_observation_has_an_actio
     plain = mlp(policy.actor_net.mlp, y)
     torch.testing.assert_close(logits[mask], plain[mask])
     assert D.Categorical(logits=logits[0, 1]).probs[2] == 0
+
+
+def test_with_an_action_mask_the_updates_log_probs_are_the_collections():
+    """env=pick_valid (masks in the observation): the sequence loss's log-probabilities of the
+    stored actions, from the stored states, equal the collection's, and no invalid action was
+    taken."""
+    from conftest import compose
+    from rlexp.config.validate import to_root_config
+
+    torch.manual_seed(2)
+    config = to_root_config(compose(["env=pick_valid", "policy.memory.type=lstm"]))
+    env_cfg = config.env
+    env = make_env(env_cfg, 3, seed=7)
+    cfg = PolicyConfig(memory=MemoryConfig(type="lstm", hidden_size=6, num_layers=2))
+    policy = policy_for_env(cfg, env_cfg, env)
+    col = RolloutCollector(
+        env, policy.sampling_policy(), frames_per_batch=3 * 20, total_frames=-1,
+        trust_policy=True, auto_register_policy_transforms=False,
+    )  # fmt: skip
+    try:
+        batch = next(iter(col))
+    finally:
+        col.shutdown()
+    mask = batch["observation", "action_mask"]
+    assert not mask.all(), "the env masked nothing: the test would be vacuous"
+    assert mask.gather(-1, batch["action"]).all(), "an invalid action was taken"
+    assert batch["next", "done"].any()
+    seqs, starts = cut_sequences(batch, 3, ("observation", "action", "action_log_prob", "is_init"))
+    params, _ = policy.sequence_outputs(seqs["observation"], starts, seqs["is_init"].squeeze(-1))
+    valid = seqs["valid"]
+    log_prob, _ = log_prob_entropy((params[0][valid],), seqs["action"][valid], policy.nvec)
+    torch.testing.assert_close(log_prob, seqs["action_log_prob"][valid], atol=1e-5, rtol=1e-5)

@@ -8,10 +8,12 @@ those, never what only the critic reads:
 - ``observation``: float32 [batch, n], the actor's vector parts in layout order (absent when the
   actor reads no vector part); the normaliser's statistics are gathered to those columns (the
   policy normalises the whole vector per dimension, then gathers: the same numbers);
-- one uint8 [batch, C, H, W] input per image the actor reads, in layout order, /255 inside.
+- one uint8 [batch, C, H, W] input per image the actor reads, in layout order, /255 inside;
+- ``action_mask`` (categorical actions with an action mask, issue #48): bool [batch, sum(nvec)],
+  last; the argmax is over the valid values of each component (invalid logits at float32's min).
 
-A policy without images exports this module itself (``forward(observation)``, as before groups
-existed); with images a thin wrapper whose ``forward`` names one argument per input is made from
+A policy without images or mask exports this module itself (``forward(observation)``, as before
+groups existed); with images or a mask a thin wrapper whose ``forward`` names one argument per input is made from
 source (TorchScript needs a fixed signature). Image encoders are traced for TorchScript (their
 reshapes over leading batch dims are not scriptable) and exported as they are for ONNX.
 """
@@ -23,13 +25,17 @@ import keyword
 import linecache
 import re
 import warnings
-from typing import Any
+from typing import Any, Optional
 
 import torch
 from torch import nn
 
 #: The name of the vector input (the ONNX graph name; TorchScript's argument name).
 VECTOR_INPUT = "observation"
+#: The name of the action mask's input (bool [batch, sum(nvec)]; envs/masks.py).
+MASK_INPUT = "action_mask"
+#: float32's smallest value: an invalid action's logit (as policies.heads.mask_logits sets it)
+_MASKED_LOGIT = float(torch.finfo(torch.float32).min)
 
 
 class DeterministicActor(nn.Module):
@@ -43,7 +49,7 @@ class DeterministicActor(nn.Module):
     # TorchScript: fixed branches
     __constants__ = [
         "normalize", "clip", "clamp_actions", "rescale", "categorical", "uniform", "k", "n",
-        "reads_vector",
+        "reads_vector", "masked", "masked_logit",
     ]  # fmt: skip
 
     def __init__(
@@ -84,6 +90,11 @@ class DeterministicActor(nn.Module):
         self.uniform = len(set(nvec)) == 1
         self.k, self.n = len(nvec), nvec[0]
         self.register_buffer("action_start", torch.tensor(start or [0] * self.k, dtype=torch.int64))
+        # an action mask input (the env's layout has one): invalid values never the argmax
+        layout = getattr(policy, "obs_layout", None)
+        self.mask_spec = getattr(layout, "mask", None) if self.categorical else None
+        self.masked = self.mask_spec is not None
+        self.masked_logit = _MASKED_LOGIT
         # env.rescale_actions: [-1, 1] (the clamp's bounds) onto the env's (low, (high - low) / 2)
         self.rescale = rescale is not None
         low0, half = rescale if rescale is not None else (torch.zeros(1), torch.ones(1))
@@ -91,10 +102,16 @@ class DeterministicActor(nn.Module):
         self.register_buffer("rescale_half", half.detach().cpu().clone().float())
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        return self.act(observation, [])
+        return self.act(observation, [], None)
 
-    def act(self, observation: torch.Tensor, images: list[torch.Tensor]) -> torch.Tensor:
-        """The action for the actor's vector (ignored when it reads none) and its uint8 images."""
+    def act(
+        self,
+        observation: torch.Tensor,
+        images: list[torch.Tensor],
+        action_mask: Optional[torch.Tensor] = None,  # noqa: UP045  (TorchScript reads Optional)
+    ) -> torch.Tensor:
+        """The action for the actor's vector (ignored when it reads none), its uint8 images and
+        (categorical) the action mask: bool [batch, sum(nvec)], True where a value is valid."""
         features: list[torch.Tensor] = []
         if self.reads_vector:
             x = observation
@@ -110,6 +127,8 @@ class DeterministicActor(nn.Module):
         x = features[0] if len(features) == 1 else torch.cat(features, -1)
         out = self.mlp(x)
         if self.categorical:
+            if action_mask is not None:
+                out = out.masked_fill(action_mask.logical_not(), self.masked_logit)
             if self.uniform:
                 index = out.reshape(-1, self.k, self.n).argmax(-1)
             else:
@@ -142,6 +161,8 @@ def input_names(actor: DeterministicActor) -> list[str]:
         while name in names:
             name += "_"
         names.append(name)
+    if getattr(actor, "masked", False):  # last, under its own name (an image key "action_mask" gets a "_")
+        names = [n + "_" if n == MASK_INPUT else n for n in names] + [MASK_INPUT]
     return names
 
 
@@ -171,7 +192,8 @@ def input_records(actor: DeterministicActor, policy: nn.Module) -> list[dict[str
             }
         )
     images = [p for p in parts if p.kind == "image"]
-    for name, p, shape in zip(names[len(out) :], images, actor.image_shapes, strict=True):
+    image_names = names[len(out) : len(names) - int(actor.masked)]
+    for name, p, shape in zip(image_names, images, actor.image_shapes, strict=True):
         out.append(
             {
                 "name": name,
@@ -181,6 +203,20 @@ def input_records(actor: DeterministicActor, policy: nn.Module) -> list[dict[str
                 "shape": ["batch", *shape],
                 "groups": [p.group],
                 "parts": [{**p.record(), "group": p.group}],
+            }
+        )
+    if actor.masked:
+        spec = actor.mask_spec
+        out.append(
+            {
+                "name": MASK_INPUT,
+                "kind": "action_mask",
+                "key": MASK_INPUT,
+                "dtype": "bool",
+                "shape": ["batch", spec.width],
+                "source": spec.source,  # info: info[mask_key]; observation: the Dict key
+                "mask_key": spec.key,
+                "nvec": list(spec.nvec),
             }
         )
     return out
@@ -193,7 +229,7 @@ class ExportedActor(torch.nn.Module):
         self.core = core
 
     def forward(self, {args}) -> torch.Tensor:
-        return self.core.act({vector}, [{images}])
+        return self.core.act({vector}, [{images}], {mask})
 """
 _count = [0]
 
@@ -201,7 +237,7 @@ _count = [0]
 def exported_module(actor: DeterministicActor, torchscript: bool) -> nn.Module:
     """What the file holds: the actor itself without images; with images a wrapper whose
     ``forward`` takes one named tensor per input. ``torchscript``: encoders traced, all scripted."""
-    if not actor.image_keys:
+    if not actor.image_keys and not actor.masked:
         return torch.jit.script(actor) if torchscript else actor
     core = actor
     if torchscript:
@@ -216,10 +252,12 @@ def exported_module(actor: DeterministicActor, torchscript: bool) -> nn.Module:
     names = input_names(actor)
     vector = VECTOR_INPUT if actor.reads_vector else "torch.zeros(0)"
     images = names[1:] if actor.reads_vector else names
+    images = images[:-1] if actor.masked else images
     source = _WRAPPER.format(
         args=", ".join(f"{n}: torch.Tensor" for n in names),
         vector=vector,
         images=", ".join(images),
+        mask=MASK_INPUT if actor.masked else "None",
     )
     # TorchScript reads a method's source: the generated text is registered with linecache
     _count[0] += 1
@@ -247,12 +285,26 @@ def probe_inputs(actor: DeterministicActor, batch: int, seed: int = 0) -> list[t
         out.append(probe)
     for shape in actor.image_shapes:
         out.append(torch.randint(0, 256, (batch, *shape), generator=gen, dtype=torch.uint8))
+    if actor.masked:  # random masks, one valid value per component at least
+        out.append(probe_mask(actor.mask_spec.nvec, batch, gen))
     return out
+
+
+def probe_mask(nvec: Any, batch: int, gen: torch.Generator) -> torch.Tensor:
+    """Random bool masks [batch, sum(nvec)] with at least one True per component."""
+    blocks = []
+    for n in nvec:
+        block = torch.rand(batch, n, generator=gen) < 0.5
+        block[torch.arange(batch), torch.randint(0, n, (batch,), generator=gen)] = True
+        blocks.append(block)
+    return torch.cat(blocks, -1)
 
 
 def call_actor(actor: DeterministicActor, inputs: list[torch.Tensor]) -> torch.Tensor:
     """The actor on inputs in the file's order."""
-    if not actor.image_keys:
+    if not actor.image_keys and not actor.masked:
         return actor(inputs[0])
     vector = inputs[0] if actor.reads_vector else torch.zeros(0)
-    return actor.act(vector, list(inputs[1:] if actor.reads_vector else inputs))
+    mask = inputs[-1] if actor.masked else None
+    rest = inputs[:-1] if actor.masked else inputs
+    return actor.act(vector, list(rest[1:] if actor.reads_vector else rest), mask)
