@@ -95,7 +95,13 @@ def test_the_readme_config_table_lists_exactly_the_schemas_fields(group, classes
 def _sub_fields(classes) -> set[str]:
     """Fields of the nested schemas (policy.actor's hidden_sizes) and of group options' files."""
     out: set[str] = set()
-    nested = [schema.MLPConfig, schema.EncoderConfig, schema.TensorBoardConfig, schema.WandbConfig]
+    nested = [
+        schema.MLPConfig,
+        schema.EncoderConfig,
+        schema.MemoryConfig,
+        schema.TensorBoardConfig,
+        schema.WandbConfig,
+    ]
     for cls in [*nested, *classes]:
         out |= {f.name for f in dataclasses.fields(cls)}
     return out

@@ -143,6 +143,8 @@ def check_state(sd: Mapping[str, Any], step: int, resume: bool) -> None:
     if not _is_number(best) or math.isnan(best):
         raise FieldError(f"best_metric={_shown(best)}; expected a number (-inf: none yet)")
     _check_pending_observation(sd.get("pending_observation"))
+    if sd.get("recurrent_carry") is not None:
+        _check_recurrent_carry(_mapping(sd["recurrent_carry"], "recurrent_carry"))
     if sd.get("pending_rollout") is not None:
         _check_pending_rollout(_mapping(sd["pending_rollout"], "pending_rollout"))
 
@@ -164,6 +166,23 @@ def _check_pending_observation(pending: Any) -> None:
                 )
         return
     raise FieldError(f"pending_observation is {_shown(pending)[:40]}, not a float tensor")
+
+
+def _check_recurrent_carry(carry: Mapping[str, Any]) -> None:
+    """A recurrent policy's carried state: float32 [envs, layers, hidden] per name, and a bool
+    ``is_init`` [envs, 1] (training/recurrent_collect.py)."""
+    state = _mapping(carry.get("state"), "recurrent_carry.state")
+    is_init = _tensor(carry.get("is_init"), "recurrent_carry.is_init", (torch.bool,), 2)
+    envs = is_init.shape[0]
+    for name, value in state.items():
+        if not isinstance(name, str) or not name.startswith(("actor_", "critic_")):
+            raise FieldError(f"recurrent_carry.state[{_shown(name)}]: expected actor_* / critic_*")
+        t = _tensor(value, f"recurrent_carry.state.{name}", (torch.float32,), 3)
+        if t.shape[0] != envs or not torch.isfinite(t).all():
+            raise FieldError(
+                f"recurrent_carry.state.{name} has shape {tuple(t.shape)} (or non-finite "
+                f"values); expected [{envs}, layers, hidden], finite"
+            )
 
 
 #: What the update reads of a rollout (``algorithm.overlap``'s pending one: rlexp/training/overlap.py).

@@ -137,6 +137,14 @@ class OverlapCollector:
         self._send(("envs_state",))
         return self._receive()
 
+    def carried_state(self) -> dict[str, Any] | None:
+        """A recurrent policy's state in the child, after the rollout in flight (None: none)."""
+        if not getattr(self._base, "carries_state", False):
+            return None
+        self.wait()
+        self._send(("carry",))
+        return self._receive()
+
     def next_observation(self) -> torch.Tensor | None:
         self.wait()
         self._send(("observation",))
@@ -216,6 +224,8 @@ def _serve(conn: Any, collector: Any, policy: torch.nn.Module, parent: int) -> N
                 reply: Any = (next(rollouts), time.perf_counter() - t0)
             elif kind == "envs_state":
                 reply = loop.envs_state(collector.env)
+            elif kind == "carry":  # a recurrent policy's state between steps
+                reply = collector.carried_state()
             else:  # "observation"
                 reply = collector.next_observation()
             out = pickle.dumps(("ok", reply), protocol=pickle.HIGHEST_PROTOCOL)
