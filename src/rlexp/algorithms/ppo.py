@@ -153,9 +153,7 @@ class PPO(MutableHyperparameters):
         self.policy = policy
         self.total_iterations = max(1, total_iterations)
         self.nan_guard = nan_guard
-        self.grad_sync = (
-            grad_sync  # distributed: averages the gradients over ranks after every backward
-        )
+        self.grad_sync = grad_sync  # distributed: averages gradients over ranks after backward
         self.gae = make_gae(cfg)  # values come from compute_advantages
         self.loss = ClipPPOLoss(
             actor_network=policy.actor,
@@ -329,7 +327,8 @@ class PPO(MutableHyperparameters):
                 minibatch = shuffled[start : start + mb]
                 if adaptive:  # rsl_rl: the KL before this step sets the step's learning rate
                     self._adapt_learning_rate(minibatch)
-                out = self._loss_fn(minibatch)
+                with self.policy.encode_once():  # a shared image encoder: once for both heads
+                    out = self._loss_fn(minibatch)
                 if not keys:
                     keys = [k for k in STAT_KEYS if k == "grad_norm" or k in out.keys()]
                     loss_keys = [k for k in LOSS_KEYS if k in keys]

@@ -11,8 +11,9 @@ distribution object per env step.
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -139,8 +140,10 @@ class CriticNet(ReadsObservation):
         self._set_inputs(normalizer, inputs)
         self.mlp = mlp
 
-    def forward(self, obs: torch.Tensor | TensorDictBase) -> torch.Tensor:
-        return self.mlp(self.features(obs))
+    def forward(
+        self, obs: torch.Tensor | TensorDictBase, cache: dict | None = None
+    ) -> torch.Tensor:
+        return self.mlp(self.features(obs, cache))
 
 
 class SamplingPolicy(TensorDictModuleBase):
@@ -327,6 +330,23 @@ class Policy(nn.Module):
         """The fast collection policy (``deterministic``: the mean action or the most likely one,
         for evaluation)."""
         return SamplingPolicy(self.actor_net, deterministic)
+
+    @contextlib.contextmanager
+    def encode_once(self) -> Iterator[dict]:
+        """Within: actor and critic share one features cache (``inputs.encode``), so an image
+        encoder the two share (``policy.share_encoder``) runs once per image tensor, for a loss
+        that calls ``actor_net(obs)`` and ``critic_net(obs)`` apart (TorchRL's ClipPPOLoss). The
+        fused step passes its cache explicitly instead. Nothing changes for a network without
+        images."""
+        cache: dict = {}
+        nets = [n for n in (self.actor_net, self.critic_net) if n is not None]
+        for net in nets:
+            net.feature_cache = cache
+        try:
+            yield cache
+        finally:
+            for net in nets:
+                net.feature_cache = None
 
     def metrics(self) -> dict[str, float]:
         """What the policy itself shows after an update (the Gaussian's mean log-std)."""
