@@ -23,7 +23,13 @@ from torchrl.data import MultiCategorical as MultiCategoricalSpec
 from conftest import PLAIN_PPO
 from rlexp.algorithms.fused_step import MINIBATCH_KEYS, FusedPPOStep
 from rlexp.algorithms.ppo import LOSS_KEYS, make_algorithm
-from rlexp.config.schema import AlgorithmConfig, EncoderConfig, MLPConfig, PolicyConfig
+from rlexp.config.schema import (
+    AlgorithmConfig,
+    EncoderConfig,
+    GRPOConfig,
+    MLPConfig,
+    PolicyConfig,
+)
 from rlexp.envs.spaces import ObsLayout, ObsPart
 from rlexp.policies.actor_critic import make_policy
 
@@ -223,3 +229,82 @@ def test_the_update_s_minibatch_loop_encodes_each_minibatch_once(monkeypatch):
         algo.update(mb.clone())
         assert (algo.fused is not None) == fused
         assert calls["actor.pixels+critic.pixels"] == 2 * (N // 4), (fused, calls)
+
+
+def _image_env_policy(share: bool = True):
+    """tests/image_envs.py's ImageReach (vector [4] + uint8 pixels 3x12x10) and a CNN policy."""
+    from image_envs import ImageReach
+
+    env = ImageReach(3, seed=5)
+    torch.manual_seed(6)
+    cfg = PolicyConfig(
+        critic=MLPConfig(hidden_sizes=[7]),
+        encoder=ENCODERS["nature"],
+        share_encoder=share,
+    )
+    pol = make_policy(cfg, 4, 2, env.action_spec[0], layout=env.obs_layout)
+    pol.normalizer.update(torch.randn(40, 4) * 2 + 0.5)
+    return env, pol
+
+
+def _collect(env, sampling, steps: int = 16):
+    from rlexp.training.collector import RolloutCollector
+
+    col = RolloutCollector(
+        env, sampling, frames_per_batch=3 * steps, total_frames=-1, trust_policy=True,
+        auto_register_policy_transforms=False,
+    )  # fmt: skip
+    try:
+        return next(iter(col))
+    finally:
+        col.shutdown()
+
+
+@pytest.mark.parametrize("loop", ["lean", "torchrl"])
+def test_collection_values_give_gae_the_advantages_of_its_own_critic_pass(loop):
+    """An image policy sharing its encoder writes V(s_t) while collecting (the actor's features,
+    the critic's head); GAE then evaluates only the bootstrap observations (episode ends, the last
+    step), and its values, advantages and targets equal those of its own pass over the rollout."""
+    from torchrl.envs import Compose, TransformedEnv
+
+    env, pol = _image_env_policy()
+    if loop == "torchrl":
+        env = TransformedEnv(env, Compose())
+    sampling = pol.sampling_policy(values=True)
+    assert sampling.out_keys[-1] == "state_value"
+    batch = _collect(env, sampling)
+    assert batch["next", "done"].any(), "episodes must end inside the rollout"
+    cfg = AlgorithmConfig(gamma=0.93, lmbda=0.7, mini_batch_size=10)
+    algo = make_algorithm(cfg, pol, 1)
+    rows = []
+    enc = pol.critic_net.inputs.encoders["pixels"]
+    enc.register_forward_hook(
+        lambda m, args, out: rows.append(args[0].reshape(-1, 3, 12, 10).shape[0])
+    )
+    mine = algo.compute_advantages(batch.clone())
+    bootstrap = int(batch["next", "done"][:, :-1].sum()) + 3  # finished episodes, last steps
+    assert sum(rows) <= bootstrap < 3 * 16, rows  # never the whole rollout again
+    rows.clear()
+    theirs = algo.compute_advantages(batch.clone().exclude("state_value"))
+    assert sum(rows) >= 3 * 16
+    for key in ("state_value", ("next", "state_value"), "advantage", "value_target"):
+        torch.testing.assert_close(mine[key], theirs[key], rtol=1e-5, atol=1e-6, msg=str(key))
+
+
+def test_the_training_collector_writes_values_only_where_gae_may_take_them():
+    """PPO without overlap: values in the rollout; overlap (collection during the update, one
+    update behind), GRPO, separate encoders, evaluation, a vector-only policy: none."""
+    from rlexp.training.loop import collection_policy
+
+    env, pol = _image_env_policy()
+    ppo = make_algorithm(SETTINGS, pol, 1)
+    assert "state_value" in collection_policy(pol, ppo, overlap=False).out_keys
+    assert "state_value" not in collection_policy(pol, ppo, overlap=True).out_keys
+    grpo = make_algorithm(GRPOConfig(), pol, 1)
+    assert "state_value" not in collection_policy(pol, grpo, overlap=False).out_keys
+    assert "state_value" not in pol.sampling_policy(deterministic=True).out_keys
+    _, separate = _image_env_policy(share=False)
+    assert not separate.values_in_collection
+    assert "state_value" not in separate.sampling_policy(values=True).out_keys
+    flat = make_policy(PolicyConfig(), 5, 2, Bounded(-1.0, 1.0, shape=(2,)))
+    assert "state_value" not in flat.sampling_policy(values=True).out_keys

@@ -161,13 +161,21 @@ class SamplingPolicy(TensorDictModuleBase):
     noise: NoiseStream | None = None
 
     def __init__(
-        self, actor_net: GaussianActorNet | CategoricalActorNet, deterministic: bool = False
+        self,
+        actor_net: GaussianActorNet | CategoricalActorNet,
+        deterministic: bool = False,
+        critic_net: CriticNet | None = None,
     ) -> None:
+        """``critic_net``: also write ``state_value``, the critic's value of each observation
+        (``Policy.sampling_policy(values=True)``)."""
         super().__init__()
         self.actor_net = actor_net
+        self.critic_net = critic_net
         self.deterministic = deterministic
         self.in_keys = ["observation"]
         self.out_keys = [*actor_net.dist_keys, "action", "action_log_prob"]
+        if critic_net is not None:
+            self.out_keys.append("state_value")
 
     def sampler(self) -> Sampler:
         """``obs -> (*distribution parameters, action, log-probability of the action)`` for one
@@ -180,6 +188,8 @@ class SamplingPolicy(TensorDictModuleBase):
         """
         layers = [_as_function(m) for m in self.actor_net.mlp]
         sampler = self.actor_net.sampler(self.deterministic, layers)
+        if self.critic_net is not None:
+            return _with_values(sampler, self.actor_net, self.critic_net)
         if self.deterministic or not self.use_numpy:
             # deterministic (evaluation): torch, so evaluation and an exported policy act alike
             return sampler
@@ -201,6 +211,33 @@ class SamplingPolicy(TensorDictModuleBase):
         ):
             tensordict.set(key, value)
         return tensordict
+
+
+@contextlib.contextmanager
+def sharing_features(*nets: ReadsObservation | None) -> Iterator[dict]:
+    """Within: ``nets`` share one features cache (``inputs.encode``): an image encoder they share
+    runs once per image tensor, whichever network calls it first."""
+    cache: dict = {}
+    nets = tuple(n for n in nets if n is not None)
+    for net in nets:
+        net.feature_cache = cache
+    try:
+        yield cache
+    finally:
+        for net in nets:
+            net.feature_cache = None
+
+
+def _with_values(sampler: Sampler, actor_net: ReadsObservation, critic_net: CriticNet) -> Sampler:
+    """``sampler``'s outputs and the critic's value of the same observation, the image features
+    the two networks share computed once (the actor's, which the step computes anyway)."""
+
+    def sample(obs: torch.Tensor | TensorDictBase) -> tuple[torch.Tensor, ...]:
+        with sharing_features(actor_net, critic_net):
+            out = sampler(obs)
+            return (*out, critic_net(obs))
+
+    return sample
 
 
 def _as_function(module: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -326,10 +363,28 @@ class Policy(nn.Module):
         """Whether the actions are categorical (Discrete / MultiDiscrete / MultiBinary)."""
         return self.nvec is not None
 
-    def sampling_policy(self, deterministic: bool = False) -> SamplingPolicy:
+    def sampling_policy(self, deterministic: bool = False, values: bool = False) -> SamplingPolicy:
         """The fast collection policy (``deterministic``: the mean action or the most likely one,
-        for evaluation)."""
-        return SamplingPolicy(self.actor_net, deterministic)
+        for evaluation). ``values``: it also writes ``state_value`` where ``values_in_collection``
+        (PPO's GAE then takes the rollout's values, ``PPO.compute_advantages``: only valid while
+        nothing updates the parameters between the collection and GAE)."""
+        critic = self.critic_net if values and self.values_in_collection else None
+        return SamplingPolicy(self.actor_net, deterministic, critic)
+
+    @property
+    def values_in_collection(self) -> bool:
+        """Whether collection computing the critic's values pays: an image policy whose critic
+        reads no image through an encoder the actor does not share (``policy.share_encoder``), so
+        that a value costs the critic's head on features the actor's step computed; GAE then skips
+        its critic pass over the rollout's images. Vector-only policies keep GAE's pass (the
+        numpy sampler's path stays as it is)."""
+        if self.critic_net is None or not self.obs_structured:
+            return False
+        actor_encoders = list(self.actor_net.inputs.encoders.values())
+        critic_encoders = list(self.critic_net.inputs.encoders.values())
+        return bool(critic_encoders) and all(
+            any(e is a for a in actor_encoders) for e in critic_encoders
+        )
 
     @contextlib.contextmanager
     def encode_once(self) -> Iterator[dict]:
@@ -338,15 +393,8 @@ class Policy(nn.Module):
         that calls ``actor_net(obs)`` and ``critic_net(obs)`` apart (TorchRL's ClipPPOLoss). The
         fused step passes its cache explicitly instead. Nothing changes for a network without
         images."""
-        cache: dict = {}
-        nets = [n for n in (self.actor_net, self.critic_net) if n is not None]
-        for net in nets:
-            net.feature_cache = cache
-        try:
+        with sharing_features(self.actor_net, self.critic_net) as cache:
             yield cache
-        finally:
-            for net in nets:
-                net.feature_cache = None
 
     def metrics(self) -> dict[str, float]:
         """What the policy itself shows after an update (the Gaussian's mean log-std)."""

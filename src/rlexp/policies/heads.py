@@ -133,7 +133,7 @@ class ReadsObservation(nn.Module):
         """``obs -> the MLP's input`` for a collection sampler (the normaliser itself when the
         network reads the whole flat vector: the path and numbers of a policy without groups)."""
         if self._gathers:
-            return self.inputs.function(self.normalizer)
+            return self.features  # (reads ``feature_cache``: a collection step's shared features)
         return self.normalizer
 
 
