@@ -10,6 +10,7 @@ image), hidden layers, value clipping, a Gaussian and a categorical head."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -20,7 +21,7 @@ from torch.nn import functional as F
 from torchrl.data import Bounded
 from torchrl.data import MultiCategorical as MultiCategoricalSpec
 
-from conftest import PLAIN_PPO
+from conftest import PLAIN_PPO, needs_compiler
 from rlexp.algorithms.fused_step import MINIBATCH_KEYS, FusedPPOStep
 from rlexp.algorithms.ppo import LOSS_KEYS, make_algorithm
 from rlexp.config.schema import (
@@ -308,3 +309,27 @@ def test_the_training_collector_writes_values_only_where_gae_may_take_them():
     assert "state_value" not in separate.sampling_policy(values=True).out_keys
     flat = make_policy(PolicyConfig(), 5, 2, Bounded(-1.0, 1.0, shape=(2,)))
     assert "state_value" not in flat.sampling_policy(values=True).out_keys
+
+
+@needs_compiler
+@pytest.mark.slow  # compiles a CNN's loss (about a minute here)
+def test_a_compiled_clipppoloss_update_of_a_cnn_policy_equals_the_eager_one():
+    """The compiled ClipPPOLoss path (the fused step off): its first call runs the loss twice on
+    one minibatch (compiling, then for real), and no call reuses another call's features."""
+    pol = _policy("nature", True, False)
+    ref = copy.deepcopy(pol)
+    batch = torch.cat([_minibatch(pol)] * 2)
+    cfg = dataclasses.replace(SETTINGS, num_epochs=2, mini_batch_size=6)
+    compiled = make_algorithm(dataclasses.replace(cfg, compile="true"), pol, 5)
+    eager = make_algorithm(cfg, ref, 5)
+    for algo in (compiled, eager):
+        algo.use_fused_step = False
+        algo.compute_advantages = lambda b: b
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        compiled.update(batch.clone())
+        torch.manual_seed(seed)
+        eager.update(batch.clone())
+    assert compiled.compiled and compiled.fused is None and eager.fused is None
+    for (name, p), q in zip(pol.named_parameters(), ref.parameters(), strict=True):
+        torch.testing.assert_close(p, q, rtol=1e-4, atol=1e-5, msg=name)

@@ -329,7 +329,7 @@ class PPO(MutableHyperparameters):
                 minibatch = shuffled[start : start + mb]
                 if adaptive:  # rsl_rl: the KL before this step sets the step's learning rate
                     self._adapt_learning_rate(minibatch)
-                with self.policy.encode_once():  # a shared image encoder: once for both heads
+                with self.policy.encode_once(not self.compiled):  # shared encoder: once, 2 heads
                     out = self._loss_fn(minibatch)
                 if not keys:
                     keys = [k for k in STAT_KEYS if k == "grad_norm" or k in out.keys()]

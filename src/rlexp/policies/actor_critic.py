@@ -387,12 +387,16 @@ class Policy(nn.Module):
         )
 
     @contextlib.contextmanager
-    def encode_once(self) -> Iterator[dict]:
+    def encode_once(self, enabled: bool = True) -> Iterator[dict]:
         """Within: actor and critic share one features cache (``inputs.encode``), so an image
-        encoder the two share (``policy.share_encoder``) runs once per image tensor, for a loss
-        that calls ``actor_net(obs)`` and ``critic_net(obs)`` apart (TorchRL's ClipPPOLoss). The
-        fused step passes its cache explicitly instead. Nothing changes for a network without
-        images."""
+        encoder the two share (``policy.share_encoder``) runs once per image tensor, for one loss
+        call that calls ``actor_net(obs)`` and ``critic_net(obs)`` apart (TorchRL's ClipPPOLoss;
+        the fused step passes its cache explicitly instead). Nothing changes for a network without
+        images, nor with ``enabled=False`` (PPO's compiled ClipPPOLoss: its first call runs the
+        loss twice on one minibatch, and the second must not reuse the first's features)."""
+        if not enabled:
+            yield {}
+            return
         with sharing_features(self.actor_net, self.critic_net) as cache:
             yield cache
 
