@@ -14,7 +14,11 @@ observation in ``terminal_observation``) inside ``VecMonitor``.
 
 The runs alternate (rlexp, SB3, rlexp, SB3, ...) so a shared machine's load falls on both; each
 line is one process: wall seconds from launch to exit, env steps / wall second, peak RSS. The last
-line is the ratio of the median rates (rlexp / SB3).
+line is the ratio of the median rates (rlexp / SB3). Each line also has the machine's 1-minute load
+average at the run's end and the run's phases, summed over its iterations: rlexp's own
+``perf/collect_time`` (EnvPool's steps and the policy's forward) and ``perf/update_time`` (GAE and
+the minibatch steps); SB3's ``collect_rollouts`` (its ``env_s``: EnvPool's steps inside it) and
+``train``. The rest of the wall time is start-up, logging and exit.
 
     python benchmarks/sb3_cnn_compare.py --sb3-python /work/sb3venv/bin/python --steps 16384
 """
@@ -43,6 +47,7 @@ def sb3_worker(args: argparse.Namespace) -> None:
     from stable_baselines3.common.vec_env import VecEnvWrapper, VecMonitor
 
     torch.set_num_threads(args.threads)
+    phases = {"env_s": 0.0, "collect_rollouts_s": 0.0, "train_s": 0.0}
 
     class VecAdapter(VecEnvWrapper):
         """EnvPool (gymnasium API) as an SB3 VecEnv: a finished env is reset in the same step."""
@@ -57,6 +62,7 @@ def sb3_worker(args: argparse.Namespace) -> None:
             return self.venv.reset()[0]
 
         def step_wait(self):
+            t0 = time.perf_counter()
             obs, rewards, terms, truncs, _ = self.venv.step(self.actions)
             dones = terms | truncs
             infos = [{} for _ in range(self.num_envs)]
@@ -64,6 +70,7 @@ def sb3_worker(args: argparse.Namespace) -> None:
                 infos[i]["terminal_observation"] = obs[i].copy()
                 infos[i]["TimeLimit.truncated"] = bool(truncs[i] and not terms[i])
                 obs[i] = self.venv.reset(np.array([i]))[0][0]
+            phases["env_s"] += time.perf_counter() - t0
             return obs, rewards, dones, infos
 
     pool = envpool.make_gymnasium(
@@ -95,10 +102,35 @@ def sb3_worker(args: argparse.Namespace) -> None:
         seed=args.seed,
         verbose=0,
     )
+    for name in ("collect_rollouts", "train"):  # each phase's seconds, summed over the run
+        setattr(model, name, timed(getattr(model, name), phases, f"{name}_s"))
     model.learn(total_timesteps=args.steps)
     buf = model.ep_info_buffer
     ret = float(np.mean([ep["r"] for ep in buf])) if buf else None
-    print(json.dumps({"steps": int(model.num_timesteps), "return": ret}))
+    phases = {k: round(v, 2) for k, v in phases.items()}
+    print("PHASES " + json.dumps({"steps": int(model.num_timesteps), "return": ret, **phases}))
+
+
+def timed(fn, phases: dict[str, float], key: str):
+    """``fn`` adding its seconds to ``phases[key]``."""
+
+    def run(*a, **kw):
+        t0 = time.perf_counter()
+        try:
+            return fn(*a, **kw)
+        finally:
+            phases[key] += time.perf_counter() - t0
+
+    return run
+
+
+def rlexp_phases(run_dir: Path) -> dict[str, float]:
+    """rlexp's own per-iteration timings of a run (metrics.jsonl), summed: collection (EnvPool's
+    steps and the policy's forward) and update (GAE and the minibatch steps)."""
+    rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines() if x]
+    collect = sum(r.get("perf/collect_time", 0.0) for r in rows)
+    update = sum(r.get("perf/update_time", 0.0) for r in rows)
+    return {"collect_s": round(collect, 2), "update_s": round(update, 2)}
 
 
 def run(cmd: list[str], env: dict[str, str] | None = None) -> dict:
@@ -153,6 +185,7 @@ def main() -> None:
                         *args.rlexp_arg,
                     ]
                     res = run(cmd, env)
+                    res["phases"] = rlexp_phases(Path(tmp) / f"rlexp_{r}")
                 else:
                     cmd = [
                         args.sb3_python,
@@ -164,6 +197,8 @@ def main() -> None:
                         f"--threads={args.threads}",
                     ]
                     res = run(cmd)
+                    tail = res["out"].split("PHASES ")[-1].splitlines()[0]
+                    res["phases"] = {k: v for k, v in json.loads(tail).items() if k.endswith("_s")}
                 rate = args.steps / res["wall_s"]
                 rates[side].append(rate)
                 line = {
@@ -173,6 +208,8 @@ def main() -> None:
                     "wall_s": round(res["wall_s"], 1),
                     "steps_per_s": round(rate, 1),
                     "peak_rss_mib": round(res["peak_rss_mib"]),
+                    "load_avg_1m": round(os.getloadavg()[0], 1),
+                    **res["phases"],
                 }
                 print(json.dumps(line), flush=True)
     if rates["rlexp"] and rates["sb3"]:

@@ -154,11 +154,14 @@ class FusedStep:
 
     # -- the policy's distribution: TorchRL's IndependentNormal (torch's Normal, summed over the
     # action dims) or rlexp's MultiCategorical, the same operations in the same order
-    def _dist(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | MultiCategorical:
-        """(loc, scale) of the Gaussian head, or the categorical head's distribution, on ``obs``."""
+    def _dist(
+        self, obs: torch.Tensor, cache: dict | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor] | MultiCategorical:
+        """(loc, scale) of the Gaussian head, or the categorical head's distribution, on ``obs``
+        (``cache``: image features the critic reads too, ``policies.inputs.encode``)."""
         if self.gaussian:
-            return self.policy.actor_net(obs)
-        return MultiCategorical(self.policy.actor_net(obs), self.policy.actor_net.nvec)
+            return self.policy.actor_net(obs, cache)
+        return MultiCategorical(self.policy.actor_net(obs, cache), self.policy.actor_net.nvec)
 
     def _log_prob(self, dist, action: torch.Tensor) -> torch.Tensor:
         if self.gaussian:
@@ -175,9 +178,9 @@ class FusedStep:
         return dist.entropy()
 
     def _log_prob_entropy(
-        self, obs: torch.Tensor, action: torch.Tensor
+        self, obs: torch.Tensor, action: torch.Tensor, cache: dict | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        dist = self._dist(obs)
+        dist = self._dist(obs, cache)
         return self._log_prob(dist, action), self._entropy(dist)
 
     def _loss_and_grads(self, *minibatch: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -378,7 +381,9 @@ class FusedPPOStep(FusedStep):
             advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(
                 torch.finfo(torch.float).resolution
             )
-        log_prob, entropy = self._log_prob_entropy(obs, action)
+        # a shared image encoder runs once for both heads (policy.share_encoder; no-op without images)
+        cache: dict = {}
+        log_prob, entropy = self._log_prob_entropy(obs, action, cache)
         log_weight = (log_prob - old_log_prob).unsqueeze(-1)
         kl_approx = (old_log_prob - log_prob).unsqueeze(-1)
         gain1 = log_weight.exp() * advantage
@@ -389,7 +394,7 @@ class FusedPPOStep(FusedStep):
         loss_objective = (-gain).mean()
         entropy = entropy.unsqueeze(-1)
         loss_entropy = (-entropy_coeff * entropy).mean()
-        value = self.policy.critic_net(obs)
+        value = self.policy.critic_net(obs, cache)
         distance = _DISTANCE[self.loss_critic_type]
         loss_value = distance(value_target, value, reduction="none")
         if self.clip_value:  # torchrl _clip_value_loss: the more pessimistic of the two

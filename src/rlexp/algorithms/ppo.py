@@ -118,6 +118,7 @@ class PPO(MutableHyperparameters):
 
     #: Whether the first update may choose the fused minibatch step (fused_step.py) over today's.
     use_fused_step: bool = True
+    rollout_values: bool = True  #: GAE takes V(s_t) from the rollout where collection wrote it
 
     def __init__(
         self,
@@ -153,9 +154,7 @@ class PPO(MutableHyperparameters):
         self.policy = policy
         self.total_iterations = max(1, total_iterations)
         self.nan_guard = nan_guard
-        self.grad_sync = (
-            grad_sync  # distributed: averages the gradients over ranks after every backward
-        )
+        self.grad_sync = grad_sync  # distributed: averages gradients over ranks after backward
         self.gae = make_gae(cfg)  # values come from compute_advantages
         self.loss = ClipPPOLoss(
             actor_network=policy.actor,
@@ -208,18 +207,19 @@ class PPO(MutableHyperparameters):
         (time is the last batch dim) with TorchRL's GAE.
 
         The values are computed here, not by GAE's value network: V(s_t) in one pass over the
-        rollout, and V(s'_t) reused from V(s_t+1) wherever the next observation *is* the following
-        step's observation (bit-equal: no reset in between), so the critic runs again only on the
-        final observations of finished episodes and on the last step. Half the critic work of
-        evaluating V(s) and V(s') separately (TorchRL's way), same values. A TensorDict observation
-        is compared entry by entry; the critic runs on its images in minibatch chunks (in_chunks).
-        """
+        rollout (or the rollout's own, where an image policy's collection wrote them with these
+        parameters: ``Policy.sampling_policy(values=True)``), and V(s'_t) reused from V(s_t+1)
+        wherever the next observation *is* the following step's observation (bit-equal: no reset
+        in between), so the critic runs again only on the final observations of finished episodes
+        and on the last step: same values as TorchRL's V(s) and V(s') apart. A TensorDict
+        observation is compared entry by entry; the critic reads images in minibatch chunks."""
         obs = batch.get("observation")
         next_obs = batch.get(("next", "observation"))
         critic = self.policy.critic_net
         if structured(obs):
             critic = in_chunks(critic, self.cfg.mini_batch_size)
-        value = critic(obs)  # [*B, T, 1]
+        value = batch.get("state_value", None)  # [*B, T, 1]
+        value = critic(obs) if value is None else value
         follows = next_is_following(obs, next_obs, batch.batch_dims)  # [*B, T-1]
         own = torch.cat([~follows, follows.new_ones(follows.shape[:-1] + (1,))], dim=-1)
         next_value = torch.empty_like(value)
@@ -329,7 +329,8 @@ class PPO(MutableHyperparameters):
                 minibatch = shuffled[start : start + mb]
                 if adaptive:  # rsl_rl: the KL before this step sets the step's learning rate
                     self._adapt_learning_rate(minibatch)
-                out = self._loss_fn(minibatch)
+                with self.policy.encode_once(not self.compiled):  # shared encoder: once, 2 heads
+                    out = self._loss_fn(minibatch)
                 if not keys:
                     keys = [k for k in STAT_KEYS if k == "grad_norm" or k in out.keys()]
                     loss_keys = [k for k in LOSS_KEYS if k in keys]

@@ -137,6 +137,8 @@ class RecurrentPPO(PPO):
     """PPO over sequences for a ``RecurrentActorCritic``; ``update`` is PPO's (reward scaling, GAE,
     the learning-rate schedule, metrics), with the recurrent values and the sequence epochs."""
 
+    rollout_values = False  #: the recurrent critic's values come from its own pass (not collection)
+
     use_fused_step = False
 
     def __init__(self, cfg, policy, *args, **kwargs) -> None:

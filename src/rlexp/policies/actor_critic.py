@@ -11,14 +11,14 @@ distribution object per env step.
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from tensordict.nn import TensorDictModule
 from torch import nn
-from torch.nn import functional as F
 from torchrl.data import MultiCategorical as MultiCategoricalSpec
 from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase
@@ -33,10 +33,9 @@ from rlexp.policies.heads import (
     GaussianActorNet,
     MultiCategorical,
     ReadsObservation,
-    Sampler,
 )
 from rlexp.policies.inputs import POLICY_GROUP, ObsInput, layout_of, plain_layout, select_parts
-from rlexp.policies.numpy_sampler import NoiseStream, numpy_sampler
+from rlexp.policies.sampling import SamplingPolicy, sharing_features
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
@@ -139,80 +138,10 @@ class CriticNet(ReadsObservation):
         self._set_inputs(normalizer, inputs)
         self.mlp = mlp
 
-    def forward(self, obs: torch.Tensor | TensorDictBase) -> torch.Tensor:
-        return self.mlp(self.features(obs))
-
-
-class SamplingPolicy(TensorDictModuleBase):
-    """Collection policy: samples actions and writes their log-prob, with plain tensor ops.
-
-    Same parameters as the ``ProbabilisticActor``, same keys (the head's distribution parameters:
-    ``loc`` / ``scale`` or ``logits``; then ``action``, ``action_log_prob``), and the same
-    log-density as the distribution TorchRL's loss uses (tested).
-    """
-
-    #: Whether ``sampler`` may run in numpy where that applies (``numpy_sampler``).
-    use_numpy: bool = True
-    #: Where the numpy sampler's noise comes from: None, ``torch.randn`` per call; a
-    #: ``NoiseStream`` (``set_noise_block``), blocks of calls from torch's generator.
-    noise: NoiseStream | None = None
-
-    def __init__(
-        self, actor_net: GaussianActorNet | CategoricalActorNet, deterministic: bool = False
-    ) -> None:
-        super().__init__()
-        self.actor_net = actor_net
-        self.deterministic = deterministic
-        self.in_keys = ["observation"]
-        self.out_keys = [*actor_net.dist_keys, "action", "action_log_prob"]
-
-    def sampler(self) -> Sampler:
-        """``obs -> (*distribution parameters, action, log-probability of the action)`` for one
-        rollout, in ``out_keys`` order.
-
-        What cannot change while a rollout is collected (the clamped log-std, the log-density's
-        constant, the list of layers) is computed once here; each call then runs the normaliser,
-        the MLP's layers as plain functions (no ``nn.Module`` dispatch) and a few tensor ops. Build
-        a new one after the parameters change shape or identity (every rollout, in practice).
-        """
-        layers = [_as_function(m) for m in self.actor_net.mlp]
-        sampler = self.actor_net.sampler(self.deterministic, layers)
-        if self.deterministic or not self.use_numpy:
-            # deterministic (evaluation): torch, so evaluation and an exported policy act alike
-            return sampler
-        # collecting with a CPU policy on a few envs: the same maths in numpy (numpy_sampler.py)
-        return numpy_sampler(self.actor_net, sampler, self.noise) or sampler
-
-    def set_noise_block(self, steps: int) -> None:
-        """Draw the numpy sampler's noise ``steps`` calls at a time (a rollout's steps per env:
-        ``NoiseStream``); both collection loops (rlexp's and TorchRL's) then take the same draws."""
-        self.noise = NoiseStream(steps)
-
-    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """The ``out_keys``' tensors for a batch of observations."""
-        return self.sampler()(obs)
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        for key, value in zip(
-            self.out_keys, self.sample(tensordict.get("observation")), strict=True
-        ):
-            tensordict.set(key, value)
-        return tensordict
-
-
-def _as_function(module: nn.Module) -> Callable[[torch.Tensor], torch.Tensor]:
-    """A layer of an MLP as a plain function of its input (same kernels as calling the module)."""
-    if isinstance(module, nn.Linear):
-        weight, bias = module.weight, module.bias
-        return lambda x: F.linear(x, weight, bias)
-    fn = _FUNCTIONAL.get(type(module))
-    return fn if fn is not None else module
-
-
-_FUNCTIONAL: dict[type[nn.Module], Callable[[torch.Tensor], torch.Tensor]] = {
-    nn.Tanh: torch.tanh,
-    nn.ReLU: torch.relu,
-}
+    def forward(
+        self, obs: torch.Tensor | TensorDictBase, cache: dict | None = None
+    ) -> torch.Tensor:
+        return self.mlp(self.features(obs, cache))
 
 
 class Policy(nn.Module):
@@ -334,10 +263,42 @@ class Policy(nn.Module):
         """Whether the actions are categorical (Discrete / MultiDiscrete / MultiBinary)."""
         return self.nvec is not None
 
-    def sampling_policy(self, deterministic: bool = False) -> SamplingPolicy:
+    def sampling_policy(self, deterministic: bool = False, values: bool = False) -> SamplingPolicy:
         """The fast collection policy (``deterministic``: the mean action or the most likely one,
-        for evaluation)."""
-        return SamplingPolicy(self.actor_net, deterministic)
+        for evaluation). ``values``: it also writes ``state_value`` where ``values_in_collection``
+        (PPO's GAE then takes the rollout's values, ``PPO.compute_advantages``: only valid while
+        nothing updates the parameters between the collection and GAE)."""
+        critic = self.critic_net if values and self.values_in_collection else None
+        return SamplingPolicy(self.actor_net, deterministic, critic)
+
+    @property
+    def values_in_collection(self) -> bool:
+        """Whether collection computing the critic's values pays: an image policy whose critic
+        reads no image through an encoder the actor does not share (``policy.share_encoder``), so
+        that a value costs the critic's head on features the actor's step computed; GAE then skips
+        its critic pass over the rollout's images. Vector-only policies keep GAE's pass (the
+        numpy sampler's path stays as it is)."""
+        if self.critic_net is None or not self.obs_structured:
+            return False
+        actor_encoders = list(self.actor_net.inputs.encoders.values())
+        critic_encoders = list(self.critic_net.inputs.encoders.values())
+        return bool(critic_encoders) and all(
+            any(e is a for a in actor_encoders) for e in critic_encoders
+        )
+
+    @contextlib.contextmanager
+    def encode_once(self, enabled: bool = True) -> Iterator[dict]:
+        """Within: actor and critic share one features cache (``inputs.encode``), so an image
+        encoder the two share (``policy.share_encoder``) runs once per image tensor, for one loss
+        call that calls ``actor_net(obs)`` and ``critic_net(obs)`` apart (TorchRL's ClipPPOLoss;
+        the fused step passes its cache explicitly instead). Nothing changes for a network without
+        images, nor with ``enabled=False`` (PPO's compiled ClipPPOLoss: its first call runs the
+        loss twice on one minibatch, and the second must not reuse the first's features)."""
+        if not enabled:
+            yield {}
+            return
+        with sharing_features(self.actor_net, self.critic_net) as cache:
+            yield cache
 
     def metrics(self) -> dict[str, float]:
         """What the policy itself shows after an update (the Gaussian's mean log-std)."""

@@ -131,6 +131,9 @@ class ReadsObservation(nn.Module):
     normalizer: nn.Module
     inputs: nn.Module | None
     _gathers: bool
+    #: set by ``Policy.encode_once`` for a loss call: the features cache the actor and the critic
+    #: share (``inputs.encode``); None: each call runs its encoders
+    feature_cache: dict | None = None
 
     def _set_inputs(self, normalizer: nn.Module, inputs: nn.Module | None) -> None:
         self.normalizer = normalizer
@@ -138,17 +141,21 @@ class ReadsObservation(nn.Module):
         # a selection of groups or keys, or images: more than the normalised observation
         self._gathers = inputs is not None and not inputs.trivial
 
-    def features(self, obs: torch.Tensor | TensorDictBase) -> torch.Tensor:
-        """The MLP's input: the normalised observation, or what the network selects of it."""
+    def features(
+        self, obs: torch.Tensor | TensorDictBase, cache: dict | None = None
+    ) -> torch.Tensor:
+        """The MLP's input: the normalised observation, or what the network selects of it
+        (``cache``: image features shared with the other network, ``inputs.encode``)."""
         if self._gathers:
-            return self.inputs(obs, self.normalizer)
+            cache = self.feature_cache if cache is None else cache
+            return self.inputs(obs, self.normalizer, cache)
         return self.normalizer(obs)
 
     def input_function(self) -> Callable:
         """``obs -> the MLP's input`` for a collection sampler (the normaliser itself when the
         network reads the whole flat vector: the path and numbers of a policy without groups)."""
         if self._gathers:
-            return self.inputs.function(self.normalizer)
+            return self.features  # (reads ``feature_cache``: a collection step's shared features)
         return self.normalizer
 
 
@@ -179,8 +186,10 @@ class GaussianActorNet(ReadsObservation):
         """The clamped log standard deviation, [act_dim]."""
         return torch.clamp(self.log_std, self.min_log_std, self.max_log_std)
 
-    def forward(self, obs: torch.Tensor | TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        loc = self.mlp(self.features(obs))
+    def forward(
+        self, obs: torch.Tensor | TensorDictBase, cache: dict | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = self.mlp(self.features(obs, cache))
         scale = self.log_scale().exp().expand_as(loc)
         return loc, scale
 
@@ -230,9 +239,11 @@ class CategoricalActorNet(ReadsObservation):
         self.mlp = mlp
         self.nvec = tuple(int(n) for n in nvec)
 
-    def forward(self, obs: torch.Tensor | TensorDictBase) -> torch.Tensor:
+    def forward(
+        self, obs: torch.Tensor | TensorDictBase, cache: dict | None = None
+    ) -> torch.Tensor:
         """The logits, invalid actions' at the dtype's minimum where the observation has a mask."""
-        return mask_logits(self.mlp(self.features(obs)), action_mask_of(obs))
+        return mask_logits(self.mlp(self.features(obs, cache)), action_mask_of(obs))
 
     def sampler(self, deterministic: bool, layers: list[Callable]) -> Sampler:
         """obs -> (logits, action, log-probability of the action): the Gumbel-max draw of each

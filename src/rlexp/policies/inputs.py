@@ -164,7 +164,14 @@ class ObsInput(nn.Module):
         """Reads the whole flat vector and no image: the normalised observation is the input."""
         return not self.structured and self.index is None
 
-    def forward(self, obs: torch.Tensor | TensorDictBase, normalizer: nn.Module) -> torch.Tensor:
+    def forward(
+        self,
+        obs: torch.Tensor | TensorDictBase,
+        normalizer: nn.Module,
+        cache: FeatureCache | None = None,
+    ) -> torch.Tensor:
+        """``cache`` (shared by the actor's and the critic's inputs for one minibatch): an image
+        encoder's features on an image tensor computed once (``encode``)."""
         if not isinstance(obs, TensorDictBase):
             x = normalizer(obs)
             return x if self.index is None else x.index_select(-1, self.index)
@@ -173,7 +180,7 @@ class ObsInput(nn.Module):
             x = normalizer(obs.get("vector"))
             features.append(x if self.index is None else x.index_select(-1, self.index))
         for key in self.image_keys:
-            features.append(self.encoders[_module_name(key)](obs.get(key)))
+            features.append(encode(self.encoders[_module_name(key)], key, obs.get(key), cache))
         return features[0] if len(features) == 1 else torch.cat(features, -1)
 
     def function(self, normalizer: nn.Module) -> Callable[[Any], torch.Tensor]:
@@ -186,6 +193,29 @@ class ObsInput(nn.Module):
     def records(self) -> list[dict[str, Any]]:
         """The selected parts as the layout records them (export metadata, eval)."""
         return [p.record() for p in self.parts]
+
+
+#: image key -> (the image tensor, its encoder, the encoder's features on it)
+FeatureCache = dict[str, tuple[torch.Tensor, nn.Module, torch.Tensor]]
+
+
+def encode(
+    encoder: nn.Module, key: str, image: torch.Tensor, cache: FeatureCache | None
+) -> torch.Tensor:
+    """``encoder(image)``, or, with a ``cache``, the features it already holds for this very
+    encoder on this very image tensor (identity, not equality: actor and critic read the same
+    minibatch's tensor). With ``policy.share_encoder`` the actor's and the critic's encoder of an
+    image key are one module, so the loss runs it once per minibatch and both heads read its
+    features (SB3's and CleanRL's shared-features network): the same loss and, through autograd's
+    sum over the two uses, the same gradients as two passes, to float rounding."""
+    if cache is None:
+        return encoder(image)
+    hit = cache.get(key)
+    if hit is not None and hit[0] is image and hit[1] is encoder:
+        return hit[2]
+    out = encoder(image)
+    cache[key] = (image, encoder, out)
+    return out
 
 
 def _module_name(image_key: str) -> str:

@@ -26,8 +26,9 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from rlexp.config.schema import MemoryConfig
-from rlexp.policies.actor_critic import RECURRENT, ActorCritic, SamplingPolicy, _as_function
+from rlexp.policies.actor_critic import RECURRENT, ActorCritic
 from rlexp.policies.heads import GaussianActorNet, ReadsObservation
+from rlexp.policies.sampling import SamplingPolicy, _as_function
 
 #: The observation entry holding an action mask (issue #48's masking: bool [..., sum(nvec)]).
 MASK_KEY = "action_mask"
@@ -223,7 +224,12 @@ class RecurrentActorCritic(ActorCritic):
             out, new = self.sampling_policy(deterministic).sampler()(obs, state, critic=False)
         return out[-2], new
 
-    def sampling_policy(self, deterministic: bool = False) -> RecurrentSamplingPolicy:
+    def sampling_policy(
+        self, deterministic: bool = False, values: bool = False
+    ) -> RecurrentSamplingPolicy:
+        """The collection policy; ``values`` is ignored: GAE's values come from the recurrent critic
+        run over the rollout in order (``rollout_values``), never from collection."""
+        del values
         return RecurrentSamplingPolicy(self, deterministic)
 
     # -- training ----------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """Small helpers of the training loop: one torch thread while envs step, crossing a multiple of a
-step count, the base env under transforms, a digest of a module's parameters (ranks in sync), the
-NaN guard's check of a rollout, and the training envs put back from a checkpoint."""
+step count, the base env under transforms, the collector's sampling policy, a digest of a module's
+parameters (ranks in sync), the NaN guard's check of a rollout, and the training envs put back from
+a checkpoint."""
 
 from __future__ import annotations
 
@@ -25,6 +26,16 @@ def base_env(env: EnvBase | None) -> EnvBase | None:
     while env is not None and hasattr(env, "base_env"):
         env = env.base_env
     return env
+
+
+def collection_policy(policy, algorithm, overlap: bool):
+    """The training collector's sampling policy: with the critic's values (``state_value``) where
+    the algorithm's GAE takes them from the rollout (PPO) and the policy's collection computes them
+    cheaply (``Policy.values_in_collection``: image policies sharing the encoder), unless
+    ``algorithm.overlap`` collects the next rollout during an update (its values would be the
+    critic's before that update: GAE computes them itself there)."""
+    values = getattr(algorithm, "rollout_values", False) and not overlap
+    return policy.sampling_policy(values=values)
 
 
 def parameter_digest(module: torch.nn.Module) -> str:

@@ -426,7 +426,7 @@ class Trainer:
         if self.collector is None:
             self.collector = RolloutCollector(
                 self.env,
-                self.policy.sampling_policy(),
+                loop.collection_policy(self.policy, self.algorithm, self.overlap),
                 frames_per_batch=self.cfg.frames_per_batch,
                 total_frames=-1,
                 trust_policy=True,
