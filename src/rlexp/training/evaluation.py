@@ -49,14 +49,17 @@ class RecurrentActor:
         self.policy = policy
         self.deterministic = deterministic
         self.state: dict[str, torch.Tensor] | None = None
+        # the parameters do not change during a round: the sampler (policy.act's) built once
+        self._sample = policy.sampling_policy(deterministic).sampler()
 
     def act(self, obs: Any) -> torch.Tensor:
-        """The action for ``obs`` (a Tensor or a TensorDict: a batch of copies); the state moves on."""
+        """The action for ``obs`` (a Tensor or a TensorDict: a batch of copies); the state moves on
+        (the actor's entries; the critic's, which acting does not need, stay as they were)."""
         if self.state is None:
             batch = int(obs.batch_size.numel() if isinstance(obs, TensorDictBase) else obs.shape[0])
             self.state = self.policy.initial_state(batch, device=obs.device)
-        action, self.state = self.policy.act(obs, self.state, deterministic=self.deterministic)
-        return action
+        out, self.state = self._sample(obs, self.state, critic=False)
+        return out[-2]  # (..., action, log-prob), as policy.act
 
     def episodes_ended(self, done: torch.Tensor) -> None:
         """Reset the state of the copies whose episode ended (``done``: bool [num_copies])."""
