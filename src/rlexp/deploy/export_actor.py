@@ -197,14 +197,15 @@ def recurrent_step(policy: nn.Module) -> LstmStep | GruStep | None:
 
 
 def actor_rnn(policy: nn.Module) -> nn.Module:
-    """The actor's own ``nn.LSTM`` / ``nn.GRU`` (never the critic's)."""
-    found = [m for m in policy.actor_net.modules() if isinstance(m, nn.LSTM | nn.GRU)]
-    if len(found) != 1 or not found[0].batch_first:
+    """The actor's own ``nn.LSTM`` / ``nn.GRU`` (``policy.memory.shared``: the one both heads
+    read); never the critic's own."""
+    rnn = getattr(getattr(policy, "actor_core", None), "rnn", None)
+    if rnn is None or not getattr(rnn, "batch_first", False):
         raise ValueError(
-            f"the actor has {len(found)} recurrent layers (batch_first: "
-            f"{[m.batch_first for m in found]}); rlexp export takes one batch-first LSTM / GRU"
+            f"the recurrent policy {type(policy).__name__} has no batch-first actor_core.rnn; "
+            "rlexp export takes the actor's LSTM / GRU from there"
         )
-    return found[0]
+    return rnn
 
 
 def state_names(actor: DeterministicActor) -> list[str]:
