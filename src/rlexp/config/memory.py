@@ -32,6 +32,11 @@ def memory_problem(config: Any) -> str | None:
             f"{what}: algorithm.overlap=true collects in a forked process, which would own the "
             "hidden state between rollouts; set algorithm.overlap=false"
         )
+    if str(a.compile).strip().lower() == "true":
+        return (
+            f"{what}: algorithm.compile=true, but the recurrent sequence loss runs eager (its "
+            "reset points differ per minibatch); use algorithm.compile=auto or false"
+        )
     stepping = [
         name
         for name, term in config.events.train.items()

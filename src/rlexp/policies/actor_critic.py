@@ -363,6 +363,9 @@ class ActorOnly(Policy):
 
 #: ``policy.name`` -> the policy class.
 POLICIES: dict[str, type[Policy]] = {"actor_critic": ActorCritic, "actor_only": ActorOnly}
+#: A policy class -> its recurrent version (``policy.memory``), registered by policies/memory.py,
+#: which the package imports.
+RECURRENT: dict[type[Policy], type[Policy]] = {}
 
 
 def make_policy(
@@ -383,14 +386,12 @@ def make_policy(
     cls = POLICIES[cfg.name]
     memory = getattr(cfg, "memory", None)
     if memory is not None and memory.type != "none":
-        if cls is not ActorCritic:
+        if cls not in RECURRENT:
             raise ValueError(
                 f"policy.memory.type={memory.type}: recurrent policies are actor-critics (PPO); "
                 f"policy.name={cfg.name!r} is not: use policy=mlp, or policy.memory.type=none"
             )
-        from rlexp.policies.memory import RecurrentActorCritic
-
-        cls = RecurrentActorCritic
+        cls = RECURRENT[cls]
     return cls(
         cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations, nvec, layout
     )

@@ -26,7 +26,7 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from rlexp.config.schema import MemoryConfig
-from rlexp.policies.actor_critic import ActorCritic, SamplingPolicy, _as_function
+from rlexp.policies.actor_critic import RECURRENT, ActorCritic, SamplingPolicy, _as_function
 from rlexp.policies.heads import GaussianActorNet, ReadsObservation
 
 #: A state in torch's layout: (h,) or (h, c), each [num_layers, batch, hidden].
@@ -317,3 +317,6 @@ class RecurrentSamplingPolicy(SamplingPolicy):
         """Stateless use (TorchRL's loop, a probe): one step from the episode-start state."""
         state = self.initial_state(obs.shape[0], obs.device)
         return self.sampler()(obs, state)[0]
+
+
+RECURRENT[ActorCritic] = RecurrentActorCritic
