@@ -291,7 +291,8 @@ def _write_helper(
 
     path = target.parent / helper_name(target)
     inputs = info["inputs"]
-    atomic_write_text(path, helper_source(target, config.env.name, layout, action, inputs))
+    text = helper_source(target, config.env.name, layout, action, inputs, info["memory"])
+    atomic_write_text(path, text)
     if samples:
         try:
             check_helper(path, [(obs, rlexp_inputs(seen, inputs)) for obs, seen in samples])

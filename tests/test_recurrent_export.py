@@ -1,0 +1,311 @@
+"""Exports of recurrent policies (#48, ``policy.memory.type`` lstm / gru): the file takes the actor's
+observation inputs and its state (``actor_h``, ``actor_c`` for an LSTM) and returns the action and
+the next state (``actor_h_out``, ``actor_c_out``); the critic's memory is never in it; the metadata's
+``memory`` says the state's shape and that it is zeros at an episode's start, and is checked as data.
+Outside rlexp (TorchScript and onnxruntime, the numpy helper) whole episodes stepped through the file,
+the state carried, act as the policy's ``act`` does step by step; ``rlexp eval`` of the file carries
+and resets the state: the run's own eval numbers."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import shutil
+import subprocess
+import sys
+import textwrap
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import REPO, train_side_by_side
+from conftest import rlexp_cli as _cli
+from rlexp.deploy.policy_eval import evaluate, metadata_path
+
+TESTS = Path(__file__).parent
+TINY = [
+    "env=gym",
+    "env.num_envs=2",
+    "env.num_eval_envs=2",
+    "trainer.total_frames=256",
+    "trainer.frames_per_batch=128",
+    "trainer.eval_every=128",
+    "trainer.eval_episodes=3",
+    "trainer.save_every=128",
+    "algorithm.num_epochs=1",
+    "algorithm.mini_batch_size=64",
+    "algorithm.sequence_length=8",
+    "trainer.progress=false",
+]
+RUNS = {
+    # an LSTM of 2 layers x 12 on the actor's selection (joints, phase); the critic, with its own
+    # LSTM, also reads the privileged state
+    "lstm": [
+        "env.name=export_envs:Privileged-v0",
+        "policy.actor.observations=[joints,phase]",
+        "policy.memory.type=lstm",
+        "policy.memory.hidden_size=12",
+        "policy.memory.num_layers=2",
+        "policy.ortho_init=false",  # (torch's default init: actions far from 0, the state matters)
+        "seed=3",
+    ],
+    # a GRU of 8 after the Nature CNN on the HWC camera and the speed vector (categorical actions)
+    "gru": [
+        "env.name=export_envs:Pixels-v0",
+        "policy=cnn",
+        "policy.actor.observations=[camera,speed]",
+        "policy.memory.type=gru",
+        "policy.memory.hidden_size=8",
+        "policy.ortho_init=false",  # (logits far enough apart for the actions to vary)
+        "seed=2",
+    ],
+}
+FORMATS = {"torchscript": ".pt", "onnx": ".onnx"}
+ENV_VARS = {"RLEXP_ENV_MODULES": "export_envs"}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> Iterator[dict[str, Path]]:
+    """The two tiny recurrent runs, each exported in both formats (its last checkpoint)."""
+    root = tmp_path_factory.mktemp("recurrent_export")
+    dirs = {name: root / name for name in RUNS}
+    extra = {"PYTHONPATH": os.pathsep.join([str(REPO / "src"), str(TESTS)]), **ENV_VARS}
+    train_side_by_side({n: [*TINY, *RUNS[n]] for n in RUNS}, dirs, root, extra)
+    old = os.environ.get("RLEXP_ENV_MODULES")
+    os.environ["RLEXP_ENV_MODULES"] = "export_envs"
+    try:
+        for run_dir in dirs.values():
+            for fmt in FORMATS:
+                rc, _, err = _cli("export", run_dir, "--format", fmt, "--out", run_dir / "p")
+                assert rc == 0, err
+        yield dirs
+    finally:
+        if old is None:
+            os.environ.pop("RLEXP_ENV_MODULES")
+        else:
+            os.environ["RLEXP_ENV_MODULES"] = old
+
+
+def _meta(path: Path) -> dict:
+    return json.loads(metadata_path(path).read_text())
+
+
+def _state(name: str, layers: int, hidden: int) -> dict:
+    return {
+        "name": name,
+        "output": f"{name}_out",
+        "dtype": "float32",
+        "shape": ["batch", layers, hidden],
+    }
+
+
+def test_the_metadata_says_the_state_and_how_to_reset_it(runs):
+    lstm = _meta(runs["lstm"] / "p.pt")
+    assert lstm["memory"] == {
+        "type": "lstm",
+        "num_layers": 2,
+        "hidden_size": 12,
+        "shared": False,
+        "state": [_state("actor_h", 2, 12), _state("actor_c", 2, 12)],
+        "reset": "zeros at episode start",
+    }
+    assert lstm["output_names"] == ["action", "actor_h_out", "actor_c_out"]
+    assert [i["name"] for i in lstm["inputs"]] == ["observation"]  # the actor's joints and phase
+    gru = _meta(runs["gru"] / "p.onnx")
+    assert gru["memory"]["type"] == "gru" and gru["memory"]["state"] == [_state("actor_h", 1, 8)]
+    assert gru["output_names"] == ["action", "actor_h_out"]
+    assert [i["name"] for i in gru["inputs"]] == ["observation", "camera"]
+    for meta in (lstm, gru):  # the critic's memory is not the file's
+        assert "critic_" not in json.dumps({k: meta[k] for k in ("memory", "inputs")})
+
+
+#: Runs in a fresh interpreter where ``import rlexp`` fails: whole episodes of the env stepped
+#: through each file with the numpy helper, the state carried from output to input.
+_OUTSIDE = textwrap.dedent(
+    """
+    import pickle, runpy, sys
+    sys.path = [p for p in sys.path if not p.rstrip("/").endswith("/src")]
+    class NoRlexp:
+        def find_spec(self, name, path=None, target=None):
+            if name == "rlexp" or name.startswith("rlexp."):
+                raise ModuleNotFoundError(f"No module named {name!r}")
+    sys.meta_path.insert(0, NoRlexp())
+    import gymnasium as gym, numpy as np, torch
+    job = pickle.load(open(sys.argv[1], "rb"))
+    sys.path.insert(0, job["tests"])
+    import export_envs  # registers the ids
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        ort = None
+    out = {}
+    for fmt, (file, helper) in job["files"].items():
+        if fmt == "onnx" and ort is None:
+            continue
+        h = runpy.run_path(helper)
+        names = [s["name"] for s in h["MEMORY"]["state"]]
+        if fmt == "torchscript":
+            module = torch.jit.load(file)
+            run = lambda feed: [y.numpy() for y in module(*[torch.from_numpy(v) for v in feed.values()])]
+        else:
+            session = ort.InferenceSession(file, providers=["CPUExecutionProvider"])
+            signature = [(i.name, i.shape) for i in session.get_inputs()]
+            outputs = [o.name for o in session.get_outputs()]
+            run = lambda feed: session.run(outputs, feed)
+        env = gym.make(job["env_id"])
+        obs, _ = env.reset(seed=job["seed"])
+        state = h["initial_state"]()
+        steps = []
+        for episode in range(job["episodes"]):
+            done, start = False, True
+            while not done:
+                y, *new = run({**h["inputs"](obs), **state})
+                steps.append((obs, start, y, new))
+                state, start = dict(zip(names, new)), False
+                obs, _, terminated, truncated, _ = env.step(h["env_action"](y[0]))
+                done = terminated or truncated
+            obs, _ = env.reset()
+            state = h["reset_state"](state, [True])  # the next episode starts from zeros
+        out[fmt] = {"steps": steps, "signature": signature if fmt == "onnx" else None,
+                    "outputs": outputs if fmt == "onnx" else None}
+    assert not any(m == "rlexp" or m.startswith("rlexp.") for m in sys.modules)
+    pickle.dump(out, open(sys.argv[2], "wb"))
+    """
+)
+
+
+def _outside_rlexp(run_dir: Path, tmp_path: Path, episodes: int = 2) -> dict:
+    files = {}
+    for fmt, suffix in FORMATS.items():
+        path = run_dir / f"p{suffix}"
+        files[fmt] = (str(path), str(path.parent / _meta(path)["observation_helper"]))
+    env_id = _meta(run_dir / "p.pt")["env_id"].split(":")[-1]
+    job, result = tmp_path / "job.pkl", tmp_path / "result.pkl"
+    job.write_bytes(pickle.dumps({"files": files, "env_id": env_id, "seed": 17,
+                                  "episodes": episodes, "tests": str(TESTS)}))  # fmt: skip
+    (tmp_path / "outside.py").write_text(_OUTSIDE)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.run(
+        [sys.executable, "-I", "outside.py", str(job), str(result)],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return pickle.loads(result.read_bytes())
+
+
+def _policy_actions(run_dir: Path, steps: list, carry: bool = True) -> np.ndarray:
+    """The checkpoint's policy, in process, on the observations the file saw: ``policy.act`` with
+    the state carried and set to ``initial_state`` at each episode's start (``carry=False``: at
+    every step, a policy without memory), as the env's values (Box clipped, categorical + start)."""
+    from tensordict import TensorDict
+
+    from rlexp.deploy.policy_eval import open_source, typed_config
+    from rlexp.envs.factory import make_env
+
+    source = open_source(run_dir)
+    config = typed_config(source.config, str(run_dir))
+    env = make_env(config.env, 1, seed=0)
+    try:
+        policy = source.build(config, env).policy  # (rlexp eval's RecurrentActor holds it)
+        coding = env.action_coding
+        out, state = [], None
+        for obs, start, _, _ in steps:
+            encoded = env.obs_layout.encode(obs)
+            if isinstance(encoded, dict):
+                x = TensorDict({k: torch.from_numpy(np.asarray(v))[None] for k, v in
+                                encoded.items()}, batch_size=[1])  # fmt: skip
+            else:
+                x = torch.from_numpy(np.asarray(encoded))[None]
+            if start or not carry:
+                state = policy.initial_state(1)
+            action, state = policy.act(x, state, deterministic=True)
+            if coding.categorical:
+                out.append((action + torch.tensor(coding.start)).numpy()[0])
+            else:
+                low, high = env.action_spec.space.low[0], env.action_spec.space.high[0]
+                out.append(torch.clamp(action, low, high).numpy()[0])
+        return np.stack(out)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("name", ["lstm", "gru"])
+def test_episodes_stepped_through_the_file_outside_rlexp_act_as_the_policy(runs, tmp_path, name):
+    pytest.importorskip("onnxruntime", reason="the ONNX half needs onnxruntime (extra 'export')")
+    got = _outside_rlexp(runs[name], tmp_path)
+    assert set(got) == set(FORMATS)
+    layers, hidden = (2, 12) if name == "lstm" else (1, 8)
+    states = ["actor_h", "actor_c"] if name == "lstm" else ["actor_h"]
+    onnx = got["onnx"]
+    assert [n for n, _ in onnx["signature"]][-len(states) :] == states
+    assert [s for n, s in onnx["signature"] if n in states] == [["batch", layers, hidden]] * len(
+        states
+    )
+    assert onnx["outputs"] == ["action", *(f"{s}_out" for s in states)]
+    for fmt, result in got.items():
+        steps = result["steps"]
+        assert len(steps) == (24 if name == "lstm" else 16)  # 2 episodes of 12 / 8 steps
+        assert [i for i, (_, start, _, _) in enumerate(steps) if start] == [0, len(steps) // 2]
+        file_actions = np.concatenate([y for _, _, y, _ in steps])
+        assert not np.allclose(file_actions, file_actions[:1]), "one action throughout: vacuous"
+        want = _policy_actions(runs[name], steps)
+        if name == "lstm":
+            np.testing.assert_allclose(file_actions, want, atol=1e-5, rtol=0, err_msg=fmt)
+        else:
+            np.testing.assert_array_equal(file_actions, want, err_msg=fmt)
+        for _, _, _, new in steps:  # the state out has the metadata's shape
+            assert [s.shape for s in new] == [(1, layers, hidden)] * len(states), fmt
+    # the memory matters: without the carried state the policy acts otherwise
+    memoryless = _policy_actions(runs[name], got["torchscript"]["steps"], carry=False)
+    assert not np.allclose(
+        memoryless, np.concatenate([y for _, _, y, _ in got["torchscript"]["steps"]])
+    )
+
+
+def test_rlexp_eval_of_the_files_carries_and_resets_the_state_as_the_run_did(runs, monkeypatch):
+    """The run's last eval round (in training), ``rlexp eval`` of its checkpoint and of its
+    TorchScript file: the same numbers, exactly (ONNX: within onnxruntime's rounding); a file
+    whose state is never reset at an episode's end gives others."""
+    from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
+    from rlexp.deploy.export_feed import ExportedPolicy
+
+    monkeypatch.setenv("RLEXP_ENV_MODULES", "export_envs")
+    run_dir = runs["lstm"]
+    logged = load_checkpoint(latest_checkpoint(run_dir / "checkpoints"))["last_eval"]
+    want = (logged["eval/episode_return"], logged["eval/episode_return_std"])
+    checkpoint = evaluate(str(run_dir), None, None)
+    script = evaluate(str(run_dir / "p.pt"), None, None)
+    assert checkpoint["episodes"] == script["episodes"] == 3
+    assert (checkpoint["mean_return"], checkpoint["std_return"]) == want
+    assert (script["mean_return"], script["std_return"]) == want
+    onnx = evaluate(str(run_dir / "p.onnx"), None, None)
+    assert onnx["mean_return"] == pytest.approx(want[0], rel=1e-5)
+    monkeypatch.setattr(ExportedPolicy, "episodes_ended", lambda self, done: None)
+    kept = evaluate(str(run_dir / "p.pt"), None, None)
+    assert abs(kept["mean_return"] - want[0]) > 1e-3, kept  # (float rounding is far below)
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"type": "rnn"}, "memory.type='rnn' is not one of ['lstm', 'gru']"),
+        ({"hidden_size": 13}, "memory.state="),
+        ({"reset": "never"}, "memory.reset='never' is not 'zeros at episode start'"),
+        ({"num_layers": 0}, "memory.num_layers=0 is not a whole number >= 1"),
+        ({"shared": "yes"}, "memory.shared='yes' is not true or false"),
+    ],
+)
+def test_a_tampered_memory_field_is_one_line(runs, tmp_path, change, words):
+    path = tmp_path / "p.pt"
+    shutil.copy(runs["lstm"] / "p.pt", path)
+    meta = _meta(runs["lstm"] / "p.pt")
+    meta["memory"].update(change)
+    metadata_path(path).write_text(json.dumps(meta))
+    rc, _, err = _cli("eval", path)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2 and len(lines) == 1, err
+    assert words in lines[0] and "export metadata is data" in lines[0], lines[0]
