@@ -211,9 +211,10 @@ def actor_rnn(policy: nn.Module) -> nn.Module:
 def state_names(actor: DeterministicActor) -> list[str]:
     """The file's state inputs (``actor_h``, and ``actor_c`` for an LSTM; [] without memory); the
     outputs are the same names plus ``_out``."""
-    if isinstance(actor.core, LstmStep):
+    core = getattr(actor, "core", None)
+    if isinstance(core, LstmStep):
         return ["actor_h", "actor_c"]
-    return ["actor_h"] if isinstance(actor.core, GruStep) else []
+    return ["actor_h"] if isinstance(core, GruStep) else []
 
 
 def state_shape(actor: DeterministicActor) -> list[int]:
