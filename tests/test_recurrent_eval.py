@@ -148,3 +148,27 @@ def test_the_eval_worker_gives_the_in_process_round_exactly():
     finally:
         worker.close()
     assert done.step == 7 and got == want
+
+
+def test_the_chunked_device_loop_carries_the_state_as_the_per_step_loop():
+    """The lean loop of an env on a GPU (rewards and dones read back every DEVICE_CHUNK steps, the
+    state reset on the device) run here on the CPU: the per-step loop's numbers."""
+    from rlexp.envs.factory import make_env
+    from rlexp.training.evaluation import EpisodeTally, RecurrentActor, _device_loop, run_round
+
+    config = _config("lstm")
+    env = make_env(config.env, COPIES, SEED)
+    try:
+        policy = _policy(config, env)
+        want = run_round(env, policy, EPISODES, SEED)
+        env.set_seed(SEED)
+        actor = RecurrentActor(policy)
+        tally = EpisodeTally(COPIES, EPISODES)
+        obs = env.reset().get("observation")
+        _device_loop(env, actor.act, actor.episodes_ended, obs, tally, torch.device("cpu"), None)
+    finally:
+        env.close()
+    got = tally.metrics()
+    assert got.pop("eval/episodes") == EPISODES
+    assert got["eval/episode_length"] == want["eval/episode_length"]
+    assert got == pytest.approx(want, rel=1e-7)  # (it reads rewards back as float32)

@@ -309,3 +309,18 @@ def test_a_tampered_memory_field_is_one_line(runs, tmp_path, change, words):
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert rc == 2 and len(lines) == 1, err
     assert words in lines[0] and "export metadata is data" in lines[0], lines[0]
+
+
+def test_an_image_key_named_like_a_state_input_is_renamed():
+    """The state inputs keep their fixed names (actor_h, actor_c): an image keyed ``actor_h``
+    becomes ``actor_h_``."""
+    from types import SimpleNamespace
+
+    from torch import nn
+
+    from rlexp.deploy.export_actor import LstmStep, input_names, state_names
+
+    core = LstmStep(nn.LSTM(3, 4, batch_first=True))
+    actor = SimpleNamespace(reads_vector=True, image_keys=["actor_h", "actor_c"], core=core)
+    assert state_names(actor) == ["actor_h", "actor_c"]
+    assert input_names(actor) == ["observation", "actor_h_", "actor_c_"]
