@@ -171,4 +171,4 @@ def test_the_chunked_device_loop_carries_the_state_as_the_per_step_loop():
     got = tally.metrics()
     assert got.pop("eval/episodes") == EPISODES
     assert got["eval/episode_length"] == want["eval/episode_length"]
-    assert got == pytest.approx(want, rel=1e-7)  # (it reads rewards back as float32)
+    assert got == pytest.approx(want, rel=1e-6)  # (it reads rewards back as float32)
