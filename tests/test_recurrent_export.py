@@ -324,3 +324,19 @@ def test_an_image_key_named_like_a_state_input_is_renamed():
     actor = SimpleNamespace(reads_vector=True, image_keys=["actor_h", "actor_c"], core=core)
     assert state_names(actor) == ["actor_h", "actor_c"]
     assert input_names(actor) == ["observation", "actor_h_", "actor_c_"]
+
+
+@pytest.mark.parametrize("suffix", list(FORMATS.values()))
+def test_metadata_without_the_memory_of_a_recurrent_file_is_one_line(runs, tmp_path, suffix):
+    """A recurrent file whose metadata lost its ``memory`` would be called without its state."""
+    pytest.importorskip("onnxruntime")
+    path = tmp_path / f"p{suffix}"
+    shutil.copy(runs["lstm"] / f"p{suffix}", path)
+    meta = _meta(runs["lstm"] / f"p{suffix}")
+    del meta["memory"], meta["output_names"]
+    metadata_path(path).write_text(json.dumps(meta))
+    rc, _, err = _cli("eval", path)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2 and len(lines) == 1, err
+    assert "takes the inputs ['observation', 'actor_h', 'actor_c']; its metadata names " \
+        "['observation']" in lines[0], lines[0]  # fmt: skip

@@ -221,11 +221,20 @@ def load_exported(path: Path, meta: dict[str, Any]) -> Callable[[Any], Any]:
     float32``) -> the action, or (recurrent) the tuple of the action and the new state (tensors)."""
     import torch
 
+    names = [i["name"] for i in meta.get("inputs") or [{"name": meta.get("input_name")}]]
+    outs = [meta.get("output_name")]
+    memory = meta.get("memory")
+    if memory is not None:  # the state in after the observation, out after the action
+        names += [s["name"] for s in memory["state"]]
+        outs += [s["output"] for s in memory["state"]]
     if meta["format"] == "torchscript":
         try:
             module = torch.jit.load(str(path), map_location="cpu").eval()
         except (RuntimeError, ValueError) as exc:
             raise ValueError(f"exported policy {str(path)!r} does not load: {exc}") from None
+        takes = [a.name for a in module.forward.schema.arguments][1:]  # (after self)
+        if meta.get("inputs") is not None:  # (older exports named no inputs)
+            _check_signature(path, takes, names)
         return module
     from rlexp.extras import require
 
@@ -239,12 +248,7 @@ def load_exported(path: Path, meta: dict[str, Any]) -> Callable[[Any], Any]:
     except Exception as exc:  # onnxruntime's own exception types (InvalidProtobuf, ...)
         text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ValueError(f"exported policy {str(path)!r} does not load: {text}") from None
-    names = [i["name"] for i in meta.get("inputs") or [{"name": meta["input_name"]}]]
-    outs = [meta["output_name"]]
-    memory = meta.get("memory")
-    if memory is not None:  # the state in after the observation, out after the action
-        names += [s["name"] for s in memory["state"]]
-        outs += [s["output"] for s in memory["state"]]
+    _check_signature(path, [i.name for i in session.get_inputs()], names)
 
     def act(*inputs: Any) -> Any:
         feed = {n: x.numpy() for n, x in zip(names, inputs, strict=True)}
@@ -252,6 +256,16 @@ def load_exported(path: Path, meta: dict[str, Any]) -> Callable[[Any], Any]:
         return got[0] if memory is None else tuple(got)
 
     return act
+
+
+def _check_signature(path: Path, takes: list[str], names: list[str]) -> None:
+    """One line when the file's inputs are not the ones its metadata names (a recurrent policy's
+    state among them): the metadata is another file's, or was edited."""
+    if takes != names:
+        raise ValueError(
+            f"exported policy {str(path)!r} takes the inputs {takes}; its metadata names {names}: "
+            "they belong together (re-export the checkpoint with rlexp export)"
+        )
 
 
 def evaluate(
