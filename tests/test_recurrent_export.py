@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import re
 import shutil
 import subprocess
 import sys
@@ -28,7 +29,6 @@ from rlexp.deploy.policy_eval import evaluate, metadata_path
 
 TESTS = Path(__file__).parent
 TINY = [
-    "env=gym",
     "env.num_envs=2",
     "env.num_eval_envs=2",
     "trainer.total_frames=256",
@@ -45,6 +45,7 @@ RUNS = {
     # an LSTM of 2 layers x 12 on the actor's selection (joints, phase); the critic, with its own
     # LSTM, also reads the privileged state
     "lstm": [
+        "env=gym",
         "env.name=export_envs:Privileged-v0",
         "policy.actor.observations=[joints,phase]",
         "policy.memory.type=lstm",
@@ -55,6 +56,7 @@ RUNS = {
     ],
     # a GRU of 8 after the Nature CNN on the HWC camera and the speed vector (categorical actions)
     "gru": [
+        "env=gym",
         "env.name=export_envs:Pixels-v0",
         "policy=cnn",
         "policy.actor.observations=[camera,speed]",
@@ -63,7 +65,17 @@ RUNS = {
         "policy.ortho_init=false",  # (logits far enough apart for the actions to vary)
         "seed=2",
     ],
+    # docs/export.md's run: an LSTM on Pendulum-v1 (its blocks run verbatim)
+    "pendulum": [
+        "env=pendulum",
+        "policy.memory.type=lstm",
+        "policy.memory.hidden_size=12",
+        "policy.ortho_init=false",
+        "seed=5",
+    ],
 }
+#: docs/export.md's run dir (its blocks name it; the test trains the pendulum run there)
+DOC_RUN = "outputs/2026-11-28/11-00-00.123456"
 FORMATS = {"torchscript": ".pt", "onnx": ".onnx"}
 ENV_VARS = {"RLEXP_ENV_MODULES": "export_envs"}
 
@@ -73,16 +85,18 @@ def runs(tmp_path_factory) -> Iterator[dict[str, Path]]:
     """The two tiny recurrent runs, each exported in both formats (its last checkpoint)."""
     root = tmp_path_factory.mktemp("recurrent_export")
     dirs = {name: root / name for name in RUNS}
+    dirs["pendulum"] = root / DOC_RUN
     extra = {"PYTHONPATH": os.pathsep.join([str(REPO / "src"), str(TESTS)]), **ENV_VARS}
     train_side_by_side({n: [*TINY, *RUNS[n]] for n in RUNS}, dirs, root, extra)
     old = os.environ.get("RLEXP_ENV_MODULES")
     os.environ["RLEXP_ENV_MODULES"] = "export_envs"
     try:
-        for run_dir in dirs.values():
+        for name, run_dir in dirs.items():
+            where = ["--checkpoint", "best"] if name == "pendulum" else ["--out", run_dir / "p"]
             for fmt in FORMATS:
-                rc, _, err = _cli("export", run_dir, "--format", fmt, "--out", run_dir / "p")
+                rc, _, err = _cli("export", run_dir, "--format", fmt, *where)
                 assert rc == 0, err
-        yield dirs
+        yield {"root": root, **dirs}
     finally:
         if old is None:
             os.environ.pop("RLEXP_ENV_MODULES")
@@ -340,3 +354,69 @@ def test_metadata_without_the_memory_of_a_recurrent_file_is_one_line(runs, tmp_p
     assert rc == 2 and len(lines) == 1, err
     assert "takes the inputs ['observation', 'actor_h', 'actor_c']; its metadata names " \
         "['observation']" in lines[0], lines[0]  # fmt: skip
+
+
+#: Runs a docs block in a fresh interpreter where ``import rlexp`` fails, recording each step the
+#: block's env takes: (observation, whether an episode starts with it, action).
+_HARNESS = textwrap.dedent(
+    """
+    import pickle, runpy, sys
+    sys.path = [p for p in sys.path if not p.rstrip("/").endswith("/src")]
+    class NoRlexp:
+        def find_spec(self, name, path=None, target=None):
+            if name == "rlexp" or name.startswith("rlexp."):
+                raise ModuleNotFoundError(f"No module named {name!r}")
+    sys.meta_path.insert(0, NoRlexp())
+    import gymnasium as gym
+    real_make, seen = gym.make, []
+    def make(*args, **kwargs):
+        env = real_make(*args, **kwargs)
+        reset, step, last = env.reset, env.step, {}
+        def on_reset(*a, **k):
+            obs, info = reset(*a, **k)
+            last.update(obs=obs, start=True)
+            return obs, info
+        def on_step(action):
+            seen.append((last["obs"], last["start"], action))
+            out = step(action)
+            last.update(obs=out[0], start=False)
+            return out
+        env.reset, env.step = on_reset, on_step
+        return env
+    gym.make = make
+    runpy.run_path(sys.argv[1], run_name="__main__")
+    assert not any(m == "rlexp" or m.startswith("rlexp.") for m in sys.modules)
+    pickle.dump(seen, open(sys.argv[2], "wb"))
+    """
+)
+
+
+def _doc_blocks() -> list[str]:
+    text = (REPO / "docs" / "export.md").read_text()
+    section = text.split("## Recurrent policies", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"```python\n(.*?)```", section, re.S)
+
+
+def test_the_docs_recurrent_blocks_run_verbatim_and_act_as_the_policy(runs):
+    """docs/export.md's two blocks (TorchScript: two episodes; ONNX: one), outside rlexp in the
+    run's folder: every action the env got is the policy's, the state carried and reset."""
+    pytest.importorskip("onnxruntime")
+    blocks = _doc_blocks()
+    assert len(blocks) == 2 and "torch.jit.load" in blocks[0] and "onnxruntime" in blocks[1]
+    root = runs["root"]
+    (root / "harness.py").write_text(_HARNESS)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    for i, (block, episodes) in enumerate(zip(blocks, (2, 1), strict=True)):
+        (root / f"block{i}.py").write_text(block)
+        proc = subprocess.run(
+            [sys.executable, "-I", "harness.py", f"block{i}.py", f"block{i}.pkl"],
+            cwd=root, env=env, capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        seen = pickle.loads((root / f"block{i}.pkl").read_bytes())
+        assert len(seen) == 200 * episodes and sum(start for _, start, _ in seen) == episodes
+        got = np.stack([np.asarray(a, dtype=np.float32) for _, _, a in seen])
+        best = runs["pendulum"] / "checkpoints" / "best.pt"  # what the blocks' files hold
+        want = _policy_actions(best, [(o, start, None, None) for o, start, _ in seen])
+        np.testing.assert_allclose(got, want, atol=1e-5, rtol=0, err_msg=f"block {i}")
+        assert not np.allclose(got, got[:1])
