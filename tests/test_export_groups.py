@@ -292,7 +292,7 @@ def test_eval_of_an_image_run_s_checkpoint_and_exports_agree(runs, monkeypatch):
         ("dtype", "float64", "inputs[1].dtype='float64' is not 'uint8'"),
         ("name", "__import__('os')", "inputs[1].name="),
         ("shape", ["batch", 3, 36], "inputs[1].shape="),
-        ("kind", "code", "inputs[1].kind='code' is not one of ['vector', 'image']"),
+        ("kind", "code", "inputs[1].kind='code' is not one of ['vector', 'image', 'action_mask']"),
         (
             "parts",
             [

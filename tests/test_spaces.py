@@ -362,11 +362,16 @@ def test_registered_gymnasium_envs_of_every_space_step_and_checkpoint(env_id):
     for _ in range(30):
         nxt = env.step_tensors(sample(obs)[-2])
         obs = env.autoreset_observation(nxt)
+    if env_id.startswith("Taxi"):  # info["action_mask"] (issue #48): a TensorDict with the mask
+        mask = obs.get("action_mask")
+        assert mask.dtype == torch.bool and mask.shape == (2, 6) and mask.any(-1).all()
+        obs = obs.get("vector")
     assert obs.dtype == torch.float32 and torch.isfinite(obs).all()
     state = env.env_state()
     env.load_env_state(state)
     assert env.resume_mode.startswith("restarted")
-    assert env.reset()["observation"].shape == obs.shape
+    again = env.reset()["observation"]
+    assert (again.get("vector") if env_id.startswith("Taxi") else again).shape == obs.shape
     env.close()
 
 

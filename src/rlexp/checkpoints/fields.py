@@ -155,10 +155,12 @@ def _check_pending_observation(pending: Any) -> None:
         for key, value in pending.items():
             image = isinstance(value, torch.Tensor) and value.dtype == torch.uint8
             floats = isinstance(value, torch.Tensor) and value.is_floating_point()
-            if not (isinstance(key, str) and (floats if key == "vector" else image)):
+            mask = isinstance(value, torch.Tensor) and value.dtype == torch.bool
+            want = {"vector": floats, "action_mask": mask}.get(key, image)
+            if not (isinstance(key, str) and want):
                 raise FieldError(
                     f"pending_observation[{_shown(key)}] is {_shown(value)[:40]}; expected a float "
-                    "'vector' or uint8 images"
+                    "'vector', uint8 images or a bool 'action_mask'"
                 )
         return
     raise FieldError(f"pending_observation is {_shown(pending)[:40]}, not a float tensor")

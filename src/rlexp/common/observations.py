@@ -99,6 +99,8 @@ def from_plain(value: Any) -> Observation | None:
         return value
     td = TensorDict(dict(value), batch_size=[])
     vector = td.get(VECTOR, None)
+    if vector is None:  # an action mask [..., width] has the batch dims the vector would have
+        vector = td.get("action_mask", None)
     if vector is not None:
         batch = vector.shape[:-1]
     else:  # images only: [..., C, H, W]

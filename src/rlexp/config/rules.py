@@ -48,6 +48,9 @@ RESCALE_BACKENDS = ("gymnasium", "gymnasium_async", "envpool")
 #: Backends that detect image observations and stack frames (env.frame_stack, env.image_keys): the
 #: Gymnasium-shaped adapters; a torchrl env's uint8 entries pass as they are.
 IMAGE_BACKENDS = ("gymnasium", "gymnasium_async", "envpool")
+#: Backends that read action masks from the env (env.action_mask: info | observation; docs/envs.md;
+#: vecenv: its extras, info only).
+MASK_BACKENDS = ("gymnasium", "gymnasium_async", "vecenv")
 #: Backends whose env is built by a callable the config names (``env.name=package.module:callable``).
 CALLABLE_BACKENDS = ("vecenv", "torchrl")
 #: The metrics an evaluation round logs: what ``trainer.best_metric`` may follow.
@@ -303,6 +306,15 @@ FIELD_RULES: dict[str, Rule] = {
         lambda v: isinstance(v, int) and 0 <= v <= 64,
         f"0 to 64 (0 or 1: off); above 1 only with env.backend one of {list(IMAGE_BACKENDS)} "
         "and an image observation (checked by building one env)",
+    ),
+    "env.action_mask": Rule(
+        lambda v: v in ("auto", "info", "observation", "off"),
+        "one of ['auto', 'info', 'observation', 'off'] (where the mask of valid categorical actions "
+        f"comes from; info and observation only with env.backend one of {list(MASK_BACKENDS)})",
+    ),
+    "env.action_mask_key": Rule(
+        lambda v: isinstance(v, str) and bool(v),
+        "a non-empty info key or Dict observation key (the action mask's; default action_mask)",
     ),
     "env.image_keys": Rule(
         lambda v: isinstance(v, list | tuple) and all(isinstance(k, str) and k for k in v),

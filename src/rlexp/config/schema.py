@@ -262,6 +262,10 @@ class EnvConfig:
     # images (gymnasium, gymnasium_async, envpool; docs/envs.md "Images"): stack each image's last
     # N frames where the env does not (0 or 1: off; newest last, a reset fills with its frame)
     frame_stack: int = 0
+    # categorical actions (gymnasium, gymnasium_async; docs/envs.md "Action masks"): where the mask
+    # of valid actions comes from: auto | info | observation | off
+    action_mask: str = "auto"
+    action_mask_key: str = "action_mask"  # the info key or Dict observation key holding the mask
     # observation keys read as images besides the detected ones (uint8 Box of rank 3 or 4), e.g. a
     # [H, W] grey image; an image at the root is "pixels"
     image_keys: list[str] = field(default_factory=list)

@@ -20,6 +20,7 @@ from rlexp.config.rules import (
     ACTIVATIONS,
     FIELD_RULES,
     IMAGE_BACKENDS,
+    MASK_BACKENDS,
     MAX_NAME,
     MUTABLE_HYPERPARAMETERS,
     OVERLAP_BACKENDS,
@@ -239,6 +240,11 @@ def validate(config: RootConfig) -> None:
             f"env.rescale_actions=true maps the policy's [-1, 1] onto a Gymnasium Box's bounds; "
             f"env.backend={e.backend!r} does not: use one of {list(RESCALE_BACKENDS)}, or "
             "env.rescale_actions=false"
+        )
+    if e.action_mask in ("info", "observation") and e.backend not in MASK_BACKENDS:
+        raise ConfigError(
+            f"env.action_mask={e.action_mask}: env.backend={e.backend!r} does not read action "
+            f"masks; use one of {list(MASK_BACKENDS)}, or env.action_mask=off"
         )
     if (e.frame_stack > 1 or e.image_keys) and e.backend not in IMAGE_BACKENDS:
         what = f"env.frame_stack={e.frame_stack}" if e.frame_stack > 1 else "env.image_keys"

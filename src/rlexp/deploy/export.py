@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from rlexp.checkpoints.files import select_checkpoint
@@ -276,7 +277,26 @@ def _sample_observations(base: Any, n: int = 8) -> list[tuple[Any, Any]]:
         return []
     space.seed(0)
     samples = [space.sample() for _ in range(n)]
-    return [(obs, base.obs_layout.encode(obs)) for obs in samples]
+    mask = base.obs_layout.mask
+    if mask is None:
+        return [(obs, base.obs_layout.encode(obs)) for obs in samples]
+    # an action mask: a sampled one may allow no value of a component; the samples' is drawn
+    # here (valid), in the observation's key or the info the helper is then given
+    rng = np.random.default_rng(0)
+    out = []
+    for obs in samples:
+        values = np.concatenate([_one_valid(rng, k) for k in mask.nvec]).astype(np.int8)
+        info = {mask.key: values}
+        if mask.source == "observation":
+            obs = {**obs, mask.key: values}
+        out.append((obs, base.obs_layout.encode(obs, info), info))
+    return out
+
+
+def _one_valid(rng: np.random.Generator, n: int) -> np.ndarray:
+    values = rng.random(n) < 0.5
+    values[rng.integers(n)] = True
+    return values
 
 
 def _write_helper(
@@ -295,7 +315,9 @@ def _write_helper(
     atomic_write_text(path, text)
     if samples:
         try:
-            check_helper(path, [(obs, rlexp_inputs(seen, inputs)) for obs, seen in samples])
+            pairs = [(s[0], rlexp_inputs(s[1], inputs)) for s in samples]
+            infos = [s[2] for s in samples] if len(samples[0]) > 2 else None
+            check_helper(path, pairs, infos)
         except ValueError:
             path.unlink()
             raise

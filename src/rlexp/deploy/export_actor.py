@@ -8,15 +8,17 @@ those, never what only the critic reads:
 - ``observation``: float32 [batch, n], the actor's vector parts in layout order (absent when the
   actor reads no vector part); the normaliser's statistics are gathered to those columns (the
   policy normalises the whole vector per dimension, then gathers: the same numbers);
-- one uint8 [batch, C, H, W] input per image the actor reads, in layout order, /255 inside.
+- one uint8 [batch, C, H, W] input per image the actor reads, in layout order, /255 inside;
+- ``action_mask`` (categorical actions with an action mask, issue #48): bool [batch, sum(nvec)],
+  last; the argmax is over the valid values of each component (invalid logits at float32's min).
 
 A recurrent actor (``policy.memory.type`` lstm / gru) also takes its state and returns the next one:
-``actor_h`` (and ``actor_c`` for an LSTM) float32 [batch, num_layers, hidden_size] after the
-observation inputs, ``actor_h_out`` (``actor_c_out``) after the action (``RecurrentStep``; the
-critic's memory is never exported).
+``actor_h`` (and ``actor_c`` for an LSTM) float32 [batch, num_layers, hidden_size] after the other
+inputs (``action_mask`` included), ``actor_h_out`` (``actor_c_out``) after the action
+(``LstmStep`` / ``GruStep``; the critic's memory is never exported).
 
-A policy without images or memory exports this module itself (``forward(observation)``, as before
-groups existed); otherwise a thin wrapper whose ``forward`` names one argument per input is made from
+A policy without images, mask or memory exports this module itself (``forward(observation)``, as
+before groups existed); otherwise a thin wrapper whose ``forward`` names one argument per input is made from
 source (TorchScript needs a fixed signature). Image encoders are traced for TorchScript (their
 reshapes over leading batch dims are not scriptable) and exported as they are for ONNX.
 """
@@ -28,13 +30,17 @@ import keyword
 import linecache
 import re
 import warnings
-from typing import Any
+from typing import Any, Optional
 
 import torch
 from torch import nn
 
 #: The name of the vector input (the ONNX graph name; TorchScript's argument name).
 VECTOR_INPUT = "observation"
+#: The name of the action mask's input (bool [batch, sum(nvec)]; envs/masks.py).
+MASK_INPUT = "action_mask"
+#: float32's smallest value: an invalid action's logit (as policies.heads.mask_logits sets it)
+_MASKED_LOGIT = float(torch.finfo(torch.float32).min)
 
 
 class DeterministicActor(nn.Module):
@@ -48,7 +54,7 @@ class DeterministicActor(nn.Module):
     # TorchScript: fixed branches
     __constants__ = [
         "normalize", "clip", "clamp_actions", "rescale", "categorical", "uniform", "k", "n",
-        "reads_vector", "recurrent",
+        "reads_vector", "masked", "masked_logit", "recurrent",
     ]  # fmt: skip
 
     def __init__(
@@ -89,6 +95,11 @@ class DeterministicActor(nn.Module):
         self.uniform = len(set(nvec)) == 1
         self.k, self.n = len(nvec), nvec[0]
         self.register_buffer("action_start", torch.tensor(start or [0] * self.k, dtype=torch.int64))
+        # an action mask input (the env's layout has one): invalid values never the argmax
+        layout = getattr(policy, "obs_layout", None)
+        self.mask_spec = getattr(layout, "mask", None) if self.categorical else None
+        self.masked = self.mask_spec is not None
+        self.masked_logit = _MASKED_LOGIT
         # env.rescale_actions: [-1, 1] (the clamp's bounds) onto the env's (low, (high - low) / 2)
         self.rescale = rescale is not None
         low0, half = rescale if rescale is not None else (torch.zeros(1), torch.ones(1))
@@ -100,23 +111,30 @@ class DeterministicActor(nn.Module):
         self.core = core if core is not None else nn.Identity()
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        return self.act(observation, [])
+        return self.act(observation, [], None)
 
-    def act(self, observation: torch.Tensor, images: list[torch.Tensor]) -> torch.Tensor:
-        """The action for the actor's vector (ignored when it reads none) and its uint8 images."""
-        return self.head(self.features(observation, images))
+    def act(
+        self,
+        observation: torch.Tensor,
+        images: list[torch.Tensor],
+        action_mask: Optional[torch.Tensor] = None,  # noqa: UP045  (TorchScript reads Optional)
+    ) -> torch.Tensor:
+        """The action for the actor's vector (ignored when it reads none), its uint8 images and
+        (categorical) the action mask: bool [batch, sum(nvec)], True where a value is valid."""
+        return self.head(self.features(observation, images), action_mask)
 
     def act_recurrent(
         self,
         observation: torch.Tensor,
         images: list[torch.Tensor],
+        action_mask: Optional[torch.Tensor],  # noqa: UP045  (TorchScript reads Optional)
         h: torch.Tensor,
         c: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """A recurrent actor's step: the action and the next state (``c``: an LSTM's cell state;
         a GRU's is passed through unused)."""
         y, h, c = self.core(self.features(observation, images), h, c)
-        return self.head(y), h, c
+        return self.head(y, action_mask), h, c
 
     def features(self, observation: torch.Tensor, images: list[torch.Tensor]) -> torch.Tensor:
         """The normalised vector and the encoded images, as the actor's MLP (or memory) reads them."""
@@ -134,10 +152,16 @@ class DeterministicActor(nn.Module):
             i += 1
         return features[0] if len(features) == 1 else torch.cat(features, -1)
 
-    def head(self, x: torch.Tensor) -> torch.Tensor:
-        """The MLP's output as the env's action (argmax, clip, rescale)."""
+    def head(
+        self,
+        x: torch.Tensor,
+        action_mask: Optional[torch.Tensor] = None,  # noqa: UP045  (TorchScript reads Optional)
+    ) -> torch.Tensor:
+        """The MLP's output as the env's action (the argmax over valid values, clip, rescale)."""
         out = self.mlp(x)
         if self.categorical:
+            if action_mask is not None:
+                out = out.masked_fill(action_mask.logical_not(), self.masked_logit)
             if self.uniform:
                 index = out.reshape(-1, self.k, self.n).argmax(-1)
             else:
@@ -244,6 +268,8 @@ def input_names(actor: DeterministicActor) -> list[str]:
         while name in names or name in taken:
             name += "_"
         names.append(name)
+    if getattr(actor, "masked", False):  # last, under its own name (an image key "action_mask" gets a "_")
+        names = [n + "_" if n == MASK_INPUT else n for n in names] + [MASK_INPUT]
     return names
 
 
@@ -273,7 +299,8 @@ def input_records(actor: DeterministicActor, policy: nn.Module) -> list[dict[str
             }
         )
     images = [p for p in parts if p.kind == "image"]
-    for name, p, shape in zip(names[len(out) :], images, actor.image_shapes, strict=True):
+    image_names = names[len(out) : len(names) - int(actor.masked)]
+    for name, p, shape in zip(image_names, images, actor.image_shapes, strict=True):
         out.append(
             {
                 "name": name,
@@ -283,6 +310,20 @@ def input_records(actor: DeterministicActor, policy: nn.Module) -> list[dict[str
                 "shape": ["batch", *shape],
                 "groups": [p.group],
                 "parts": [{**p.record(), "group": p.group}],
+            }
+        )
+    if actor.masked:
+        spec = actor.mask_spec
+        out.append(
+            {
+                "name": MASK_INPUT,
+                "kind": "action_mask",
+                "key": MASK_INPUT,
+                "dtype": "bool",
+                "shape": ["batch", spec.width],
+                "source": spec.source,  # info: info[mask_key]; observation: the Dict key
+                "mask_key": spec.key,
+                "nvec": list(spec.nvec),
             }
         )
     return out
@@ -299,14 +340,14 @@ class ExportedActor(torch.nn.Module):
 """
 #: The wrapper's return type and body: feed-forward, LSTM (state h, c), GRU (state h).
 _BODIES = {
-    0: ("torch.Tensor", "return self.core.act({vector}, [{images}])"),
+    0: ("torch.Tensor", "return self.core.act({vector}, [{images}], {mask})"),
     2: (
         "tuple[torch.Tensor, torch.Tensor, torch.Tensor]",
-        "return self.core.act_recurrent({vector}, [{images}], actor_h, actor_c)",
+        "return self.core.act_recurrent({vector}, [{images}], {mask}, actor_h, actor_c)",
     ),
     1: (
         "tuple[torch.Tensor, torch.Tensor]",
-        "action, h, _ = self.core.act_recurrent({vector}, [{images}], actor_h, actor_h)\n"
+        "action, h, _ = self.core.act_recurrent({vector}, [{images}], {mask}, actor_h, actor_h)\n"
         "        return action, h",
     ),
 }
@@ -314,11 +355,11 @@ _count = [0]
 
 
 def exported_module(actor: DeterministicActor, torchscript: bool) -> nn.Module:
-    """What the file holds: the actor itself without images or memory; otherwise a wrapper whose
-    ``forward`` takes one named tensor per input (the state last) and returns the action (and the
-    next state). ``torchscript``: encoders traced, all scripted."""
+    """What the file holds: the actor itself without images, mask or memory; otherwise a wrapper
+    whose ``forward`` takes one named tensor per input (the state last) and returns the action (and
+    the next state). ``torchscript``: encoders traced, all scripted."""
     states = state_names(actor)
-    if not actor.image_keys and not states:
+    if not actor.image_keys and not actor.masked and not states:
         return torch.jit.script(actor) if torchscript else actor
     core = actor
     if torchscript:
@@ -333,11 +374,13 @@ def exported_module(actor: DeterministicActor, torchscript: bool) -> nn.Module:
     names = input_names(actor)
     vector = VECTOR_INPUT if actor.reads_vector else "torch.zeros(0)"
     images = names[1:] if actor.reads_vector else names
+    images = images[:-1] if actor.masked else images
     returns, body = _BODIES[len(states)]
+    mask = MASK_INPUT if actor.masked else "None"
     source = _WRAPPER.format(
         args=", ".join(f"{n}: torch.Tensor" for n in [*names, *states]),
         returns=returns,
-        body=body.format(vector=vector, images=", ".join(images)),
+        body=body.format(vector=vector, images=", ".join(images), mask=mask),
     )
     # TorchScript reads a method's source: the generated text is registered with linecache
     _count[0] += 1
@@ -365,9 +408,21 @@ def probe_inputs(actor: DeterministicActor, batch: int, seed: int = 0) -> list[t
         out.append(probe)
     for shape in actor.image_shapes:
         out.append(torch.randint(0, 256, (batch, *shape), generator=gen, dtype=torch.uint8))
+    if actor.masked:  # random masks, one valid value per component at least
+        out.append(probe_mask(actor.mask_spec.nvec, batch, gen))
     for _ in state_names(actor):  # a state of about the size an LSTM / GRU keeps (|h| < 1)
         out.append(torch.rand(batch, *state_shape(actor), generator=gen) * 1.6 - 0.8)
     return out
+
+
+def probe_mask(nvec: Any, batch: int, gen: torch.Generator) -> torch.Tensor:
+    """Random bool masks [batch, sum(nvec)] with at least one True per component."""
+    blocks = []
+    for n in nvec:
+        block = torch.rand(batch, n, generator=gen) < 0.5
+        block[torch.arange(batch), torch.randint(0, n, (batch,), generator=gen)] = True
+        blocks.append(block)
+    return torch.cat(blocks, -1)
 
 
 def call_actor(
@@ -375,13 +430,15 @@ def call_actor(
 ) -> torch.Tensor | tuple[torch.Tensor, ...]:
     """The actor on inputs in the file's order: the action (recurrent: and the next state)."""
     states = state_names(actor)
-    if not actor.image_keys and not states:
+    if not actor.image_keys and not actor.masked and not states:
         return actor(inputs[0])
     if states:
         inputs, state = inputs[: -len(states)], inputs[-len(states) :]
     vector = inputs[0] if actor.reads_vector else torch.zeros(0)
-    images = list(inputs[1:] if actor.reads_vector else inputs)
+    mask = inputs[-1] if actor.masked else None
+    rest = inputs[:-1] if actor.masked else inputs
+    images = list(rest[1:] if actor.reads_vector else rest)
     if not states:
-        return actor.act(vector, images)
-    action, h, c = actor.act_recurrent(vector, images, state[0], state[-1])
+        return actor.act(vector, images, mask)
+    action, h, c = actor.act_recurrent(vector, images, mask, state[0], state[-1])
     return (action, h, c) if len(states) == 2 else (action, h)

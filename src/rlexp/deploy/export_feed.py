@@ -37,6 +37,7 @@ def actor_feed(meta: dict[str, Any], env: Any, where: str) -> Callable[[Any], li
     images = {p.image_key: p for p in layout.images}
     index: list[int] | None = None
     keys: list[str] = []
+    mask_key: str | None = None  # the action mask's entry (last input), where the file takes one
     for spec in meta["inputs"]:
         if spec["kind"] == "vector":
             index = []
@@ -44,6 +45,9 @@ def actor_feed(meta: dict[str, Any], env: Any, where: str) -> Callable[[Any], li
                 part = parts.get(saved["key"])
                 _check_part(saved, part, where, sorted(parts))
                 index += range(part.offset, part.offset + part.size)
+        elif spec["kind"] == "action_mask":
+            _check_mask(spec, getattr(layout, "mask", None), where)
+            mask_key = spec["key"]
         else:
             part = images.get(spec["key"])
             _check_part(spec["parts"][0], part, where, sorted(images))
@@ -58,9 +62,25 @@ def actor_feed(meta: dict[str, Any], env: Any, where: str) -> Callable[[Any], li
             x = obs.get("vector") if isinstance(obs, TensorDictBase) else obs
             x = x.cpu()
             inputs.append(x if gather is None else x.index_select(-1, gather))
-        return inputs + [obs.get(k).cpu() for k in keys]
+        inputs += [obs.get(k).cpu() for k in keys]
+        return inputs if mask_key is None else [*inputs, obs.get(mask_key).cpu()]
 
     return feed
+
+
+def _check_mask(spec: dict[str, Any], mask: Any, where: str) -> None:
+    """The env gives the action mask the file takes (same width), or one line saying it does not."""
+    if mask is None:
+        raise ValueError(
+            f"{where}: it takes an action mask ({spec['source']} key {spec['mask_key']!r}, "
+            f"{spec['shape'][1]} values) and the env of its config gives none; evaluate it on the "
+            "env it was trained on (env.action_mask must not be off)"
+        )
+    if mask.width != spec["shape"][1]:
+        raise ValueError(
+            f"{where}: its action mask has {spec['shape'][1]} values; the env's has {mask.width}: "
+            "the action space changed"
+        )
 
 
 def _check_part(saved: dict[str, Any], part: Any, where: str, have: list[str]) -> None:

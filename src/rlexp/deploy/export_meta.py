@@ -75,7 +75,7 @@ def check_fields(meta: dict[str, Any], where: str) -> None:
 
 
 #: An input's kind -> its dtype and the number of dims after the batch.
-INPUT_KINDS = {"vector": ("float32", 1), "image": ("uint8", 3)}
+INPUT_KINDS = {"vector": ("float32", 1), "image": ("uint8", 3), "action_mask": ("bool", 1)}
 #: How an env may give an image (envs/images.py image_layout), as the helper converts it.
 SOURCE_LAYOUTS = ("hw", "hwc", "chw", "stack_hwc", "stack_chw")
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
@@ -111,6 +111,14 @@ def check_inputs(inputs: Any, where: str) -> None:
             raise bad("shape", f'["batch", {rank} whole numbers >= 1]')
         if not isinstance(spec.get("key"), str) or not spec["key"]:
             raise bad("key", "an observation key")
+        if kind == "action_mask":  # (issue #48) where the mask comes from, and its components
+            if spec.get("source") not in ("info", "observation"):
+                raise bad("source", "info or observation")
+            if not (isinstance(spec.get("mask_key"), str) and spec["mask_key"]):
+                raise bad("mask_key", "an info or observation key")
+            if not (_ints(spec.get("nvec"), 1) and sum(spec["nvec"]) == shape[1]):
+                raise bad("nvec", f"values per component adding up to {shape[1]}")
+            continue
         groups = spec.get("groups")
         if not (isinstance(groups, list) and groups and all(isinstance(g, str) for g in groups)):
             raise bad("groups", "a list of group names")

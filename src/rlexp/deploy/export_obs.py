@@ -24,6 +24,7 @@ metadata's observation_layout and action_space ({file}.json).
     x = {module}.flatten(obs)            # obs as env.reset() / env.step() give it -> float32 [1, {dim}]
     x = {module}.flatten(obs, batch=True)  # a vector env's batched obs -> float32 [n, {dim}]
     xs = {module}.inputs(obs)            # every input of the file by name: {names}
+    xs = {module}.inputs(obs, info=info)  # with an action mask from info["action_mask"]
     action = {module}.env_action(y[0])   # one row of the file's output -> what env.step() takes
 
 Images are uint8 [n, C, H, W] (the file scales them); FRAME_STACK > 1: the file was trained on the
@@ -99,12 +100,31 @@ def image(obs, part, batch=False):
     return np.ascontiguousarray(x.reshape(n, c, h, w))
 
 
-def inputs(obs, batch=False):
-    """The observation -> {{input name: array}} for every input of the file (the actor's only)."""
+def action_mask(obs, info=None, batch=False):
+    """The file's action_mask input, bool [n, sum(nvec)], from info[key] (source info: pass the
+    info env.reset() / env.step() returned) or the observation's Dict key (source observation)."""
+    spec = next(s for s in INPUTS if s["kind"] == "action_mask")
+    if spec["source"] == "info":
+        if info is None or spec["mask_key"] not in info:
+            raise ValueError(
+                "this file takes the action mask of info[%r]: call inputs(obs, info=info)"
+                % spec["mask_key"]
+            )
+        x = np.asarray(info[spec["mask_key"]])
+    else:
+        x = np.asarray(_leaf(obs, spec["mask_key"]))
+    return x.reshape(-1 if batch else 1, spec["shape"][1]).astype(bool)
+
+
+def inputs(obs, batch=False, info=None):
+    """The observation (and, for an action mask from info, the step's info) -> {{input name:
+    array}} for every input of the file (the actor's only)."""
     out = {{}}
     for spec in INPUTS:
         if spec["kind"] == "vector":
             out[spec["name"]] = flatten(obs, batch)
+        elif spec["kind"] == "action_mask":
+            out[spec["name"]] = action_mask(obs, info, batch)
         else:
             out[spec["name"]] = image(obs, spec["parts"][0], batch)
     return out
@@ -210,15 +230,24 @@ def helper_source(
     )
 
 
-def check_helper(path: Path, samples: list[tuple[Any, Any]]) -> None:
+def check_helper(
+    path: Path, samples: list[tuple[Any, Any]], infos: list[Any] | None = None
+) -> None:
     """``ValueError`` unless the helper at ``path`` gives each observation of ``samples``
-    (``(observation, {input name: rlexp's array})`` pairs) the inputs rlexp gives it, one at a time
-    and as a batch."""
+    (``(observation, {input name: rlexp's array})`` pairs; ``infos``: each one's info, where an
+    action mask comes from it) the inputs rlexp gives it, one at a time and as a batch."""
     helper = runpy.run_path(str(path))
-    batched = helper["inputs"](_stack([obs for obs, _ in samples]), batch=True)
+    infos = infos or [None] * len(samples)
+    info_batch = _stack(infos) if infos[0] is not None else None
+    batched = helper["inputs"](_stack([obs for obs, _ in samples]), batch=True, info=info_batch)
     for name in samples[0][1]:
         want = np.stack([np.asarray(arrays[name]) for _, arrays in samples])
-        got = np.concatenate([helper["inputs"](obs)[name] for obs, _ in samples])
+        got = np.concatenate(
+            [
+                helper["inputs"](obs, info=i)[name]
+                for (obs, _), i in zip(samples, infos, strict=True)
+            ]
+        )
         if not (
             got.dtype == want.dtype
             and np.array_equal(got, want)

@@ -188,7 +188,7 @@ def make_batched_env(cfg: EnvConfig, num_envs: int, seed: int) -> EnvBase:
                 f"{where} built a TorchRL {type(raw).__name__}; use env.backend=torchrl for a "
                 "TorchRL EnvBase"
             )
-        env: EnvBase = VecEnvAdapter(raw, cfg.name)
+        env: EnvBase = VecEnvAdapter(raw, cfg.name, cfg.action_mask, cfg.action_mask_key)
     else:
         from rlexp.envs.torchrl_env import TorchRLAdapter
 

@@ -28,6 +28,7 @@ from rlexp.envs.adapter import GymShapedEnv
 from rlexp.envs.env_state import copy_state, env_state_kind, restore_copy
 from rlexp.envs.gym_ids import GYM_MUJOCO_TASKS, check_gym_id, mujoco_build_warnings, render_refusal
 from rlexp.envs.images import empty_obs, stack_obs
+from rlexp.envs.masks import MASK_KEY, env_mask
 from rlexp.envs.spaces import action_coding, frame_stacked, obs_layout
 
 __all__ = ["GYM_MUJOCO_TASKS", "GymnasiumEnv", "check_gym_id", "make_torchrl_gym_env"]
@@ -47,6 +48,8 @@ class GymnasiumEnv(GymShapedEnv):
         device: str | torch.device = "cpu",
         image_keys: tuple[str, ...] | list[str] = (),
         frame_stack: int = 0,
+        action_mask: str = "auto",
+        action_mask_key: str = MASK_KEY,
     ) -> None:
         check_gym_id(env_id)
         os.environ.setdefault("MUJOCO_GL", "egl")
@@ -59,8 +62,9 @@ class GymnasiumEnv(GymShapedEnv):
         self._make = lambda: frame_stacked(make(), frame_stack, keys, where)
         with mujoco_build_warnings(env_id):
             envs = [self._make() for _ in range(num_envs)]
-        layout = obs_layout(envs[0].observation_space, where, keys, frame_stack)
         coding = action_coding(envs[0].action_space, where)
+        mask = env_mask(envs[0], self._make, coding, action_mask, action_mask_key, where)
+        layout = obs_layout(envs[0].observation_space, where, keys, frame_stack, mask)
         super().__init__(env_id, num_envs, layout, coding, device)
         self._envs = envs
         self._plain_obs = layout.plain
@@ -93,10 +97,10 @@ class GymnasiumEnv(GymShapedEnv):
         self._used = True
         if self._seed is not None:
             # Seed each copy once; later resets continue its own RNG stream.
-            obs, _ = self._envs[i].reset(seed=self._seed + i)
+            obs, info = self._envs[i].reset(seed=self._seed + i)
         else:
-            obs, _ = self._envs[i].reset()
-        return self.obs_layout.encode(obs)
+            obs, info = self._envs[i].reset()
+        return self.obs_layout.encode(obs, info)
 
     def _reset_copies(self, ids: np.ndarray) -> np.ndarray:
         return stack_obs(self.obs_layout, [self._reset_one(i) for i in ids])
@@ -139,11 +143,11 @@ class GymnasiumEnv(GymShapedEnv):
         truncated = np.zeros((n, 1), dtype=bool)
         flatten = None if self._plain_obs else self.obs_layout.encode_into
         for i, env in enumerate(self._envs):
-            o, r, term, trunc, _ = env.step(actions[i])
+            o, r, term, trunc, info = env.step(actions[i])
             if flatten is None:
                 obs[i] = o
             else:
-                flatten(obs[i], o)
+                flatten(obs[i], o, info)
             reward[i, 0] = r
             terminated[i, 0] = term
             truncated[i, 0] = trunc

@@ -39,6 +39,7 @@ from rlexp.envs.adapter import GymShapedEnv
 from rlexp.envs.gym_ids import check_gym_id, mujoco_build_warnings, render_refusal
 from rlexp.envs.gym_worker import HELD_SIGNALS, WorkerEnvError, make_worker_env
 from rlexp.envs.images import as_obs
+from rlexp.envs.masks import MASK_KEY, MaskSpec, env_mask
 from rlexp.envs.spaces import action_coding, obs_layout
 
 log = logging.getLogger(__name__)
@@ -94,6 +95,22 @@ class WorkerError(RuntimeError):
     """A worker died or its env raised; the message is one line naming the env and the worker."""
 
 
+def _resolve_mask(env_id: str, kwargs: dict, mode: str, key: str) -> MaskSpec | None:
+    """``env.action_mask`` resolved once here, from a copy made in this process (the workers
+    get the answer: none of them probes)."""
+    if mode == "off":
+        return None
+    import gymnasium as gym
+
+    make = functools.partial(gym.make, env_id, **kwargs)
+    env = make()
+    try:
+        coding = action_coding(env.action_space, f"env.name={env_id!r}")
+        return env_mask(env, make, coding, mode, key, f"env.name={env_id!r}")
+    finally:
+        env.close()
+
+
 class AsyncGymnasiumEnv(GymShapedEnv):
     """``num_envs`` copies of a Gymnasium env, each in a worker process, as one TorchRL env."""
 
@@ -107,14 +124,17 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         make_kwargs: dict | None = None,
         image_keys: tuple[str, ...] | list[str] = (),
         frame_stack: int = 0,
+        action_mask: str = "auto",
+        action_mask_key: str = MASK_KEY,
     ) -> None:
         check_gym_id(env_id)
         os.environ.setdefault("MUJOCO_GL", "egl")  # (the workers inherit it)
         kwargs = dict(make_kwargs or {})
         if max_episode_steps is not None:
             kwargs["max_episode_steps"] = max_episode_steps
+        mask = _resolve_mask(env_id, kwargs, action_mask, action_mask_key)
         make = functools.partial(
-            make_worker_env, env_id, kwargs, os.getpid(), tuple(image_keys), frame_stack
+            make_worker_env, env_id, kwargs, os.getpid(), tuple(image_keys), frame_stack, mask
         )
         self._where = f"env.name={env_id!r} (env.backend=gymnasium_async)"
         method = start_method()
@@ -132,7 +152,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
                 )
             obs_space, act_space, kind = self._guarded(vec, vec.call, "rlexp_info")[0]
             where = f"env.name={env_id!r}"
-            layout = obs_layout(obs_space, where, tuple(image_keys), frame_stack)
+            layout = obs_layout(obs_space, where, tuple(image_keys), frame_stack, mask)
             coding = action_coding(act_space, where)
         except (EOFError, ConnectionError) as exc:  # (AsyncVectorEnv terminates the others)
             if vec is not None:

@@ -23,6 +23,7 @@ import numpy as np
 from rlexp.envs.env_state import copy_state, env_state_kind, restore_copy
 from rlexp.envs.gym_ids import mujoco_build_warnings
 from rlexp.envs.images import encoded_space
+from rlexp.envs.masks import MaskSpec
 from rlexp.envs.spaces import frame_stacked, obs_layout
 from rlexp.runtime.user_code import describe
 
@@ -72,7 +73,12 @@ def _plain_errors(fn: Any) -> Any:
 
 
 def make_worker_env(
-    env_id: str, kwargs: dict, parent_pid: int, image_keys: tuple = (), frame_stack: int = 0
+    env_id: str,
+    kwargs: dict,
+    parent_pid: int,
+    image_keys: tuple = (),
+    frame_stack: int = 0,
+    mask: MaskSpec | None = None,
 ) -> WorkerEnv:
     """Build the env in a worker (``AsyncVectorEnv`` also calls this once in the training process,
     ``parent_pid``, for the spaces). ``module:EnvId`` imports its module here; an id an rlexp
@@ -91,7 +97,7 @@ def make_worker_env(
         from rlexp.plugins import load_plugins
 
         load_plugins()
-    return WorkerEnv(None, env_id, kwargs, image_keys, frame_stack)
+    return WorkerEnv(None, env_id, kwargs, image_keys, frame_stack, mask)
 
 
 class WorkerEnv(gym.Wrapper):
@@ -105,12 +111,13 @@ class WorkerEnv(gym.Wrapper):
         kwargs: dict | None = None,
         image_keys: tuple = (),
         frame_stack: int = 0,
+        mask: MaskSpec | None = None,
     ) -> None:
         self.env_id = env_id
         self.kwargs = dict(kwargs or {})
         self._stacking = (tuple(image_keys), int(frame_stack))
         super().__init__(env if env is not None else self._make())
-        self.layout = obs_layout(self.env.observation_space, self._where, *self._stacking)
+        self.layout = obs_layout(self.env.observation_space, self._where, *self._stacking, mask)
         # what shared memory holds: the flat vector, or a Dict of it and the uint8 CHW images
         self.observation_space = encoded_space(self.layout)
         self.kind = env_state_kind(self.env)
@@ -120,13 +127,13 @@ class WorkerEnv(gym.Wrapper):
 
     @_plain_errors
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        obs, _ = self.env.reset(seed=seed, options=options or None)
-        return self.layout.encode(obs), {}
+        obs, info = self.env.reset(seed=seed, options=options or None)
+        return self.layout.encode(obs, info), {}
 
     @_plain_errors
     def step(self, action: Any):
-        obs, reward, terminated, truncated, _ = self.env.step(action)
-        return self.layout.encode(obs), reward, terminated, truncated, {}
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        return self.layout.encode(obs, info), reward, terminated, truncated, {}
 
     def rlexp_remake(self) -> None:
         """Replace the env by one made now (``GymnasiumEnv._set_seed``: a reseeded env starts from

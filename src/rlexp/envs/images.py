@@ -31,6 +31,8 @@ from gymnasium import spaces
 ROOT_IMAGE_KEY = "pixels"
 #: The TensorDict key of the flat float32 vector of the non-image parts.
 VECTOR_KEY = "vector"
+#: The action mask's entry (``masks.MASK_KEY``; not imported: masks.py imports nothing of ours).
+MASK_ENTRY = "action_mask"
 #: Channel counts a last dimension may have for an image to read as HWC.
 CHANNELS = (1, 3, 4)
 
@@ -129,6 +131,8 @@ def empty_obs(layout: Any, n: int) -> np.ndarray | ObsBatch:
     arrays = {VECTOR_KEY: np.zeros((n, layout.dim), dtype=np.float32)} if layout.dim else {}
     for part in layout.images:
         arrays[part.image_key] = np.zeros((n, *part.shape), dtype=np.uint8)
+    if layout.mask is not None:  # every action valid until the env says otherwise
+        arrays[MASK_ENTRY] = np.ones((n, layout.mask.width), dtype=bool)
     return ObsBatch(arrays)
 
 
@@ -169,6 +173,8 @@ def encoded_space(layout: Any) -> spaces.Space:
     entries: dict[str, spaces.Space] = {VECTOR_KEY: vector} if layout.dim else {}
     for part in layout.images:
         entries[part.image_key] = spaces.Box(0, 255, part.shape, np.uint8)
+    if layout.mask is not None:
+        entries[MASK_ENTRY] = spaces.Box(0, 1, (layout.mask.width,), np.bool_)
     return spaces.Dict(entries)
 
 

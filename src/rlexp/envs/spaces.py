@@ -34,6 +34,7 @@ from rlexp.envs.images import (
     image_key_of,
     image_layout,
 )
+from rlexp.envs.masks import MASK_KEY, MaskSpec, mask_encoder
 
 #: What the two tables above say, for error messages and docs.
 SUPPORTED_OBSERVATIONS = (
@@ -93,6 +94,9 @@ class ObsLayout:
     _encoders: tuple[Callable[[Any], np.ndarray], ...] = field(default=(), compare=False)
     #: env.frame_stack: images are the env's last N frames (1: as the env gives them)
     frame_stack: int = 1
+    #: the action mask (``masks.py``): the observation's ``action_mask`` entry (None: no mask)
+    mask: MaskSpec | None = None
+    _mask_encoder: Callable[[Any], np.ndarray] | None = field(default=None, compare=False)
 
     @property
     def images(self) -> tuple[ObsPart, ...]:
@@ -101,8 +105,18 @@ class ObsLayout:
 
     @property
     def structured(self) -> bool:
-        """Whether the observation is a TensorDict (``vector`` and images), not one flat vector."""
-        return bool(self.images)
+        """Whether the observation is a TensorDict (``vector``, images, the action mask), not one
+        flat vector."""
+        return bool(self.images) or self.mask is not None
+
+    def encode_mask(self, obs: Any, info: Any) -> np.ndarray:
+        """The action mask of one copy's observation or info, bool [width]."""
+        mask = self.mask
+        if mask.source == "info":
+            raw = info.get(mask.key) if isinstance(info, dict) else None
+        else:
+            raw = _leaf(obs, mask.key)
+        return self._mask_encoder(raw)
 
     def flatten(self, obs: Any) -> np.ndarray:
         """The observation's non-image parts as a float32 vector [dim]."""
@@ -121,18 +135,21 @@ class ObsLayout:
             if part.kind != "image":
                 out[part.offset : part.offset + part.size] = encode(_leaf(obs, part.key))
 
-    def encode(self, obs: Any) -> np.ndarray | dict[str, np.ndarray]:
+    def encode(self, obs: Any, info: Any = None) -> np.ndarray | dict[str, np.ndarray]:
         """The observation as the env emits it for one copy: the flat float32 vector [dim], or
-        with images a dict of ``"vector"`` (unless dim is 0) and uint8 ``[C, H, W]`` per image."""
+        with images or a mask a dict of ``"vector"`` (unless dim is 0), uint8 ``[C, H, W]`` per
+        image and the bool ``action_mask`` (from ``obs`` or the step's ``info``)."""
         if not self.structured:
             return self.flatten(obs)
         out = {VECTOR_KEY: self.flatten(obs)} if self.dim else {}
         for part, encode in zip(self.parts, self._encoders, strict=True):
             if part.kind == "image":
                 out[part.image_key] = encode(_leaf(obs, part.key))
+        if self.mask is not None:
+            out[MASK_KEY] = self.encode_mask(obs, info)
         return out
 
-    def encode_into(self, out: np.ndarray | ObsBatch, obs: Any) -> None:
+    def encode_into(self, out: np.ndarray | ObsBatch, obs: Any, info: Any = None) -> None:
         """``encode`` written into one copy's row of a batch (``out``: a [dim] view or an
         ``ObsBatch`` row)."""
         if not isinstance(out, ObsBatch):
@@ -144,6 +161,8 @@ class ObsLayout:
         for part, encode in zip(self.parts, self._encoders, strict=True):
             if part.kind == "image":
                 arrays[part.image_key][...] = encode(_leaf(obs, part.key))
+        if self.mask is not None:
+            arrays[MASK_KEY][...] = self.encode_mask(obs, info)
 
     @property
     def batchable(self) -> bool:
@@ -168,6 +187,8 @@ class ObsLayout:
         }
         if self.frame_stack > 1:  # the images are the env's last N frames: a deployment stacks too
             out["frame_stack"] = self.frame_stack
+        if self.mask is not None:  # (absent without a mask: old records compare equal)
+            out["action_mask"] = self.mask.record()
         return out
 
 
@@ -215,12 +236,17 @@ def _describe(space: spaces.Space) -> str:
 
 
 def obs_layout(
-    space: spaces.Space, where: str, image_keys: Sequence[str] = (), frame_stack: int = 1
+    space: spaces.Space,
+    where: str,
+    image_keys: Sequence[str] = (),
+    frame_stack: int = 1,
+    mask: MaskSpec | None = None,
 ) -> ObsLayout:
     """The layout of ``space``; ``UnsupportedSpace`` naming the part that cannot be flattened
     (``where``: the config key and value the env came from, for the message). ``image_keys``:
     keys ``env.image_keys`` names as images (a part's key, or its TensorDict key); ``frame_stack``
-    is recorded (``space`` is the stacked one already: ``images.FrameStack``)."""
+    is recorded (``space`` is the stacked one already: ``images.FrameStack``); ``mask``: the action
+    mask (``masks.resolve_mask``; from the observation: that key is not a part of the vector)."""
     parts: list[ObsPart] = []
     encoders: list[Callable[[Any], np.ndarray]] = []
     named = set(image_keys)
@@ -230,6 +256,8 @@ def obs_layout(
     def visit(sp: spaces.Space, key: str) -> None:
         offset = sum(p.size for p in parts)
         at = f" at key {key!r}" if key else ""
+        if mask is not None and mask.source == "observation" and key == mask.key:
+            return  # the action mask: the observation's action_mask entry, not the vector
         if isinstance(sp, spaces.Dict):
             for k in sorted(sp.spaces, key=str):
                 visit(sp.spaces[k], f"{key}/{k}" if key else str(k))
@@ -292,9 +320,13 @@ def obs_layout(
         isinstance(space, spaces.Box)
         and len(space.shape) == 1
         and np.issubdtype(np.dtype(space.dtype), np.floating)
+        and mask is None
     )
     stack = max(1, int(frame_stack))
-    return ObsLayout(type(space).__name__, tuple(parts), dim, plain, tuple(encoders), stack)
+    encode_mask = None if mask is None else mask_encoder(mask, where)
+    return ObsLayout(
+        type(space).__name__, tuple(parts), dim, plain, tuple(encoders), stack, mask, encode_mask
+    )
 
 
 @dataclass(frozen=True)

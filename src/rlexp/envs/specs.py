@@ -8,10 +8,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 from tensordict import TensorDict
-from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Unbounded
+from torchrl.data import Binary, Bounded, Categorical, Composite, MultiCategorical, Unbounded
 from torchrl.envs import EnvBase
 
 from rlexp.envs.images import VECTOR_KEY, ObsBatch
+from rlexp.envs.masks import MASK_KEY
 from rlexp.envs.spaces import ActionCoding, ObsLayout
 
 
@@ -24,6 +25,9 @@ def observation_spec(layout: ObsLayout | None, n: int, obs_dim: int, dev: torch.
     for part in layout.images:
         shape = (n, *part.shape)
         entries[part.image_key] = Bounded(0, 255, shape=shape, dtype=torch.uint8, device=dev)
+    if layout.mask is not None:  # bool [n, sum(nvec)]: which actions are valid (masks.py)
+        width = layout.mask.width
+        entries[MASK_KEY] = Binary(n=width, shape=(n, width), dtype=torch.bool, device=dev)
     return Composite(entries, shape=(n,), device=dev)
 
 

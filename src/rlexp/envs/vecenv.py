@@ -24,12 +24,15 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 
 from rlexp.envs.batched_base import FLOATS, BatchedAdapter, check_tensor, flat_layout
+from rlexp.envs.images import VECTOR_KEY
+from rlexp.envs.masks import MASK_KEY, MaskSpec
 from rlexp.envs.spaces import ActionCoding, ObsLayout, ObsPart, action_coding
 
 log = logging.getLogger(__name__)
@@ -96,7 +99,9 @@ class VecEnvAdapter(BatchedAdapter):
 
     contract = "vecenv"
 
-    def __init__(self, raw: Any, name: str) -> None:
+    def __init__(
+        self, raw: Any, name: str, action_mask: str = "auto", mask_key: str = MASK_KEY
+    ) -> None:
         where = f"env.name={name!r}"
         for attr in ("num_envs", "num_actions", "device"):
             if not hasattr(raw, attr):
@@ -125,15 +130,47 @@ class VecEnvAdapter(BatchedAdapter):
                     f"{where}: {_what('get_observations()', key)} has shape {list(obs.shape)}, "
                     f"expected [num_envs={n}, ...]"
                 )
-        super().__init__(
-            raw, name, n, device, _layout(parts), _coding(raw, n, num_actions, where)
-        )  # fmt: skip
+        coding = _coding(raw, n, num_actions, where)
+        first = raw.get_observations()
+        mask = _extras_mask(first, coding, action_mask, mask_key, where)
+        layout = _layout(parts)
+        if mask is not None:  # the observation: a TensorDict of the vector and the mask
+            layout = replace(layout, plain=False, mask=mask)
+        super().__init__(raw, name, n, device, layout, coding)
         #: each part's key and shape [N, ...], in the flat vector's order
         self._shapes = {key: tuple(obs.shape) for key, _, obs in parts}
         self._has_reset = callable(getattr(raw, "reset", None))
         self._seedable = callable(getattr(raw, "seed", None))
         self._no_time_outs = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
-        self._live.obs_now = self._flat(parts)
+        self._live.obs_now = self._with_mask(self._flat(parts), first, "get_observations()")
+
+    def _with_mask(self, vector: torch.Tensor, extras: Any, what: str) -> Any:
+        """``vector`` as the observation: itself, or with a mask the TensorDict of it and
+        ``extras[key]`` (``extras``: a step's extras, or what ``get_observations()`` returned)."""
+        mask = self.obs_layout.mask
+        if mask is None:
+            return vector
+        if isinstance(extras, tuple | list):
+            extras = extras[1] if len(extras) > 1 else None
+        value = extras.get(mask.key, None) if isinstance(extras, Mapping | TensorDictBase) else None
+        n, width = self.num_envs, mask.width
+        if not isinstance(value, torch.Tensor) or value.numel() != n * width:
+            got = list(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise ValueError(
+                f"{self.where}: {what}'s extras[{mask.key!r}] is {got}; the action mask is "
+                f"[num_envs={n}, sum(nvec)={width}] (nvec={list(mask.nvec)}) at every reset and step"
+            )
+        value = value.reshape(n, width).to(device=self.device, dtype=torch.bool)
+        if not self._live.checked:  # (every step would cost a device sync)
+            blocks = value.split(list(mask.nvec), -1)
+            if not all(bool(b.any(-1).all()) for b in blocks):
+                raise ValueError(
+                    f"{self.where}: {what}'s extras[{mask.key!r}] allows no action of a component "
+                    f"(nvec={list(mask.nvec)}); every component needs one valid value"
+                )
+        return TensorDict._new_unsafe(
+            {VECTOR_KEY: vector, MASK_KEY: value}, batch_size=torch.Size([n]), device=self.device
+        )
 
     def _flat(self, parts: list[Part], fill: torch.Tensor | None = None) -> torch.Tensor:
         """The parts as the flat float32 vector [N, dim]; a part they lack is taken from ``fill``
@@ -168,7 +205,7 @@ class VecEnvAdapter(BatchedAdapter):
         parts = observation_parts(self.raw.get_observations(), self.where, "get_observations()")
         what = "get_observations() after reset()"
         self._check_parts(parts, what)
-        return self._flat(parts)
+        return self._with_mask(self._flat(parts), self.raw.get_observations(), what)
 
     def _check_parts(self, parts: list[Part], what: str, partial: bool = False) -> None:
         """Each part against the shape it had at the start (``partial``: parts may be missing)."""
@@ -206,12 +243,18 @@ class VecEnvAdapter(BatchedAdapter):
             time_outs = time_outs.reshape(self.num_envs, 1)
             truncated = done & (time_outs if time_outs.dtype == torch.bool else time_outs != 0)
         final = None if extras is None else extras.get(FINAL_OBS_KEY, None)
+        masked = self.obs_layout.mask is not None
+        if masked:  # the vectors; the mask is the step's (the next one's: only V reads "next")
+            prev = prev.get(VECTOR_KEY)
         if final is None:  # rsl_rl's stand-in: V of the observation acted on (module docstring)
             nxt = torch.where(done, prev, obs)
         else:
             fin = observation_parts(final, self.where, f"extras[{FINAL_OBS_KEY!r}]")
             # a group the final observation lacks (2.x hands over the policy's): the stand-in's
             nxt = torch.where(done, self._flat(fin, fill=prev), obs)
+        if masked:
+            obs = self._with_mask(obs, extras, "step()")
+            nxt = obs.copy().set(VECTOR_KEY, nxt)
         return obs, nxt, reward, done, truncated
 
     def _check_step(self, out: Any) -> None:
@@ -295,3 +338,36 @@ def _coding(raw: Any, n: int, num_actions: int, where: str) -> ActionCoding:
             f"{'components' if coding.categorical else 'dimensions'}, but num_actions={num_actions}"
         )
     return coding
+
+
+def _extras_mask(
+    first: Any, coding: ActionCoding, mode: str, key: str, where: str
+) -> MaskSpec | None:
+    """``env.action_mask`` of a VecEnv: ``extras[key]`` of ``get_observations()`` (rsl_rl 2.x's
+    ``(obs, extras)``) and of every ``step()`` (``auto``: when the first extras have it; ``info``:
+    required); ``observation`` and a Box action space are refused in one line."""
+    if mode == "off":
+        return None
+    extras = first[1] if isinstance(first, tuple | list) and len(first) > 1 else None
+    has = isinstance(extras, Mapping | TensorDictBase) and key in extras.keys()
+    if mode == "observation":
+        raise ValueError(
+            f"{where}: env.action_mask=observation reads a Dict observation key; a vecenv gives "
+            f"its mask in extras[{key!r}]: use env.action_mask=info (or auto)"
+        )
+    if not coding.categorical:
+        if mode == "auto":
+            return None
+        raise ValueError(
+            f"{where}: env.action_mask={mode} masks categorical actions; the action space is a "
+            "Box (continuous): use env.action_mask=off"
+        )
+    if not has:
+        if mode == "auto":
+            return None
+        raise ValueError(
+            f"{where}: env.action_mask=info reads extras[{key!r}] of get_observations() (rsl_rl "
+            "2.x's (obs, extras)) and of every step(); get_observations() gives none: return "
+            "(obs, extras) with the mask, or use env.action_mask=off"
+        )
+    return MaskSpec("info", key, tuple(coding.nvec))

@@ -6,6 +6,10 @@
   ``nvec[k]`` logits per component; ``MultiCategorical`` over it: independent
   ``torch.distributions.Categorical`` per component, log-prob and entropy summed over components,
   the action an int64 vector ``[K]`` (``K = 1`` for ``Discrete``), the mode the per-component argmax.
+  With an action mask (the observation's bool ``action_mask`` entry ``[..., sum(nvec)]``, issue
+  #48) the logits of invalid actions are the dtype's smallest value (``mask_logits``): probability
+  exactly 0, never sampled nor the argmax; entropy and KL sum over valid actions only (an invalid
+  action's ``p * log p`` is ``0 * finite = 0``, no NaN), as TorchRL's ``MaskedCategorical``.
 
 Each head reads the observation through ``ReadsObservation``: the normaliser, then, where the
 network selects groups or keys or reads images, its ``inputs.ObsInput``.
@@ -26,6 +30,8 @@ from torch import distributions as D
 from torch import nn
 
 _LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
+#: The observation TensorDict's entry holding the action mask (``envs.masks.MASK_KEY``).
+MASK_KEY = "action_mask"
 
 #: A collection sampler: obs -> the head's output keys' tensors (``out_keys`` order).
 Sampler = Callable[[torch.Tensor], tuple[torch.Tensor, ...]]
@@ -100,6 +106,22 @@ def categorical_kl(
     old, new = MultiCategorical(old_logits, nvec), MultiCategorical(logits, nvec)
     kl = sum(D.kl_divergence(a, b) for a, b in zip(old._parts, new._parts, strict=True))
     return (kl.sum(-1) if old._uniform else kl).mean()
+
+
+def mask_logits(logits: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """``logits`` with every invalid action's (``mask`` False) set to the dtype's smallest finite
+    value: its softmax probability is exactly 0 (``exp`` underflows) while log-probabilities,
+    entropy and KL stay finite; gradients flow to the valid logits only. ``mask`` None: as is."""
+    if mask is None:
+        return logits
+    return logits.masked_fill(~mask.to(torch.bool), torch.finfo(logits.dtype).min)
+
+
+def action_mask_of(obs: torch.Tensor | TensorDictBase) -> torch.Tensor | None:
+    """The observation's action mask (bool [..., sum(nvec)]), None where it has none."""
+    if isinstance(obs, TensorDictBase):
+        return obs.get(MASK_KEY, None)
+    return None
 
 
 class ReadsObservation(nn.Module):
@@ -209,22 +231,28 @@ class CategoricalActorNet(ReadsObservation):
         self.nvec = tuple(int(n) for n in nvec)
 
     def forward(self, obs: torch.Tensor | TensorDictBase) -> torch.Tensor:
-        return self.mlp(self.features(obs))
+        """The logits, invalid actions' at the dtype's minimum where the observation has a mask."""
+        return mask_logits(self.mlp(self.features(obs)), action_mask_of(obs))
 
     def sampler(self, deterministic: bool, layers: list[Callable]) -> Sampler:
         """obs -> (logits, action, log-probability of the action): the Gumbel-max draw of each
-        component (exactly a draw from its softmax), log-probs from ``log_softmax``."""
+        component (exactly a draw from its softmax), log-probs from ``log_softmax``; the logits
+        masked as ``forward`` masks them (an invalid action's logit plus any Gumbel noise stays
+        below every valid one's)."""
         norm = self.input_function()
         nvec = self.nvec
         k = len(nvec)
         uniform = len(set(nvec)) == 1
 
-        def pick(blocks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        def pick(blocks: torch.Tensor, masked: bool) -> tuple[torch.Tensor, torch.Tensor]:
             log_p = blocks.log_softmax(-1)
             if deterministic:
                 action = blocks.argmax(-1)
             else:
-                gumbel = -torch.log(-torch.log(torch.rand_like(blocks)))
+                uniform = torch.rand_like(blocks)
+                if masked:  # a draw of exactly 0 would make a valid action's noise -inf
+                    uniform = uniform.clamp_(min=torch.finfo(blocks.dtype).tiny)
+                gumbel = -torch.log(-torch.log(uniform))
                 action = (blocks + gumbel).argmax(-1)
             return action, log_p.gather(-1, action.unsqueeze(-1)).squeeze(-1)
 
@@ -232,11 +260,13 @@ class CategoricalActorNet(ReadsObservation):
             x = norm(obs)
             for layer in layers:
                 x = layer(x)
-            logits = x
+            mask = action_mask_of(obs)
+            logits = mask_logits(x, mask)
+            masked = mask is not None
             if uniform:
-                action, log_p = pick(logits.reshape(*logits.shape[:-1], k, nvec[0]))
+                action, log_p = pick(logits.reshape(*logits.shape[:-1], k, nvec[0]), masked)
             else:
-                picked = [pick(b) for b in logits.split(nvec, dim=-1)]
+                picked = [pick(b, masked) for b in logits.split(nvec, dim=-1)]
                 action = torch.stack([a for a, _ in picked], -1)
                 log_p = torch.stack([lp for _, lp in picked], -1)
             return logits, action, log_p.sum(-1)
