@@ -65,6 +65,14 @@ RUNS = {
         "policy.ortho_init=false",  # (logits far enough apart for the actions to vary)
         "seed=2",
     ],
+    # a GRU with an action mask from info (env=pick_valid): the mask input, then the state
+    "masked": [
+        "env=pick_valid",
+        "policy.memory.type=gru",
+        "policy.memory.hidden_size=8",
+        "policy.ortho_init=false",
+        "seed=1",
+    ],
     # docs/export.md's run: an LSTM on Pendulum-v1 (its blocks run verbatim)
     "pendulum": [
         "env=pendulum",
@@ -152,6 +160,10 @@ _OUTSIDE = textwrap.dedent(
     job = pickle.load(open(sys.argv[1], "rb"))
     sys.path.insert(0, job["tests"])
     import export_envs  # registers the ids
+    if job["env_file"]:  # an env shipped inside rlexp (pick_valid): its file alone, by path
+        import importlib.util
+        spec = importlib.util.spec_from_file_location("env_outside", job["env_file"])
+        spec.loader.exec_module(importlib.util.module_from_spec(spec))
     try:
         import onnxruntime as ort
     except ImportError:
@@ -171,18 +183,18 @@ _OUTSIDE = textwrap.dedent(
             outputs = [o.name for o in session.get_outputs()]
             run = lambda feed: session.run(outputs, feed)
         env = gym.make(job["env_id"])
-        obs, _ = env.reset(seed=job["seed"])
+        obs, info = env.reset(seed=job["seed"])
         state = h["initial_state"]()
         steps = []
         for episode in range(job["episodes"]):
             done, start = False, True
             while not done:
-                y, *new = run({**h["inputs"](obs), **state})
-                steps.append((obs, start, y, new))
+                y, *new = run({**h["inputs"](obs, info=info), **state})
+                steps.append((obs, start, y, new, info))
                 state, start = dict(zip(names, new)), False
-                obs, _, terminated, truncated, _ = env.step(h["env_action"](y[0]))
+                obs, _, terminated, truncated, info = env.step(h["env_action"](y[0]))
                 done = terminated or truncated
-            obs, _ = env.reset()
+            obs, info = env.reset()
             state = h["reset_state"](state, [True])  # the next episode starts from zeros
         out[fmt] = {"steps": steps, "signature": signature if fmt == "onnx" else None,
                     "outputs": outputs if fmt == "onnx" else None}
@@ -197,10 +209,13 @@ def _outside_rlexp(run_dir: Path, tmp_path: Path, episodes: int = 2) -> dict:
     for fmt, suffix in FORMATS.items():
         path = run_dir / f"p{suffix}"
         files[fmt] = (str(path), str(path.parent / _meta(path)["observation_helper"]))
-    env_id = _meta(run_dir / "p.pt")["env_id"].split(":")[-1]
+    module, env_id = _meta(run_dir / "p.pt")["env_id"].split(":")
+    env_file = None  # an env module inside rlexp (env=pick_valid) is loaded by its file's path
+    if module.startswith("rlexp."):
+        env_file = str(REPO / "src" / (module.replace(".", "/") + ".py"))
     job, result = tmp_path / "job.pkl", tmp_path / "result.pkl"
-    job.write_bytes(pickle.dumps({"files": files, "env_id": env_id, "seed": 17,
-                                  "episodes": episodes, "tests": str(TESTS)}))  # fmt: skip
+    job.write_bytes(pickle.dumps({"files": files, "env_id": env_id, "seed": 17, "episodes": episodes,
+                                  "tests": str(TESTS), "env_file": env_file}))  # fmt: skip
     (tmp_path / "outside.py").write_text(_OUTSIDE)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     proc = subprocess.run(
@@ -214,7 +229,9 @@ def _outside_rlexp(run_dir: Path, tmp_path: Path, episodes: int = 2) -> dict:
 def _policy_actions(run_dir: Path, steps: list, carry: bool = True) -> np.ndarray:
     """The checkpoint's policy, in process, on the observations the file saw: ``policy.act`` with
     the state carried and set to ``initial_state`` at each episode's start (``carry=False``: at
-    every step, a policy without memory), as the env's values (Box clipped, categorical + start)."""
+    every step, a policy without memory), as the env's values (Box clipped, categorical + start).
+    A step's ``info`` mask (an env with ``info["action_mask"]``) joins the observation as rlexp's
+    env puts it there."""
     from tensordict import TensorDict
 
     from rlexp.deploy.policy_eval import open_source, typed_config
@@ -227,8 +244,8 @@ def _policy_actions(run_dir: Path, steps: list, carry: bool = True) -> np.ndarra
         policy = source.build(config, env).policy  # (rlexp eval's RecurrentActor holds it)
         coding = env.action_coding
         out, state = [], None
-        for obs, start, _, _ in steps:
-            encoded = env.obs_layout.encode(obs)
+        for obs, start, *_, info in steps:
+            encoded = env.obs_layout.encode(obs, info)  # (an info mask: in the TensorDict)
             if isinstance(encoded, dict):
                 x = TensorDict({k: torch.from_numpy(np.asarray(v))[None] for k, v in
                                 encoded.items()}, batch_size=[1])  # fmt: skip
@@ -247,37 +264,49 @@ def _policy_actions(run_dir: Path, steps: list, carry: bool = True) -> np.ndarra
         env.close()
 
 
-@pytest.mark.parametrize("name", ["lstm", "gru"])
+#: Each run's memory (num_layers, hidden_size, state inputs) and its episodes' length.
+SHAPES = {
+    "lstm": (2, 12, ["actor_h", "actor_c"], 12),
+    "gru": (1, 8, ["actor_h"], 8),
+    "masked": (1, 8, ["actor_h"], 20),
+}
+
+
+@pytest.mark.parametrize("name", ["lstm", "gru", "masked"])
 def test_episodes_stepped_through_the_file_outside_rlexp_act_as_the_policy(runs, tmp_path, name):
+    """Two whole episodes per file (one env, the state carried from output to input, zeros after
+    the reset): each action equals ``policy.act``'s with its own carried state; the masked file's
+    never an invalid one."""
     pytest.importorskip("onnxruntime", reason="the ONNX half needs onnxruntime (extra 'export')")
     got = _outside_rlexp(runs[name], tmp_path)
     assert set(got) == set(FORMATS)
-    layers, hidden = (2, 12) if name == "lstm" else (1, 8)
-    states = ["actor_h", "actor_c"] if name == "lstm" else ["actor_h"]
+    layers, hidden, states, length = SHAPES[name]
     onnx = got["onnx"]
-    assert [n for n, _ in onnx["signature"]][-len(states) :] == states
+    inputs = [i["name"] for i in _meta(runs[name] / "p.onnx")["inputs"]]
+    assert [n for n, _ in onnx["signature"]] == [*inputs, *states]  # the state last
     assert [s for n, s in onnx["signature"] if n in states] == [["batch", layers, hidden]] * len(
         states
     )
     assert onnx["outputs"] == ["action", *(f"{s}_out" for s in states)]
     for fmt, result in got.items():
         steps = result["steps"]
-        assert len(steps) == (24 if name == "lstm" else 16)  # 2 episodes of 12 / 8 steps
-        assert [i for i, (_, start, _, _) in enumerate(steps) if start] == [0, len(steps) // 2]
-        file_actions = np.concatenate([y for _, _, y, _ in steps])
+        assert len(steps) == 2 * length
+        assert [i for i, step in enumerate(steps) if step[1]] == [0, length]  # episode starts
+        file_actions = np.concatenate([step[2] for step in steps])
         assert not np.allclose(file_actions, file_actions[:1]), "one action throughout: vacuous"
         want = _policy_actions(runs[name], steps)
         if name == "lstm":
             np.testing.assert_allclose(file_actions, want, atol=1e-5, rtol=0, err_msg=fmt)
         else:
             np.testing.assert_array_equal(file_actions, want, err_msg=fmt)
-        for _, _, _, new in steps:  # the state out has the metadata's shape
-            assert [s.shape for s in new] == [(1, layers, hidden)] * len(states), fmt
+        for step in steps:  # the state out has the metadata's shape
+            assert [s.shape for s in step[3]] == [(1, layers, hidden)] * len(states), fmt
+        if name == "masked":  # never an invalid action
+            assert all(step[4]["action_mask"][int(step[2][0, 0])] for step in steps), fmt
     # the memory matters: without the carried state the policy acts otherwise
-    memoryless = _policy_actions(runs[name], got["torchscript"]["steps"], carry=False)
-    assert not np.allclose(
-        memoryless, np.concatenate([y for _, _, y, _ in got["torchscript"]["steps"]])
-    )
+    steps = got["torchscript"]["steps"]
+    memoryless = _policy_actions(runs[name], steps, carry=False)
+    assert not np.allclose(memoryless, np.concatenate([step[2] for step in steps]))
 
 
 def test_rlexp_eval_of_the_files_carries_and_resets_the_state_as_the_run_did(runs, monkeypatch):
@@ -417,6 +446,6 @@ def test_the_docs_recurrent_blocks_run_verbatim_and_act_as_the_policy(runs):
         assert len(seen) == 200 * episodes and sum(start for _, start, _ in seen) == episodes
         got = np.stack([np.asarray(a, dtype=np.float32) for _, _, a in seen])
         best = runs["pendulum"] / "checkpoints" / "best.pt"  # what the blocks' files hold
-        want = _policy_actions(best, [(o, start, None, None) for o, start, _ in seen])
+        want = _policy_actions(best, [(o, start, None, None, None) for o, start, _ in seen])
         np.testing.assert_allclose(got, want, atol=1e-5, rtol=0, err_msg=f"block {i}")
         assert not np.allclose(got, got[:1])
