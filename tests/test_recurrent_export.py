@@ -102,8 +102,13 @@ def runs(tmp_path_factory) -> Iterator[dict[str, Path]]:
         for name, run_dir in dirs.items():
             where = ["--checkpoint", "best"] if name == "pendulum" else ["--out", run_dir / "p"]
             for fmt in FORMATS:
-                rc, _, err = _cli("export", run_dir, "--format", fmt, *where)
+                rc, out, err = _cli("export", run_dir, "--format", fmt, *where)
                 assert rc == 0, err
+                if name == "lstm":  # the last line says what the caller carries
+                    assert out.splitlines()[-1] == (
+                        "recurrent state (docs/export.md): actor_h, actor_c float32 ['batch', 2, "
+                        "12] in, actor_h_out, actor_c_out out; zeros at each episode's start"
+                    ), out
         yield {"root": root, **dirs}
     finally:
         if old is None:

@@ -81,6 +81,8 @@ class Exported:
     global_step: int
     #: the observation helper (export_obs.py) where the env's observation is not a flat Box
     helper: Path | None = None
+    #: a recurrent policy's state, in words (None: none): what the caller carries and resets
+    state: str | None = None
 
 
 def out_path(out: str | Path | None, checkpoint: str | Path, fmt: str) -> Path:
@@ -153,7 +155,14 @@ def export_policy(
         info["observation_layout"]["parts"][0]["shape"]
     ) == 1  # the observation is the input vector already: the helper is there, not worth a line
     shown = None if helper is None or plain else target.parent / helper
-    return Exported(target, meta_file, ckpt["path"], chosen, int(ckpt["global_step"]), shown)
+    state = None
+    if meta["memory"] is not None:
+        m = meta["memory"]
+        state = (
+            f"{', '.join(x['name'] for x in m['state'])} float32 {m['state'][0]['shape']} in, "
+            f"{', '.join(x['output'] for x in m['state'])} out; zeros at each episode's start"
+        )
+    return Exported(target, meta_file, ckpt["path"], chosen, int(ckpt["global_step"]), shown, state)
 
 
 def _actor_of(
