@@ -134,6 +134,34 @@ def test_async_evaluation_gives_exactly_the_sync_runs_results(sync_run, tmp_path
     assert "eval/success_rate" not in _eval_rows(run_dir)[0], "InvertedPendulum has no success"
 
 
+def test_a_recurrent_run_s_async_rounds_are_its_sync_rounds(tmp_path):
+    """An LSTM policy (#48): the worker builds the recurrent policy, carries and resets its state
+    as in-process rounds do; eval rows, best.pt and checkpoints equal."""
+    memory = [
+        *(x for x in RUN if not x.startswith("env=")),
+        "env=hopper",  # real-valued returns: rounds differ
+        "env.max_episode_steps=60",
+        "env.num_eval_envs=2",
+        "policy.memory.type=lstm",
+        "policy.memory.hidden_size=16",
+        "policy.memory.num_layers=2",
+        "algorithm.sequence_length=16",
+        "trainer.total_frames=768",
+        "trainer.save_every=768",
+    ]
+    sync_dir, async_dir = tmp_path / "sync", tmp_path / "async"
+    for run_dir, mode in ((sync_dir, "false"), (async_dir, "true")):
+        _train(to_root_config(compose([*memory, f"trainer.eval_async={mode}"])), run_dir)
+    rows = _eval_rows(sync_dir)
+    assert [r["step"] for r in rows] == [256, 512, 768]
+    assert len({r["eval/episode_return"] for r in rows}) > 1, "every round alike: vacuous"
+    assert _eval_rows(async_dir) == rows
+    for name in ("best.pt", "Hopper-v5_ppo_step_000000768.pt"):
+        a, b = (load_checkpoint(d / "checkpoints" / name) for d in (sync_dir, async_dir))
+        assert "actor_core.rnn.weight_hh_l1" in a["policy"]
+        _same(a, b, name)
+
+
 # -- (b) a stop while a round is in flight: the resume evaluates it first ---------------------------
 def test_a_round_in_flight_at_a_stop_is_evaluated_first_on_resume(sync_run, tmp_path, monkeypatch):
     from rlexp.app import RunEnded

@@ -440,6 +440,7 @@ def _export(args: argparse.Namespace) -> str:
         f"exported {res.checkpoint} (step {res.global_step}; {res.chosen}) as {args.format}: "
         f"{res.path}\nmetadata: {res.metadata}"
         + (f"\nobservation helper (numpy only; docs/export.md): {res.helper}" if res.helper else "")
+        + (f"\nrecurrent state (docs/export.md): {res.state}" if res.state else "")
     )
 
 

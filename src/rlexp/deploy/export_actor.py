@@ -12,8 +12,13 @@ those, never what only the critic reads:
 - ``action_mask`` (categorical actions with an action mask, issue #48): bool [batch, sum(nvec)],
   last; the argmax is over the valid values of each component (invalid logits at float32's min).
 
-A policy without images or mask exports this module itself (``forward(observation)``, as before
-groups existed); with images or a mask a thin wrapper whose ``forward`` names one argument per input is made from
+A recurrent actor (``policy.memory.type`` lstm / gru) also takes its state and returns the next one:
+``actor_h`` (and ``actor_c`` for an LSTM) float32 [batch, num_layers, hidden_size] after the other
+inputs (``action_mask`` included), ``actor_h_out`` (``actor_c_out``) after the action
+(``LstmStep`` / ``GruStep``; the critic's memory is never exported).
+
+A policy without images, mask or memory exports this module itself (``forward(observation)``, as
+before groups existed); otherwise a thin wrapper whose ``forward`` names one argument per input is made from
 source (TorchScript needs a fixed signature). Image encoders are traced for TorchScript (their
 reshapes over leading batch dims are not scriptable) and exported as they are for ONNX.
 """
@@ -49,7 +54,7 @@ class DeterministicActor(nn.Module):
     # TorchScript: fixed branches
     __constants__ = [
         "normalize", "clip", "clamp_actions", "rescale", "categorical", "uniform", "k", "n",
-        "reads_vector", "masked", "masked_logit",
+        "reads_vector", "masked", "masked_logit", "recurrent",
     ]  # fmt: skip
 
     def __init__(
@@ -100,6 +105,10 @@ class DeterministicActor(nn.Module):
         low0, half = rescale if rescale is not None else (torch.zeros(1), torch.ones(1))
         self.register_buffer("rescale_low", low0.detach().cpu().clone().float())
         self.register_buffer("rescale_half", half.detach().cpu().clone().float())
+        # a recurrent actor: its LSTM / GRU between the features and the MLP (one step per call)
+        core = recurrent_step(policy)
+        self.recurrent = core is not None
+        self.core = core if core is not None else nn.Identity()
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         return self.act(observation, [], None)
@@ -112,6 +121,23 @@ class DeterministicActor(nn.Module):
     ) -> torch.Tensor:
         """The action for the actor's vector (ignored when it reads none), its uint8 images and
         (categorical) the action mask: bool [batch, sum(nvec)], True where a value is valid."""
+        return self.head(self.features(observation, images), action_mask)
+
+    def act_recurrent(
+        self,
+        observation: torch.Tensor,
+        images: list[torch.Tensor],
+        action_mask: Optional[torch.Tensor],  # noqa: UP045  (TorchScript reads Optional)
+        h: torch.Tensor,
+        c: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A recurrent actor's step: the action and the next state (``c``: an LSTM's cell state;
+        a GRU's is passed through unused)."""
+        y, h, c = self.core(self.features(observation, images), h, c)
+        return self.head(y, action_mask), h, c
+
+    def features(self, observation: torch.Tensor, images: list[torch.Tensor]) -> torch.Tensor:
+        """The normalised vector and the encoded images, as the actor's MLP (or memory) reads them."""
         features: list[torch.Tensor] = []
         if self.reads_vector:
             x = observation
@@ -124,7 +150,14 @@ class DeterministicActor(nn.Module):
         for encoder in self.encoders:
             features.append(encoder(images[i]))
             i += 1
-        x = features[0] if len(features) == 1 else torch.cat(features, -1)
+        return features[0] if len(features) == 1 else torch.cat(features, -1)
+
+    def head(
+        self,
+        x: torch.Tensor,
+        action_mask: Optional[torch.Tensor] = None,  # noqa: UP045  (TorchScript reads Optional)
+    ) -> torch.Tensor:
+        """The MLP's output as the env's action (the argmax over valid values, clip, rescale)."""
         out = self.mlp(x)
         if self.categorical:
             if action_mask is not None:
@@ -141,6 +174,79 @@ class DeterministicActor(nn.Module):
         return out
 
 
+class LstmStep(nn.Module):
+    """One step of the actor's ``nn.LSTM`` (a copy, float32, no gradients) with the state batch
+    first, as the file takes it: x [B, F], h and c [B, num_layers, H] -> y [B, H], h, c."""
+
+    def __init__(self, rnn: nn.LSTM) -> None:
+        super().__init__()
+        self.rnn = copy.deepcopy(rnn).float().requires_grad_(False).eval()
+
+    def forward(
+        self, x: torch.Tensor, h: torch.Tensor, c: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        state = (h.transpose(0, 1).contiguous(), c.transpose(0, 1).contiguous())
+        y, (h, c) = self.rnn(x.unsqueeze(1), state)
+        return y.squeeze(1), h.transpose(0, 1), c.transpose(0, 1)
+
+
+class GruStep(nn.Module):
+    """One step of the actor's ``nn.GRU`` as ``LstmStep`` (``c`` passed through: a GRU has none)."""
+
+    def __init__(self, rnn: nn.GRU) -> None:
+        super().__init__()
+        self.rnn = copy.deepcopy(rnn).float().requires_grad_(False).eval()
+
+    def forward(
+        self, x: torch.Tensor, h: torch.Tensor, c: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        y, h = self.rnn(x.unsqueeze(1), h.transpose(0, 1).contiguous())
+        return y.squeeze(1), h.transpose(0, 1), c
+
+
+def recurrent_step(policy: nn.Module) -> LstmStep | GruStep | None:
+    """The actor's memory as one step of the file (None: a feed-forward policy); a memory that is
+    not one batch-first ``nn.LSTM`` / ``nn.GRU`` is a one-line ValueError."""
+    if not getattr(policy, "recurrent", False):
+        return None
+    rnn = actor_rnn(policy)
+    if isinstance(rnn, nn.LSTM):
+        return LstmStep(rnn)
+    if isinstance(rnn, nn.GRU):
+        return GruStep(rnn)
+    raise ValueError(
+        f"the actor's memory is a {type(rnn).__name__}; rlexp export takes an LSTM or a GRU "
+        "(policy.memory.type=lstm|gru)"
+    )
+
+
+def actor_rnn(policy: nn.Module) -> nn.Module:
+    """The actor's own ``nn.LSTM`` / ``nn.GRU`` (``policy.memory.shared``: the one both heads
+    read); never the critic's own."""
+    rnn = getattr(getattr(policy, "actor_core", None), "rnn", None)
+    if rnn is None or not getattr(rnn, "batch_first", False):
+        raise ValueError(
+            f"the recurrent policy {type(policy).__name__} has no batch-first actor_core.rnn; "
+            "rlexp export takes the actor's LSTM / GRU from there"
+        )
+    return rnn
+
+
+def state_names(actor: DeterministicActor) -> list[str]:
+    """The file's state inputs (``actor_h``, and ``actor_c`` for an LSTM; [] without memory); the
+    outputs are the same names plus ``_out``."""
+    core = getattr(actor, "core", None)
+    if isinstance(core, LstmStep):
+        return ["actor_h", "actor_c"]
+    return ["actor_h"] if isinstance(core, GruStep) else []
+
+
+def state_shape(actor: DeterministicActor) -> list[int]:
+    """[num_layers, hidden_size] of each state input (after the batch)."""
+    rnn = actor.core.rnn
+    return [int(rnn.num_layers), int(rnn.hidden_size)]
+
+
 def actor_columns(inputs: Any, dim: int) -> list[int]:
     """The flat vector's columns the actor reads (``inputs``: its ``ObsInput``; None: all)."""
     if inputs is None:
@@ -154,11 +260,12 @@ def input_names(actor: DeterministicActor) -> list[str]:
     """The file's input names: ``observation`` (when the actor reads a vector), then one per image
     (its TensorDict key as an identifier: ``cam.front`` -> ``cam_front``; unique)."""
     names = [VECTOR_INPUT] if actor.reads_vector else []
+    taken = state_names(actor)  # (the state inputs come last, under their fixed names)
     for key in actor.image_keys:
         name = re.sub(r"\W", "_", key)
         if name[0].isdigit() or keyword.iskeyword(name) or name in ("self", "torch"):
             name = "image_" + name
-        while name in names:
+        while name in names or name in taken:
             name += "_"
         names.append(name)
     if getattr(actor, "masked", False):  # last, under its own name (an image key "action_mask" gets a "_")
@@ -228,16 +335,31 @@ class ExportedActor(torch.nn.Module):
         super().__init__()
         self.core = core
 
-    def forward(self, {args}) -> torch.Tensor:
-        return self.core.act({vector}, [{images}], {mask})
+    def forward(self, {args}) -> {returns}:
+        {body}
 """
+#: The wrapper's return type and body: feed-forward, LSTM (state h, c), GRU (state h).
+_BODIES = {
+    0: ("torch.Tensor", "return self.core.act({vector}, [{images}], {mask})"),
+    2: (
+        "tuple[torch.Tensor, torch.Tensor, torch.Tensor]",
+        "return self.core.act_recurrent({vector}, [{images}], {mask}, actor_h, actor_c)",
+    ),
+    1: (
+        "tuple[torch.Tensor, torch.Tensor]",
+        "action, h, _ = self.core.act_recurrent({vector}, [{images}], {mask}, actor_h, actor_h)\n"
+        "        return action, h",
+    ),
+}
 _count = [0]
 
 
 def exported_module(actor: DeterministicActor, torchscript: bool) -> nn.Module:
-    """What the file holds: the actor itself without images; with images a wrapper whose
-    ``forward`` takes one named tensor per input. ``torchscript``: encoders traced, all scripted."""
-    if not actor.image_keys and not actor.masked:
+    """What the file holds: the actor itself without images, mask or memory; otherwise a wrapper
+    whose ``forward`` takes one named tensor per input (the state last) and returns the action (and
+    the next state). ``torchscript``: encoders traced, all scripted."""
+    states = state_names(actor)
+    if not actor.image_keys and not actor.masked and not states:
         return torch.jit.script(actor) if torchscript else actor
     core = actor
     if torchscript:
@@ -253,11 +375,12 @@ def exported_module(actor: DeterministicActor, torchscript: bool) -> nn.Module:
     vector = VECTOR_INPUT if actor.reads_vector else "torch.zeros(0)"
     images = names[1:] if actor.reads_vector else names
     images = images[:-1] if actor.masked else images
+    returns, body = _BODIES[len(states)]
+    mask = MASK_INPUT if actor.masked else "None"
     source = _WRAPPER.format(
-        args=", ".join(f"{n}: torch.Tensor" for n in names),
-        vector=vector,
-        images=", ".join(images),
-        mask=MASK_INPUT if actor.masked else "None",
+        args=", ".join(f"{n}: torch.Tensor" for n in [*names, *states]),
+        returns=returns,
+        body=body.format(vector=vector, images=", ".join(images), mask=mask),
     )
     # TorchScript reads a method's source: the generated text is registered with linecache
     _count[0] += 1
@@ -287,6 +410,8 @@ def probe_inputs(actor: DeterministicActor, batch: int, seed: int = 0) -> list[t
         out.append(torch.randint(0, 256, (batch, *shape), generator=gen, dtype=torch.uint8))
     if actor.masked:  # random masks, one valid value per component at least
         out.append(probe_mask(actor.mask_spec.nvec, batch, gen))
+    for _ in state_names(actor):  # a state of about the size an LSTM / GRU keeps (|h| < 1)
+        out.append(torch.rand(batch, *state_shape(actor), generator=gen) * 1.6 - 0.8)
     return out
 
 
@@ -300,11 +425,20 @@ def probe_mask(nvec: Any, batch: int, gen: torch.Generator) -> torch.Tensor:
     return torch.cat(blocks, -1)
 
 
-def call_actor(actor: DeterministicActor, inputs: list[torch.Tensor]) -> torch.Tensor:
-    """The actor on inputs in the file's order."""
-    if not actor.image_keys and not actor.masked:
+def call_actor(
+    actor: DeterministicActor, inputs: list[torch.Tensor]
+) -> torch.Tensor | tuple[torch.Tensor, ...]:
+    """The actor on inputs in the file's order: the action (recurrent: and the next state)."""
+    states = state_names(actor)
+    if not actor.image_keys and not actor.masked and not states:
         return actor(inputs[0])
+    if states:
+        inputs, state = inputs[: -len(states)], inputs[-len(states) :]
     vector = inputs[0] if actor.reads_vector else torch.zeros(0)
     mask = inputs[-1] if actor.masked else None
     rest = inputs[:-1] if actor.masked else inputs
-    return actor.act(vector, list(rest[1:] if actor.reads_vector else rest), mask)
+    images = list(rest[1:] if actor.reads_vector else rest)
+    if not states:
+        return actor.act(vector, images, mask)
+    action, h, c = actor.act_recurrent(vector, images, mask, state[0], state[-1])
+    return (action, h, c) if len(states) == 2 else (action, h)

@@ -30,6 +30,10 @@ metadata's observation_layout and action_space ({file}.json).
 Images are uint8 [n, C, H, W] (the file scales them); FRAME_STACK > 1: the file was trained on the
 env's last FRAME_STACK frames of each image (env.frame_stack), which a deployment keeps itself:
 obs = stack.reset(obs) / stack.step(obs) with stack = {module}.FrameStack().
+
+MEMORY (a recurrent policy; None otherwise): the file also takes its state after the inputs and
+returns the next one after the action; state = {module}.initial_state() at an episode's start,
+then feed {{**xs, **state}} and keep the outputs as the next state (docs/export.md).
 """
 
 from collections import deque
@@ -45,6 +49,9 @@ PARTS = {parts!r}
 INPUTS = {inputs!r}
 FRAME_STACK = {frame_stack!r}
 ACTION = {action!r}
+#: A recurrent policy's state (the export metadata's memory): inputs named "name" after INPUTS,
+#: outputs named "output" after the action; zeros at an episode's start. None: no memory.
+MEMORY = {memory!r}
 
 
 def _leaf(obs, key):
@@ -123,6 +130,20 @@ def inputs(obs, batch=False, info=None):
     return out
 
 
+def initial_state(n=1):
+    """A recurrent file's state at an episode's start for n envs: {{name: float32 zeros [n, ...]}}
+    ({{}} without memory)."""
+    if MEMORY is None:
+        return {{}}
+    return {{s["name"]: np.zeros((n, *s["shape"][1:]), np.float32) for s in MEMORY["state"]}}
+
+
+def reset_state(state, done):
+    """The state with the envs whose episode ended (done: bool [n]) back at zeros."""
+    done = np.asarray(done, dtype=bool).reshape(-1, 1, 1)
+    return {{k: np.where(done, np.float32(0), v).astype(np.float32) for k, v in state.items()}}
+
+
 class FrameStack:
     """The last FRAME_STACK frames of each image leaf, stacked on a new first axis (one env;
     newest last; reset fills the stack with its first frame), as rlexp stacked them in training."""
@@ -186,9 +207,11 @@ def helper_source(
     layout: dict[str, Any],
     action: dict[str, Any],
     inputs: list[dict[str, Any]] | None = None,
+    memory: dict[str, Any] | None = None,
 ) -> str:
     """The helper's text for ``layout`` (``ObsLayout.record()``), ``action`` (the metadata's
-    ``action_space``) and ``inputs`` (the metadata's: the actor's; None: the whole vector)."""
+    ``action_space``), ``inputs`` (the metadata's: the actor's; None: the whole vector) and
+    ``memory`` (the metadata's: a recurrent policy's state; None: none)."""
     if inputs is None:
         vector = [p for p in layout["parts"] if p["kind"] != "image"]
         inputs = [{"name": "observation", "kind": "vector", "parts": vector}]
@@ -203,6 +226,7 @@ def helper_source(
         inputs=inputs,
         frame_stack=int(layout.get("frame_stack", 1)),
         action=action,
+        memory=memory,
     )
 
 
