@@ -268,7 +268,9 @@ def input_names(actor: DeterministicActor) -> list[str]:
         while name in names or name in taken:
             name += "_"
         names.append(name)
-    if getattr(actor, "masked", False):  # last, under its own name (an image key "action_mask" gets a "_")
+    if getattr(
+        actor, "masked", False
+    ):  # last, under its own name (an image key "action_mask" gets a "_")
         names = [n + "_" if n == MASK_INPUT else n for n in names] + [MASK_INPUT]
     return names
 
