@@ -1,0 +1,311 @@
+"""The replay buffer of the off-policy learners (SAC, TD3): TorchRL's ``ReplayBuffer`` on a
+``LazyTensorStorage`` (memory) or ``LazyMemmapStorage`` (memory-mapped files in the run dir),
+sampled uniformly from the buffer's own ``torch.Generator``, checkpointed incrementally.
+
+Transitions are ``observation``, ``action``, ``("next", "observation" | "reward" | "terminated" |
+"truncated" | "done")`` (+ ``steps_to_next_obs`` with ``n_step > 1``, see ``nstep.py``); both flags
+are kept: targets bootstrap through a truncation, never through a termination.
+
+Checkpoints (docs/replay.md): ``save(tag)`` writes only the rows added since the previous save, as
+one new chunk file (``replay_files.py``), and returns a small manifest (counters, generator state,
+the chunk list) that goes into the checkpoint. Once that checkpoint is on disk, ``commit(keep)``
+deletes the chunks no kept checkpoint needs any more (those whose rows the ring has overwritten);
+a crash before the commit leaves every chunk an existing checkpoint names. ``load_state_dict``
+rebuilds the storage from the chunks: the same rows at the same ring positions, the same generator,
+so the next samples are the uninterrupted run's.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, RandomSampler, ReplayBuffer
+
+from rlexp.algorithms import nstep, replay_files
+from rlexp.algorithms.replay_files import CHUNK_NAME, MANIFEST_FORMAT, ReplayFileError
+
+log = logging.getLogger(__name__)
+
+#: ``algorithm.buffer_storage`` choices.
+STORAGES = ("memory", "memmap", "auto")
+#: ``auto`` memory-maps a buffer whose full size would take more than this share of the RAM.
+AUTO_MEMMAP_SHARE = 0.25
+#: What a stored transition holds (``("next", "done")`` is added when the batch has none).
+TRANSITION_KEYS = (
+    "observation",
+    "action",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "terminated"),
+    ("next", "truncated"),
+    ("next", "done"),
+)
+
+
+def physical_memory() -> int:
+    """This machine's RAM in bytes (0 where the OS does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+class Replay:
+    """A ring of ``capacity`` transitions; ``directory`` holds its chunk files (and, memory-mapped,
+    its storage); ``seed`` seeds the sampling generator; ``n_step``/``gamma``: n-step returns."""
+
+    def __init__(
+        self,
+        capacity: int,
+        storage: str = "memory",
+        directory: str | Path | None = None,
+        device: str | torch.device = "cpu",
+        seed: int = 0,
+        *,
+        n_step: int = 1,
+        gamma: float = 0.99,
+    ) -> None:
+        if not isinstance(capacity, int) or isinstance(capacity, bool) or capacity < 1:
+            raise ValueError(f"algorithm.buffer_size={capacity!r}; expected an int >= 1")
+        if storage not in STORAGES:
+            raise ValueError(f"algorithm.buffer_storage={storage!r}; choose from {list(STORAGES)}")
+        if storage == "memmap" and directory is None:
+            raise ValueError(
+                "algorithm.buffer_storage=memmap needs a directory for its files (the run dir's)"
+            )
+        if not isinstance(n_step, int) or isinstance(n_step, bool) or n_step < 1:
+            raise ValueError(f"algorithm.n_step={n_step!r}; expected an int >= 1")
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"algorithm.gamma={gamma!r}; expected a number in [0, 1]")
+        self.capacity = capacity
+        self.storage = storage
+        self.directory = Path(directory) if directory is not None else None
+        self.device = torch.device(device)
+        self.n_step, self.gamma = n_step, float(gamma)
+        self.generator = torch.Generator()
+        self.generator.manual_seed(seed)
+        #: transitions ever added; the n-th sits at ring position ``n % capacity``
+        self.written = 0
+        self.layout: replay_files.Layout | None = None
+        self.storage_kind: str | None = None  # memory or memmap, once decided
+        self._rb: ReplayBuffer | None = None
+        self._pending: nstep.NStepState | None = None
+        self._chunks: list[dict[str, Any]] = []  # the chunks the rows up to _saved_upto are in
+        self._saved_upto = 0
+        self._saved: dict[str, list[str]] = {}  # tag -> chunk names, for saves not yet released
+        self._last_tag: str | None = None
+
+    # ----- filling and sampling ------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return min(self.written, self.capacity)
+
+    def extend(self, batch: TensorDictBase) -> None:
+        """Add a rollout: ``[num_envs, T]`` (each env's steps in time order) or, with
+        ``n_step=1``, any batch shape (flattened)."""
+        rows = self._transitions(batch)
+        count = rows.batch_size[0]
+        if count == 0:
+            return
+        if self._rb is None:
+            self._build(rows)
+        else:
+            self._check_layout(rows)
+        if count > self.capacity:  # only the last capacity rows survive: write them where they go
+            rows = rows[count - self.capacity :]
+        self._set_cursor(self.written + count - rows.batch_size[0])
+        self._rb.extend(rows)
+        self.written += count
+
+    def sample(self, batch_size: int) -> TensorDictBase:
+        """``batch_size`` transitions drawn uniformly (with replacement) from the valid rows, by
+        the buffer's own generator, as TorchRL's ``RandomSampler`` draws them."""
+        size = len(self)
+        if size == 0:
+            raise ValueError("the replay buffer is empty: nothing to sample (learning_starts=0?)")
+        index = torch.randint(0, size, (batch_size,), generator=self.generator)
+        storage = self._rb.storage
+        out = storage.get(index.to(storage.device) if storage.device != index.device else index)
+        return out.to(self.device) if out.device != self.device else out
+
+    def _transitions(self, batch: TensorDictBase) -> TensorDictBase:
+        """The rollout's transition entries; n-step windows applied; flat ``[N]``."""
+        if ("next", "done") not in batch.keys(include_nested=True):
+            batch = batch.clone(False)
+            batch.set(
+                ("next", "done"),
+                batch.get(("next", "terminated")) | batch.get(("next", "truncated")),
+            )
+        missing = [k for k in TRANSITION_KEYS if k not in batch.keys(include_nested=True)]
+        if missing:
+            raise KeyError(
+                f"a replay transition needs {missing}; the batch holds {list(batch.keys(True, True))}"
+            )
+        rows = batch.select(*TRANSITION_KEYS)
+        if self.n_step == 1:
+            return rows.reshape(-1)
+        if rows.batch_dims != 2:
+            raise ValueError(
+                f"algorithm.n_step={self.n_step} needs the rollout as [num_envs, T]; got "
+                f"{tuple(rows.batch_size)}"
+            )
+        out, self._pending = nstep.nstep_transitions(rows, self._pending, self.n_step, self.gamma)
+        return out
+
+    def _build(self, rows: TensorDictBase) -> None:
+        """The TorchRL buffer, its storage chosen now that a row's size is known."""
+        self.layout = replay_files.layout_of(rows)
+        kind = self.storage
+        if kind == "auto":
+            big = (
+                self.capacity * replay_files.row_bytes(self.layout)
+                > AUTO_MEMMAP_SHARE * physical_memory()
+            )
+            kind = "memmap" if big and self.directory is not None else "memory"
+        if kind == "memmap":
+            scratch = self.directory / "memmap"
+            shutil.rmtree(scratch, ignore_errors=True)  # a dead run's storage: never a checkpoint
+            scratch.mkdir(parents=True, exist_ok=True)
+            store = LazyMemmapStorage(self.capacity, scratch_dir=scratch, existsok=True)
+        else:
+            store = LazyTensorStorage(self.capacity, device=self.device)
+        self.storage_kind = kind
+        self._rb = ReplayBuffer(
+            storage=store, sampler=RandomSampler(), batch_size=None, generator=self.generator
+        )
+        log.info(
+            "replay buffer: %d transitions in %s (%s; %.1f MB when full)",
+            self.capacity,
+            kind,
+            replay_files.layout_text(self.layout),
+            self.capacity * replay_files.row_bytes(self.layout) / 1e6,
+        )
+
+    def _check_layout(self, rows: TensorDictBase) -> None:
+        layout = replay_files.layout_of(rows)
+        if layout != self.layout:
+            raise ValueError(
+                f"these transitions ({replay_files.layout_text(layout)}) do not fit the replay "
+                f"buffer's ({replay_files.layout_text(self.layout)})"
+            )
+
+    def _set_cursor(self, written: int) -> None:
+        self._rb._writer.load_state_dict(
+            {"_cursor": written % self.capacity, "_write_count": written}
+        )
+
+    # ----- checkpoints ---------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """``save()``: a manifest is only ever one whose rows are on disk."""
+        return self.save()
+
+    def save(self, tag: str = "latest") -> dict[str, Any]:
+        """Write the rows added since the last save as one new chunk file; the small manifest for
+        the checkpoint ``tag`` names (its file name, say). Deletes nothing: see ``commit``."""
+        first = self.written - len(self)
+        start = max(self._saved_upto, first)
+        if start < self.written:
+            if self.directory is None:
+                raise ValueError(
+                    "saving a replay buffer needs its directory (Replay(directory=...))"
+                )
+            positions = torch.arange(start, self.written) % self.capacity
+            rows = self._rb.storage.get(positions).to("cpu")
+            self._chunks.append(replay_files.write_chunk(self.directory, rows, start))
+        self._chunks = [c for c in self._chunks if c["stop"] > first]
+        self._saved_upto = self.written
+        self._saved[tag] = [c["file"] for c in self._chunks]
+        self._last_tag = tag
+        return {
+            "format": MANIFEST_FORMAT,
+            "capacity": self.capacity,
+            "written": self.written,
+            "n_step": self.n_step,
+            "gamma": self.gamma,
+            "storage": self.storage_kind,
+            "generator": self.generator.get_state(),
+            "layout": [[list(k), d, list(s)] for k, d, s in self.layout or []],
+            "chunks": [dict(c) for c in self._chunks],
+            "saved": {t: list(names) for t, names in self._saved.items()},
+            "pending": nstep.nstep_state_dict(self._pending),
+        }
+
+    def commit(self, keep: Iterable[str] | None = None) -> list[str]:
+        """Call once the checkpoint holding the last save's manifest is on disk (and old ones
+        pruned): forget the saves whose tags are not in ``keep`` (``None``: keep only the last)
+        and delete the chunk files no remaining save names. The deleted names."""
+        keep = set(keep) if keep is not None else set()
+        if self._last_tag is not None:
+            keep.add(self._last_tag)
+        self._saved = {t: names for t, names in self._saved.items() if t in keep}
+        needed = {n for names in self._saved.values() for n in names}
+        needed.update(c["file"] for c in self._chunks)  # the buffer's own, saved or loaded
+        deleted = []
+        if self.directory is not None and self.directory.is_dir():
+            for path in sorted(self.directory.iterdir()):
+                if CHUNK_NAME.fullmatch(path.name) and path.name not in needed:
+                    path.unlink(missing_ok=True)
+                    deleted.append(path.name)
+        return deleted
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Rebuild the buffer from a manifest ``save`` returned and its chunk files in
+        ``directory``; ``ReplayFileError`` (one line, naming the file) when they are not usable."""
+        if not isinstance(state, dict) or state.get("format") != MANIFEST_FORMAT:
+            raise ReplayFileError(f"not a replay buffer manifest (format {MANIFEST_FORMAT!r})")
+        capacity = replay_files._int(state.get("capacity"), "capacity", 1, replay_files.MAX_ROWS)
+        if capacity != self.capacity:
+            raise ReplayFileError(
+                f"the checkpoint's buffer holds {capacity} transitions, algorithm.buffer_size="
+                f"{self.capacity}: resume with the run's buffer_size"
+            )
+        n_step = replay_files._int(state.get("n_step"), "n_step", 1, 1 << 20)
+        if n_step != self.n_step or state.get("gamma") != self.gamma:
+            raise ReplayFileError(
+                f"the checkpoint's buffer has n_step={n_step}, gamma={state.get('gamma')!r}; this "
+                f"run has {self.n_step}, {self.gamma}: resume with the run's settings"
+            )
+        written = replay_files._int(state.get("written"), "written", 0, replay_files.MAX_ROWS)
+        generator = replay_files.check_generator(state.get("generator"))
+        layout = (
+            replay_files.check_layout(state.get("layout"))
+            if written or state.get("pending")
+            else None
+        )
+        chunks = replay_files.check_chunks(state.get("chunks"), written, capacity)
+        saved = replay_files.check_saved(state.get("saved"))
+        pending = replay_files.check_pending(state.get("pending"), layout or [], n_step)
+        if written and self.directory is None:
+            raise ValueError("loading a replay buffer needs its directory (Replay(directory=...))")
+        parts = [(c, replay_files.read_chunk(self.directory, c, layout)) for c in chunks]
+
+        self.layout, self._rb, self.written = layout, None, 0
+        first = written - min(written, capacity)
+        for entry, rows in parts:
+            lo = max(entry["start"], first)
+            rows = rows[lo - entry["start"] :]
+            if self._rb is None:
+                self._build(rows)
+            self._rb.storage.set(torch.arange(lo, entry["stop"]) % capacity, rows)
+        self.written = written
+        if self._rb is not None:
+            self._set_cursor(written)
+            if len(self._rb.storage) != len(self):
+                raise ReplayFileError(
+                    f"the chunks filled {len(self._rb.storage)} rows, expected {len(self)}"
+                )
+        try:
+            self.generator.set_state(generator.clone())
+        except RuntimeError as exc:
+            raise ReplayFileError(f"replay.generator is not a generator state ({exc})") from None
+        self._chunks, self._saved_upto, self._saved = chunks, written, saved
+        self._last_tag = None
+        self._pending = nstep.nstep_from_state_dict(pending)
