@@ -19,7 +19,7 @@ from rlexp.config.native_task import EventTermConfig, NativeTaskConfig
 from rlexp.config.schema_base import (
     BaseAlgorithmConfig,
     BasePolicyConfig,
-    EncoderConfig,
+    EncoderConfig,  # noqa: F401  (re-exported: importable from here as before)
     MLPConfig,
 )
 from rlexp.config.schema_offpolicy import (

@@ -101,7 +101,7 @@ def squash(u: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tens
 
 
 class OffPolicySampler(SamplingPolicy):
-    """Collection and evaluation: writes ``action`` only (the replay buffer stores nothing else).
+    """Collection and evaluation: writes ``action`` (and a 0 ``action_log_prob``: nothing reads it).
 
     ``deterministic``: the actor's mean (SAC) or action (TD3); otherwise a sample (SAC), the action
     plus Gaussian noise (TD3), or, while the policy's ``uniform_actions`` is set, uniform actions."""
@@ -114,7 +114,9 @@ class OffPolicySampler(SamplingPolicy):
         self.actor_net = policy.actor_net
         self.deterministic = deterministic
         self.in_keys = ["observation"]
-        self.out_keys = ["action"]
+        # (the log-prob is a 0 placeholder: evaluation reads (..., action, log-prob); the replay
+        # buffer keeps the action alone)
+        self.out_keys = ["action", "action_log_prob"]
 
     def sampler(self) -> Sampler:
         p = self.policy
@@ -123,7 +125,8 @@ class OffPolicySampler(SamplingPolicy):
 
             def uniform(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
                 shape = (*obs.shape[:-1], low.shape[-1])
-                return (low + (high - low) * torch.rand(shape, device=low.device),)
+                action = low + (high - low) * torch.rand(shape, device=low.device)
+                return action, action.new_zeros(shape[:-1])
 
             return uniform
         if p.kind == "sac":
@@ -132,16 +135,17 @@ class OffPolicySampler(SamplingPolicy):
             def sac(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
                 loc, scale = net(obs)
                 u = loc if self.deterministic else loc + scale * torch.randn_like(loc)
-                return (squash(u, low, high),)
+                return squash(u, low, high), loc.new_zeros(loc.shape[:-1])
 
             return sac
         net, noise = p.actor_net, p.exploration_noise * (high - low) * 0.5
 
         def td3(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
             action = net(obs)
-            if self.deterministic:
-                return (action,)
-            return (torch.maximum(torch.minimum(action + noise * torch.randn_like(action), high), low),)
+            if not self.deterministic:
+                action = action + noise * torch.randn_like(action)
+                action = torch.maximum(torch.minimum(action, high), low)
+            return action, action.new_zeros(action.shape[:-1])
 
         return td3
 
@@ -205,7 +209,9 @@ class OffPolicyPolicy(nn.Module):
                 self.normalizer, actor_in, mlp, cfg.min_log_std, cfg.max_log_std
             )
             self.actor = ProbabilisticActor(
-                TensorDictModule(self.actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
+                TensorDictModule(
+                    self.actor_net, in_keys=["observation"], out_keys=["loc", "scale"]
+                ),
                 in_keys=["loc", "scale"],
                 distribution_class=TanhNormal,
                 distribution_kwargs={"low": low, "high": high, "tanh_loc": False},
