@@ -1,0 +1,70 @@
+"""algorithm=sac / td3: the composed config, the derived frames_per_batch, and the one-line
+refusals of what does not combine (checked before anything is built or written)."""
+
+from __future__ import annotations
+
+import pytest
+
+from conftest import compose, run_train
+from rlexp.config.schema_offpolicy import SACConfig, SACPolicyConfig, TD3Config, TD3PolicyConfig
+from rlexp.config.validate import ConfigError, to_root_config
+
+
+def test_sac_and_td3_compose_with_their_networks_and_rollouts_of_train_freq_steps():
+    c = to_root_config(compose(["algorithm=sac", "env.num_envs=3", "algorithm.train_freq=4"]))
+    assert isinstance(c.algorithm, SACConfig) and type(c.policy) is SACPolicyConfig
+    assert c.trainer.frames_per_batch == 12  # env.num_envs * train_freq
+    assert c.policy.actor.hidden_sizes == [256, 256] and c.policy.critic.activation == "relu"
+    assert c.algorithm.target_entropy == "auto" and c.algorithm.learning_starts == 10_000
+    t = to_root_config(compose(["algorithm=td3", "algorithm.policy_delay=3"]))
+    assert isinstance(t.algorithm, TD3Config) and type(t.policy) is TD3PolicyConfig
+    assert (t.algorithm.policy_delay, t.algorithm.lr, t.trainer.frames_per_batch) == (3, 1e-3, 1)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["algorithm=sac", "policy=mlp"], "algorithm=sac needs policy.name='sac'"),
+        (["algorithm=td3", "policy=sac"], "algorithm=td3 needs policy.name='td3'"),
+        (
+            ["algorithm=sac", "algorithm.clip_epsilon=0.1"],
+            "algorithm.clip_epsilon=0.1 is a PPO / GRPO option",
+        ),
+        (
+            ["algorithm=td3", "algorithm.num_epochs=4"],
+            "algorithm.num_epochs=4 is a PPO / GRPO option",
+        ),
+        (
+            ["algorithm=sac", "algorithm.mini_batch_size=32"],
+            "algorithm.mini_batch_size=32 is a PPO",
+        ),
+        (["policy=sac"], "policy.name='sac' is for algorithm=sac"),
+        (["algorithm=grpo", "policy=td3"], "policy.name='td3' is for algorithm=td3"),
+        (
+            ["algorithm=sac", "algorithm.batch_size=512", "algorithm.buffer_size=100"],
+            "algorithm.batch_size=512 must be at most algorithm.buffer_size=100",
+        ),
+        (
+            ["algorithm=sac", "algorithm.target_entropy=big"],
+            "algorithm.target_entropy='big' must be auto",
+        ),
+        (["algorithm=sac", "algorithm.tau=1.5"], "algorithm.tau=1.5 must be in [0.0, 1.0]"),
+        (["algorithm=td3", "algorithm.policy_delay=0"], "algorithm.policy_delay=0 must be >= 1"),
+        (["algorithm=sac", "algorithm.updates_per_step=0"], "algorithm.updates_per_step=0"),
+        (["algorithm=sac", "algorithm.buffer_storage=disk"], "algorithm.buffer_storage='disk'"),
+    ],
+)
+def test_what_does_not_combine_is_refused_in_one_line(overrides, message):
+    with pytest.raises(ConfigError) as err:
+        to_root_config(compose(overrides))
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_discrete_actions_are_refused_with_exit_2_before_the_run_dir(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = run_train(["algorithm=sac", "env=gym_cartpole", f"hydra.run.dir={run_dir}"],
+                     cwd=tmp_path, check=False, timeout=300)  # fmt: skip
+    assert proc.returncode == 2
+    out = proc.stdout + proc.stderr
+    assert "policy=sac: the env's actions are discrete" in out and "Traceback" not in out
+    assert not run_dir.exists()
