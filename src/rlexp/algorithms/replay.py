@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, RandomSampler, ReplayBuffer
 
 from rlexp.algorithms import nstep, replay_files
@@ -47,6 +47,22 @@ TRANSITION_KEYS = (
     ("next", "truncated"),
     ("next", "done"),
 )
+
+
+def _nested(columns: dict[tuple[str, ...], Any], shape: torch.Size) -> TensorDict:
+    """A TensorDict of ``columns`` (keys as tuples), built without per-entry checks."""
+    top: dict[str, Any] = {}
+    for key, value in columns.items():
+        node = top
+        for part in key[:-1]:
+            node = node.setdefault(part, {})
+        node[key[-1]] = value
+
+    def build(tree: dict[str, Any]) -> TensorDict:
+        items = {k: build(v) if isinstance(v, dict) else v for k, v in tree.items()}
+        return TensorDict._new_unsafe(items, batch_size=shape)
+
+    return build(top)
 
 
 def physical_memory() -> int:
@@ -96,6 +112,7 @@ class Replay:
         self.layout: replay_files.Layout | None = None
         self.storage_kind: str | None = None  # memory or memmap, once decided
         self._rb: ReplayBuffer | None = None
+        self._leaves: list[tuple[tuple[str, ...], torch.Tensor]] = []  # the storage's tensors
         self._pending: nstep.NStepState | None = None
         self._chunks: list[dict[str, Any]] = []  # the chunks the rows up to _saved_upto are in
         self._saved_upto = 0
@@ -114,15 +131,45 @@ class Replay:
         count = rows.batch_size[0]
         if count == 0:
             return
-        if self._rb is None:
-            self._build(rows)
-        else:
-            self._check_layout(rows)
         if count > self.capacity:  # only the last capacity rows survive: write them where they go
             rows = rows[count - self.capacity :]
-        self._set_cursor(self.written + count - rows.batch_size[0])
-        self._rb.extend(rows)
+        start = self.written + count - rows.batch_size[0]
+        if self._rb is None:  # TorchRL allocates the storage from the first rows
+            self._build(rows)
+            self._set_cursor(start)
+            self._rb.extend(rows)
+            self._leaves = self._storage_leaves()
+        else:
+            self._write(rows, start)
         self.written += count
+
+    def _write(self, rows: TensorDictBase, start: int) -> None:
+        """Write ``rows`` at ring positions ``start % capacity, ...`` straight into the TorchRL
+        storage's tensors (where its RoundRobinWriter puts them, without its per-call overhead:
+        SAC adds a few rows per gradient step)."""
+        count, at = rows.batch_size[0], start % self.capacity
+        first = min(count, self.capacity - at)
+        for key, dst in self._leaves:
+            src = rows.get(key)
+            if src.dtype != dst.dtype or src.shape[1:] != dst.shape[1:]:
+                self._check_layout(rows)  # raises, naming both layouts
+            dst[at : at + first] = src[:first]
+            if first < count:  # wraps round
+                dst[: count - first] = src[first:]
+        store = self._rb.storage
+        store._len = min(start + count, self.capacity)
+        self._set_cursor(start + count)
+
+    def _storage_leaves(self) -> list[tuple[tuple[str, ...], torch.Tensor]]:
+        """The storage's tensors by key (memory-mapped ones as plain tensor views of the map)."""
+        stored = self._rb.storage._storage
+        leaves = []
+        for key in stored.keys(include_nested=True, leaves_only=True):
+            value = stored.get(key)
+            leaves.append(
+                ((key,) if isinstance(key, str) else tuple(key), value.as_subclass(torch.Tensor))
+            )
+        return sorted(leaves, key=lambda kv: kv[0])
 
     def sample(self, batch_size: int) -> TensorDictBase:
         """``batch_size`` transitions drawn uniformly (with replacement) from the valid rows, by
@@ -131,50 +178,86 @@ class Replay:
         if size == 0:
             raise ValueError("the replay buffer is empty: nothing to sample (learning_starts=0?)")
         index = torch.randint(0, size, (batch_size,), generator=self.generator)
-        storage = self._rb.storage
-        out = storage.get(index.to(storage.device) if storage.device != index.device else index)
-        return out.to(self.device) if out.device != self.device else out
+        if self._leaves[0][1].device != index.device:
+            index = index.to(self._leaves[0][1].device)
+        out: dict[str, Any] = {}
+        nxt: dict[str, torch.Tensor] = {}
+        for key, leaf in self._leaves:
+            value = leaf[index]
+            if value.device != self.device:  # memory-mapped storage feeding an accelerator
+                value = value.to(self.device, non_blocking=True)
+            if len(key) == 1:
+                out[key[0]] = value
+            elif len(key) == 2 and key[0] == "next":
+                nxt[key[1]] = value
+            else:  # an observation that is itself a TensorDict: the general path
+                return self._gather(index).to(self.device)
+        shape = torch.Size([batch_size])
+        out["next"] = TensorDict._new_unsafe(nxt, batch_size=shape, device=self.device)
+        return TensorDict._new_unsafe(out, batch_size=shape, device=self.device)
+
+    def _gather(self, index: torch.Tensor) -> TensorDict:
+        """The rows at ring positions ``index``, on the CPU (the storage may be on an accelerator)."""
+        index = index.to(self._device())
+        rows = {key: leaf[index].cpu() for key, leaf in self._leaves}
+        return _nested(rows, torch.Size([index.numel()]))
+
+    def _device(self) -> torch.device:
+        """Where the storage's tensors are: ``device``, or the CPU for memory-mapped ones."""
+        return torch.device("cpu") if self.storage_kind == "memmap" else self.device
 
     def _transitions(self, batch: TensorDictBase) -> TensorDictBase:
         """The rollout's transition entries; n-step windows applied; flat ``[N]``."""
-        if ("next", "done") not in batch.keys(include_nested=True):
-            batch = batch.clone(False)
-            batch.set(
-                ("next", "done"),
-                batch.get(("next", "terminated")) | batch.get(("next", "truncated")),
-            )
-        missing = [k for k in TRANSITION_KEYS if k not in batch.keys(include_nested=True)]
-        if missing:
-            raise KeyError(
-                f"a replay transition needs {missing}; the batch holds {list(batch.keys(True, True))}"
-            )
-        rows = batch.select(*TRANSITION_KEYS)
+        dims = batch.batch_dims
+        columns: dict[tuple[str, ...], torch.Tensor] = {}
+        for key in TRANSITION_KEYS:
+            value = batch.get(key, None)
+            if value is None and key == ("next", "done"):
+                value = columns[("next", "terminated")] | columns[("next", "truncated")]
+            if value is None:
+                missing = [k for k in TRANSITION_KEYS[:-1] if batch.get(k, None) is None]
+                raise KeyError(f"a replay transition needs {missing}; the batch has none")
+            columns[(key,) if isinstance(key, str) else key] = value
         if self.n_step == 1:
-            return rows.reshape(-1)
-        if rows.batch_dims != 2:
+            flat = torch.Size([batch.batch_size.numel()])
+            return _nested({k: v.reshape(*flat, *v.shape[dims:]) for k, v in columns.items()}, flat)
+        if dims != 2:
             raise ValueError(
                 f"algorithm.n_step={self.n_step} needs the rollout as [num_envs, T]; got "
-                f"{tuple(rows.batch_size)}"
+                f"{tuple(batch.batch_size)}"
             )
+        rows = _nested(columns, batch.batch_size)
         out, self._pending = nstep.nstep_transitions(rows, self._pending, self.n_step, self.gamma)
         return out
 
     def _build(self, rows: TensorDictBase) -> None:
         """The TorchRL buffer, its storage chosen now that a row's size is known."""
         self.layout = replay_files.layout_of(rows)
+        need = self.capacity * replay_files.row_bytes(self.layout)
         kind = self.storage
         if kind == "auto":
-            big = (
-                self.capacity * replay_files.row_bytes(self.layout)
-                > AUTO_MEMMAP_SHARE * physical_memory()
-            )
+            big = need > AUTO_MEMMAP_SHARE * physical_memory()
             kind = "memmap" if big and self.directory is not None else "memory"
         if kind == "memmap":
             scratch = self.directory / "memmap"
             shutil.rmtree(scratch, ignore_errors=True)  # a dead run's storage: never a checkpoint
             scratch.mkdir(parents=True, exist_ok=True)
+            free = shutil.disk_usage(scratch).free
+            if need > free:
+                raise ValueError(
+                    f"algorithm.buffer_size={self.capacity} x {need // self.capacity} bytes per "
+                    f"transition = {need / 1e9:.1f} GB; {scratch} has {free / 1e9:.1f} GB free: "
+                    "a smaller buffer_size, or a run dir on a larger disk"
+                )
             store = LazyMemmapStorage(self.capacity, scratch_dir=scratch, existsok=True)
         else:
+            ram = physical_memory()
+            if self.device.type == "cpu" and ram and need > ram:
+                raise ValueError(
+                    f"algorithm.buffer_size={self.capacity} x {need // self.capacity} bytes per "
+                    f"transition = {need / 1e9:.1f} GB, more than this machine's {ram / 1e9:.1f} GB "
+                    "of RAM: algorithm.buffer_storage=memmap (or auto), or a smaller buffer_size"
+                )
             store = LazyTensorStorage(self.capacity, device=self.device)
         self.storage_kind = kind
         self._rb = ReplayBuffer(
@@ -207,9 +290,11 @@ class Replay:
         """``save()``: a manifest is only ever one whose rows are on disk."""
         return self.save()
 
-    def save(self, tag: str = "latest") -> dict[str, Any]:
+    def save(self, tag: str | None = None) -> dict[str, Any]:
         """Write the rows added since the last save as one new chunk file; the small manifest for
-        the checkpoint ``tag`` names (its file name, say). Deletes nothing: see ``commit``."""
+        the checkpoint ``tag`` names (its file name, say; default ``save-<written>``). Deletes
+        nothing: see ``commit``."""
+        tag = f"save-{self.written}" if tag is None else tag
         first = self.written - len(self)
         start = max(self._saved_upto, first)
         if start < self.written:
@@ -218,10 +303,11 @@ class Replay:
                     "saving a replay buffer needs its directory (Replay(directory=...))"
                 )
             positions = torch.arange(start, self.written) % self.capacity
-            rows = self._rb.storage.get(positions).to("cpu")
+            rows = self._gather(positions)
             self._chunks.append(replay_files.write_chunk(self.directory, rows, start))
         self._chunks = [c for c in self._chunks if c["stop"] > first]
         self._saved_upto = self.written
+        self._saved.pop(tag, None)  # in save order: a tag saved again is the newest
         self._saved[tag] = [c["file"] for c in self._chunks]
         self._last_tag = tag
         return {
@@ -232,20 +318,33 @@ class Replay:
             "gamma": self.gamma,
             "storage": self.storage_kind,
             "generator": self.generator.get_state(),
-            "layout": [[list(k), d, list(s)] for k, d, s in self.layout or []],
+            "layout": [[list(k), d, list(s)] for k, d, s in self._layout_to_save()],
             "chunks": [dict(c) for c in self._chunks],
             "saved": {t: list(names) for t, names in self._saved.items()},
             "pending": nstep.nstep_state_dict(self._pending),
         }
 
-    def commit(self, keep: Iterable[str] | None = None) -> list[str]:
+    def _layout_to_save(self) -> replay_files.Layout:
+        """The storage's layout; before its first row, the one the waiting n-step steps give."""
+        if self.layout is not None or self._pending is None:
+            return self.layout or []
+        steps = replay_files.layout_of(self._pending.steps)
+        return sorted([*steps, ((nstep.STEPS_KEY,), str(torch.int64), (1,))])
+
+    def commit(self, keep: Iterable[str] | int | None = None) -> list[str]:
         """Call once the checkpoint holding the last save's manifest is on disk (and old ones
-        pruned): forget the saves whose tags are not in ``keep`` (``None``: keep only the last)
-        and delete the chunk files no remaining save names. The deleted names."""
-        keep = set(keep) if keep is not None else set()
-        if self._last_tag is not None:
-            keep.add(self._last_tag)
-        self._saved = {t: names for t, names in self._saved.items() if t in keep}
+        pruned): forget the saves not kept and delete the chunk files no remaining save names.
+        ``keep``: the tags of the checkpoints still on disk (the last save is always kept); an
+        int ``n``: the last ``n`` saves (``<= 0``: all); ``None``: the last save only. The
+        deleted names."""
+        tags = list(self._saved)
+        if keep is None:
+            kept = set(tags[-1:])
+        elif isinstance(keep, int):
+            kept = set(tags if keep <= 0 else tags[-keep:])
+        else:
+            kept = set(keep) | ({self._last_tag} if self._last_tag is not None else set())
+        self._saved = {t: names for t, names in self._saved.items() if t in kept}
         needed = {n for names in self._saved.values() for n in names}
         needed.update(c["file"] for c in self._chunks)  # the buffer's own, saved or loaded
         deleted = []
@@ -268,7 +367,7 @@ class Replay:
                 f"{self.capacity}: resume with the run's buffer_size"
             )
         n_step = replay_files._int(state.get("n_step"), "n_step", 1, 1 << 20)
-        if n_step != self.n_step or state.get("gamma") != self.gamma:
+        if n_step != self.n_step or (n_step > 1 and state.get("gamma") != self.gamma):
             raise ReplayFileError(
                 f"the checkpoint's buffer has n_step={n_step}, gamma={state.get('gamma')!r}; this "
                 f"run has {self.n_step}, {self.gamma}: resume with the run's settings"
@@ -287,17 +386,20 @@ class Replay:
             raise ValueError("loading a replay buffer needs its directory (Replay(directory=...))")
         parts = [(c, replay_files.read_chunk(self.directory, c, layout)) for c in chunks]
 
-        self.layout, self._rb, self.written = layout, None, 0
+        self.layout, self._rb, self._leaves, self.written = layout, None, [], 0
         first = written - min(written, capacity)
         for entry, rows in parts:
             lo = max(entry["start"], first)
             rows = rows[lo - entry["start"] :]
             if self._rb is None:
                 self._build(rows)
-            self._rb.storage.set(torch.arange(lo, entry["stop"]) % capacity, rows)
+            self._rb.storage.set(
+                torch.arange(lo, entry["stop"]) % capacity, rows.to(self._device())
+            )
         self.written = written
         if self._rb is not None:
             self._set_cursor(written)
+            self._leaves = self._storage_leaves()
             if len(self._rb.storage) != len(self):
                 raise ReplayFileError(
                     f"the chunks filled {len(self._rb.storage)} rows, expected {len(self)}"

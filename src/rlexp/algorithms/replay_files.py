@@ -286,13 +286,12 @@ def check_pending(value: Any, layout: Layout, n_step: int) -> dict | None:
     while stack:
         prefix, node = stack.pop()
         if not isinstance(node, Mapping) or len(prefix) > 8:
-            raise ReplayFileError(f"replay.pending.steps{'.'.join(prefix)} is not a dict")
+            raise ReplayFileError(f"replay.pending.steps.{'.'.join(prefix)} is not a dict")
         for k, v in node.items():
-            (
-                found.__setitem__((*prefix, k), v)
-                if isinstance(v, torch.Tensor)
-                else stack.append(((*prefix, k), v))
-            )
+            if isinstance(v, torch.Tensor):
+                found[(*prefix, k)] = v
+            else:
+                stack.append(((*prefix, k), v))
     if set(found) != set(expected):
         raise ReplayFileError("replay.pending.steps does not hold the buffer's entries")
     for key, (dtype, shape) in expected.items():
