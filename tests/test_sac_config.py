@@ -68,3 +68,52 @@ def test_discrete_actions_are_refused_with_exit_2_before_the_run_dir(tmp_path):
     out = proc.stdout + proc.stderr
     assert "policy=sac: the env's actions are discrete" in out and "Traceback" not in out
     assert not run_dir.exists()
+
+
+@pytest.mark.parametrize(
+    ("env", "algo", "expected"),
+    [  # rl-baselines3-zoo hyperparams/sac.yml and td3.yml (eec15dc), SB3's defaults elsewhere
+        (
+            "hopper",
+            "sac",
+            {"lr": 3e-4, "learning_starts": 10_000, "gamma": 0.99, "sizes": [256, 256]},
+        ),
+        (
+            "pendulum",
+            "sac",
+            {"lr": 1e-3, "learning_starts": 100, "gamma": 0.99, "sizes": [256, 256]},
+        ),
+        (
+            "half_cheetah",
+            "td3",
+            {"lr": 1e-3, "learning_starts": 10_000, "gamma": 0.99, "sizes": [400, 300]},
+        ),
+        (
+            "pendulum",
+            "td3",
+            {"lr": 1e-3, "learning_starts": 10_000, "gamma": 0.98, "sizes": [400, 300]},
+        ),
+    ],
+)
+def test_the_rl_zoo_presets_per_task(env, algo, expected):
+    c = to_root_config(compose([f"env={env}", f"+experiment={algo}"]))
+    a = c.algorithm
+    assert (a.name, c.policy.name, c.env.num_envs, c.env.normalize_observations) == (
+        algo,
+        algo,
+        1,
+        False,
+    )
+    got = {"lr": a.lr, "learning_starts": a.learning_starts, "gamma": a.gamma,
+           "sizes": c.policy.actor.hidden_sizes}  # fmt: skip
+    assert got == expected
+
+
+def test_a_task_without_an_off_policy_preset_is_refused_in_one_line(tmp_path):
+    proc = run_train(["env=swimmer", "+experiment=td3", f"hydra.run.dir={tmp_path / 'run'}"],
+                     cwd=tmp_path, check=False, timeout=300)  # fmt: skip
+    assert proc.returncode == 2 and not (tmp_path / "run").exists()
+    assert (
+        "+experiment=td3 has no preset for env=swimmer (no conf/td3_zoo/swimmer.yaml)"
+        in proc.stderr
+    )
