@@ -48,6 +48,10 @@ class _ReadsRaw(nn.Module):
         self.__dict__["_normalizer"] = normalizer
         self.inputs = inputs
 
+    @property
+    def normalizer(self) -> ObservationNormalizer:
+        return self.__dict__["_normalizer"]
+
     def features(self, obs: torch.Tensor) -> torch.Tensor:
         x = self.__dict__["_normalizer"](obs)
         return x if self.inputs.index is None else x.index_select(-1, self.inputs.index)
