@@ -108,8 +108,11 @@ def _sac(tmp_path, **kw) -> SAC:
     return SAC(cfg, SACPolicy(pcfg, 3, 2, _spec()), 10, run_dir=tmp_path)
 
 
-def test_sac_gradient_step_matches_a_plain_torch_sac(tmp_path):
-    algo = _sac(tmp_path)
+@pytest.mark.parametrize("compile_", ["false", "auto", "true"])
+def test_sac_gradient_step_matches_a_plain_torch_sac(tmp_path, compile_):
+    """compile false: TorchRL's SACLoss; auto: the fused step (fused_sac.py); true: it compiled."""
+    algo = _sac(tmp_path, compile=compile_)
+    assert (algo.fused is None) == (compile_ == "false")
     batch = _batch()
     actor, q, targets = _nets(algo, 2)
     log_alpha = torch.tensor(math.log(0.5), requires_grad=True)
@@ -253,7 +256,7 @@ def test_td3_gradient_steps_match_a_plain_torch_td3(tmp_path):
 def test_update_waits_for_learning_starts_then_keeps_the_update_to_data_ratio(tmp_path):
     """learning_starts=12 env steps with uniform actions first; updates_per_step=0.75 on rollouts
     of 8 transitions: 6 gradient steps each once learning has started."""
-    algo = _sac(tmp_path, learning_starts=12, updates_per_step=0.75)
+    algo = _sac(tmp_path, learning_starts=12, updates_per_step=0.75, compile="false")
     roll = _batch().reshape(2, 4)
     assert bool(algo.policy.uniform_actions)
     m = algo.update(roll)
@@ -262,3 +265,16 @@ def test_update_waits_for_learning_starts_then_keeps_the_update_to_data_ratio(tm
     assert m["loss/gradient_steps"] == 6 and not bool(algo.policy.uniform_actions)
     m = algo.update(roll)
     assert m["loss/gradient_steps"] == 12
+
+
+def test_the_fused_step_follows_the_torchrl_step_over_many_updates(tmp_path):
+    """20 gradient steps from the same start and draws: the same parameters (to float rounding)."""
+    runs = []
+    for compile_ in ("false", "auto"):
+        algo = _sac(tmp_path / compile_, compile=compile_)
+        torch.manual_seed(77)
+        for _ in range(20):
+            algo._gradient_step(_batch())
+        runs.append(algo.loss.state_dict())
+    for key, value in runs[0].items():
+        torch.testing.assert_close(runs[1][key], value, rtol=1e-4, atol=1e-5, msg=key)

@@ -17,6 +17,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.objectives import LossModule, SACLoss
 
+from rlexp.algorithms.base import NonFiniteError, parse_compile
+from rlexp.algorithms.fused_sac import FusedSAC
 from rlexp.algorithms.offpolicy import OffPolicy
 
 
@@ -35,6 +37,12 @@ class SAC(OffPolicy):
         self.alpha_optimizer = (
             self._adam(self.alpha_params, cfg.alpha_lr) if self.alpha_params else None
         )
+        # algorithm.compile: true -> the fused step compiled; auto -> the fused step (eager);
+        # false -> TorchRL's SACLoss step (the same numbers: tests/test_sac.py)
+        self.compile = parse_compile(cfg.compile)
+        self.fused: FusedSAC | None = None
+        if self.compile != "false":
+            self.fused = FusedSAC(self, compiled=self.compile == "true")
 
     def _make_loss(self, qnets: list) -> LossModule:
         c = self.cfg
@@ -71,20 +79,28 @@ class SAC(OffPolicy):
             self.loss.target_entropy.fill_(float(self.cfg.target_entropy))
 
     def _gradient_step(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        if self.fused is not None:
+            return self.fused.step(batch)
         out = self.loss(batch)
-        q_loss, actor_loss, alpha_loss = out["loss_qvalue"], out["loss_actor"], out["loss_alpha"]
+        return self._apply_losses(out["loss_qvalue"], out["loss_actor"], out["loss_alpha"],
+                                  out["alpha"], out["entropy"])  # fmt: skip
+
+    def _apply_losses(
+        self, q_loss, actor_loss, alpha_loss, alpha, entropy
+    ) -> dict[str, torch.Tensor]:
+        """One backward through the three losses (they touch disjoint parameters: the actor's
+        loss sees the Q networks detached), the NaN guard, clipping, the three Adam steps and the
+        soft target update."""
         self.q_optimizer.zero_grad(set_to_none=True)
         self.actor_optimizer.zero_grad(set_to_none=True)
         total = q_loss + actor_loss
         if self.alpha_optimizer is not None:
             self.alpha_optimizer.zero_grad(set_to_none=True)
             total = total + alpha_loss
-        total.backward()  # the three losses touch disjoint parameters (SACLoss detaches)
+        total.backward()
         if self.nan_guard and not torch.isfinite(total.detach()):
             bad = [k for k, v in (("qvalue", q_loss), ("actor", actor_loss), ("alpha", alpha_loss))
                    if not torch.isfinite(v)]  # fmt: skip
-            from rlexp.algorithms.base import NonFiniteError
-
             raise NonFiniteError(f"non-finite loss ({', '.join(bad)}) in algorithm=sac")
         if self.cfg.max_grad_norm > 0:
             torch.nn.utils.clip_grad_norm_(self.q_params, self.cfg.max_grad_norm)
@@ -98,6 +114,6 @@ class SAC(OffPolicy):
             "loss/qvalue": q_loss.detach(),
             "loss/actor": actor_loss.detach(),
             "loss/alpha": alpha_loss.detach(),
-            "loss/entropy_coeff": out["alpha"].detach(),
-            "loss/entropy": out["entropy"].detach(),
+            "loss/entropy_coeff": alpha.detach(),
+            "loss/entropy": entropy.detach(),
         }
