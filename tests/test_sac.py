@@ -278,3 +278,22 @@ def test_the_fused_step_follows_the_torchrl_step_over_many_updates(tmp_path):
         runs.append(algo.loss.state_dict())
     for key, value in runs[0].items():
         torch.testing.assert_close(runs[1][key], value, rtol=1e-4, atol=1e-5, msg=key)
+
+
+def test_pbt_exploit_takes_networks_and_optimisers_but_not_the_buffer(tmp_path):
+    """load_training_state (PBT's exploit): the other member's actor, Q networks, targets, alpha
+    and optimisers; this member's replay buffer and counters stay."""
+    a, b = _sac(tmp_path / "a"), _sac(tmp_path / "b")
+    a.update(_batch(1).reshape(2, 4))
+    a.update(_batch(2).reshape(2, 4))
+    b.update(_batch(3).reshape(2, 4))
+    theirs, rows = a.state_dict(), b.replay.sample(4)
+    b.policy.load_state_dict(a.policy.state_dict())
+    b.load_training_state(theirs)
+    for key, value in theirs["loss"].items():
+        assert torch.equal(b.loss.state_dict()[key], value), key
+    assert (b.frames, len(b.replay), len(a.replay)) == (8, 8, 16)
+    mine = _batch(3)["observation"]
+    for row in b.replay.sample(16)["observation"]:  # every row is still one of b's own
+        assert (mine == row).all(-1).any()
+    assert rows["observation"].shape == (4, 3)
