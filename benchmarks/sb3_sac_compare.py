@@ -45,9 +45,24 @@ SB3 = textwrap.dedent(
 )
 
 
+def mujoco_shim() -> str:
+    """A folder to put on the SB3 interpreter's PYTHONPATH with this interpreter's MuJoCo and
+    the packages Gymnasium's MuJoCo envs import (the SB3 venv here has none of them)."""
+    import importlib.util
+
+    shim = Path(tempfile.mkdtemp(prefix="mujoco-shim-"))
+    site = Path(importlib.util.find_spec("mujoco").origin).parent.parent
+    for pattern in ("mujoco", "absl", "etils", "glfw", "OpenGL", "imageio", "mujoco-*.dist-info",
+                    "imageio-*.dist-info"):  # fmt: skip
+        for path in site.glob(pattern):
+            (shim / path.name).symlink_to(path)
+    return str(shim)
+
+
 def sb3_rate(python: str, starts: int, steps: int) -> float:
+    env = {**os.environ, "PYTHONPATH": mujoco_shim()}
     out = subprocess.run([python, "-c", SB3, str(starts), str(steps)], capture_output=True,
-                         text=True, check=True, timeout=3600)  # fmt: skip
+                         text=True, check=True, timeout=3600, env=env)  # fmt: skip
     return float(out.stdout.strip().splitlines()[-1])
 
 
