@@ -297,3 +297,40 @@ def test_pbt_exploit_takes_networks_and_optimisers_but_not_the_buffer(tmp_path):
     for row in b.replay.sample(16)["observation"]:  # every row is still one of b's own
         assert (mine == row).all(-1).any()
     assert rows["observation"].shape == (4, 3)
+
+
+def test_n_step_targets_discount_by_gamma_to_the_steps_taken(tmp_path):
+    """n_step=3: the buffer's n-step rewards and ``steps_to_next_obs`` (fewer steps at an episode's
+    end); TorchRL's path and the fused one both discount the bootstrap by gamma ** steps."""
+    g = torch.Generator().manual_seed(3)
+    n, t = 2, 10
+    done = torch.zeros(n, t, 1, dtype=torch.bool)
+    done[0, 4] = True  # env 0's episode terminates at step 4
+    roll = TensorDict(
+        {
+            "observation": torch.randn(n, t, 3, generator=g),
+            "action": LOW + (HIGH - LOW) * torch.rand(n, t, 2, generator=g),
+            "next": {
+                "observation": torch.randn(n, t, 3, generator=g),
+                "reward": torch.randn(n, t, 1, generator=g),
+                "terminated": done.clone(),
+                "truncated": torch.zeros(n, t, 1, dtype=torch.bool),
+                "done": done.clone(),
+            },
+        },
+        [n, t],
+    )
+    states = []
+    for compile_ in ("false", "auto"):
+        algo = _sac(tmp_path / compile_, n_step=3, compile=compile_)
+        algo.replay.extend(roll)
+        sample = algo.replay.sample(B)
+        steps = sample["steps_to_next_obs"]
+        assert steps.min() >= 1 and steps.max() == 3 and (steps < 3).any()  # both kinds drawn
+        torch.manual_seed(4)
+        out = algo._gradient_step(sample)
+        states.append((out, algo.loss.state_dict()))
+    (a, sa), (b, sb) = states
+    assert a["loss/qvalue"].item() == pytest.approx(b["loss/qvalue"].item(), rel=1e-5)
+    for key, value in sa.items():
+        torch.testing.assert_close(sb[key], value, rtol=1e-5, atol=1e-6, msg=key)
