@@ -117,3 +117,27 @@ def test_a_task_without_an_off_policy_preset_is_refused_in_one_line(tmp_path):
         "+experiment=td3 has no preset for env=swimmer (no conf/td3_zoo/swimmer.yaml)"
         in proc.stderr
     )
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        ('"name": "ppo"', '"name": "sac"', "algorithm.name='sac': choose from ['ppo', 'grpo']"),
+        (
+            '"name": "actor_critic"',
+            '"name": "td3"',
+            "policy.name='td3': choose from ['actor_critic', 'actor_only']",
+        ),
+    ],
+)
+def test_the_users_json_files_keep_their_ppo_and_grpo_names(tmp_path, old, new, message):
+    from conftest import REPO
+
+    text = (REPO / "examples/json/cart_pole/train_config.json").read_text()
+    assert old in text
+    path = tmp_path / "train.json"
+    path.write_text(text.replace(old, new))
+    proc = run_train(["--config-json", str(path), f"hydra.run.dir={tmp_path / 'run'}"],
+                     cwd=REPO, check=False, timeout=300)  # fmt: skip
+    assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "run").exists()
