@@ -177,18 +177,21 @@ def test_sac_auto_target_entropy_is_minus_act_dim_and_hooks_change_it(tmp_path):
     assert algo.target_update.eps == pytest.approx(0.875)
 
 
-def _td3(tmp_path) -> TD3:
+def _td3(tmp_path, compile_: str = "auto") -> TD3:
     torch.manual_seed(0)
     pcfg = TD3PolicyConfig(actor=MLPConfig([5], "relu"), critic=MLPConfig([6], "relu"))
     cfg = TD3Config(gamma=0.8, tau=0.25, lr=1e-3, critic_lr=3e-3, policy_delay=3,
-                    target_policy_noise=0.4, target_noise_clip=0.3, buffer_size=64, batch_size=B)  # fmt: skip
+                    target_policy_noise=0.4, target_noise_clip=0.3, buffer_size=64, batch_size=B,
+                    compile=compile_)  # fmt: skip
     return TD3(cfg, TD3Policy(pcfg, 3, 2, _spec()), 10, run_dir=tmp_path)
 
 
-def test_td3_gradient_steps_match_a_plain_torch_td3(tmp_path):
+@pytest.mark.parametrize("compile_", ["false", "auto"])
+def test_td3_gradient_steps_match_a_plain_torch_td3(tmp_path, compile_):
     """Three critic steps, the actor and the targets on the third (policy_delay=3); smoothing noise
     0.4 and clip 0.3 in half-ranges of the asymmetric bounds (half-ranges 1.5 and 2)."""
-    algo = _td3(tmp_path)
+    algo = _td3(tmp_path, compile_)
+    assert (algo.fused is None) == (compile_ == "false")
     batch = _batch(7)
     actor, q, targets = _nets(algo, 2)
     tactor = {k: v.detach().clone() for k, v in actor.items()}

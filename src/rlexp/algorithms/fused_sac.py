@@ -1,4 +1,4 @@
-"""SAC's gradient step as one function of plain tensors (``algorithm.compile``, docs/sac.md "Speed"):
+"""SAC's (and TD3's: ``FusedTD3``) gradient step as one function of plain tensors (``algorithm.compile``, docs/sac.md "Speed"):
 the critics', actor's and alpha's losses of TorchRL's ``SACLoss`` written out on the same
 parameters (the twin Q networks as stacked ``[n, out, in]`` weights, one batched matmul per layer
 instead of ``vmap``), the same random draws in the same order (the next action's noise, then the
@@ -132,3 +132,84 @@ class FusedSAC:
             algo.loss.target_entropy, gamma,
         )  # fmt: skip
         return algo._apply_losses(q_loss, actor_loss, alpha_loss, alpha, entropy)
+
+
+def _stacked(params: Any, mlp: torch.nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """The (weight, bias) pairs of a loss's parameter TensorDict for the Linear layers of ``mlp``
+    (the same names: ``...mlp.<i>.weight``), in order."""
+    flat = params.flatten_keys(".")
+    out = []
+    for i, m in enumerate(mlp):
+        if isinstance(m, torch.nn.Linear):
+            w = next(k for k in flat.keys() if k.endswith(f"mlp.{i}.weight"))
+            out.append((flat[w], flat[w[: -len("weight")] + "bias"]))
+    return out
+
+
+class FusedTD3:
+    """The step of ``algorithms.td3.TD3`` (TorchRL's ``TD3Loss`` written out, its smoothing noise
+    drawn first as there): the critics' loss and Adam step; every ``policy_delay``-th step the
+    actor's loss on the updated critics, its Adam step and the soft target update."""
+
+    def __init__(self, algo: Any) -> None:
+        policy, loss = algo.policy, algo.loss
+        self.algo = algo
+        mlp = policy.actor_net.mlp
+        self.actor = [(m.weight, m.bias) for m in mlp if isinstance(m, torch.nn.Linear)]
+        self.target_actor = _stacked(loss.target_actor_network_params, mlp)
+        self.actor_act = _FUNCTIONS[policy.cfg.actor.activation]
+        self.q_act = _FUNCTIONS[policy.cfg.critic.activation]
+        q_mlp = policy.make_q().module.mlp
+        self.q = _stacked(loss.qvalue_network_params, q_mlp)
+        self.target_q = _stacked(loss.target_qvalue_network_params, q_mlp)
+        self.sources = [t for pair in self.actor + self.q for t in pair]
+        self.targets = [t for pair in self.target_actor + self.target_q for t in pair]
+        self.normalizer = policy.normalizer
+        self.actor_index = policy.actor_net.inputs.index
+        self.q_index = policy.make_q().module.inputs.index
+        self.low, self.high = policy.action_low, policy.action_high
+
+    def _features(self, obs: torch.Tensor, index: torch.Tensor | None) -> torch.Tensor:
+        x = self.normalizer(obs)
+        return x if index is None else x.index_select(-1, index)
+
+    def _mu(self, layers, obs: torch.Tensor) -> torch.Tensor:
+        u = _mlp(layers, self.actor_act, self._features(obs, self.actor_index))
+        return self.low + (self.high - self.low) * (torch.tanh(u) + 1.0) * 0.5
+
+    def step(self, batch) -> dict[str, torch.Tensor]:
+        algo = self.algo
+        obs, action, nxt = batch["observation"], batch["action"], batch["next"]
+        reward = nxt["reward"].reshape(-1)
+        terminated = nxt["terminated"].reshape(-1).to(reward.dtype)
+        steps = batch.get("steps_to_next_obs", None)
+        gamma = (
+            algo.cfg.gamma
+            if steps is None
+            else algo.cfg.gamma ** steps.reshape(-1).to(reward.dtype)
+        )
+        loss = algo.loss
+        noise = (torch.randn_like(action) * loss.policy_noise).clamp(
+            -loss.noise_clip, loss.noise_clip
+        )
+        with torch.no_grad():
+            next_obs = nxt["observation"]
+            a_next = (self._mu(self.target_actor, next_obs) + noise).clamp(self.low, self.high)
+            x_next = torch.cat([self._features(next_obs, self.q_index), a_next], -1)
+            y = (
+                reward
+                + gamma * (1.0 - terminated) * _qs(self.target_q, self.q_act, x_next).min(0).values
+            )
+        x = torch.cat([self._features(obs, self.q_index), action], -1)
+        q_loss = (_qs(self.q, self.q_act, x) - y).pow(2).mean(1).sum()
+        algo._step(algo.q_optimizer, algo.q_params, q_loss, "qvalue")
+        out = {"loss/qvalue": q_loss.detach()}
+        if (algo.gradient_steps + 1) % algo.cfg.policy_delay == 0:
+            frozen = [(w[:1].detach(), b[:1].detach()) for w, b in self.q]  # Q_1
+            x_pi = torch.cat([self._features(obs, self.q_index), self._mu(self.actor, obs)], -1)
+            actor_loss = -_qs(frozen, self.q_act, x_pi)[0].mean()
+            algo._step(algo.actor_optimizer, algo.actor_params, actor_loss, "actor")
+            with torch.no_grad():
+                torch._foreach_lerp_(self.targets, self.sources, float(algo.cfg.tau))
+            out["loss/actor"] = actor_loss.detach()
+        return out

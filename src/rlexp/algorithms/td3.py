@@ -15,6 +15,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.objectives import LossModule, TD3Loss
 
+from rlexp.algorithms.base import parse_compile
+from rlexp.algorithms.fused_sac import FusedTD3
 from rlexp.algorithms.offpolicy import OffPolicy
 
 
@@ -27,6 +29,9 @@ class TD3(OffPolicy):
             raise ValueError(f"algorithm.name={cfg.name!r}; available: ['td3']")
         super().__init__(cfg, policy, total_iterations, nan_guard, grad_sync, run_dir, seed)
         self._noise_scales()
+        # algorithm.compile: auto / true -> the fused step (fused_sac.FusedTD3, eager); false ->
+        # TorchRL's TD3Loss step (the same numbers: tests/test_sac.py)
+        self.fused = FusedTD3(self) if parse_compile(cfg.compile) != "false" else None
 
     def _make_loss(self, qnets: list) -> LossModule:
         p = self.policy
@@ -52,6 +57,8 @@ class TD3(OffPolicy):
         self._noise_scales()
 
     def _gradient_step(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        if self.fused is not None:
+            return self.fused.step(batch)
         q_loss, _ = self.loss.value_loss(batch)
         self._step(self.q_optimizer, self.q_params, q_loss, "qvalue")
         out = {"loss/qvalue": q_loss.detach()}
