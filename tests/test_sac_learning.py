@@ -18,4 +18,4 @@ def test_sac_learns_pendulum_in_20k_steps(tmp_path):
               cwd=tmp_path, timeout=3600)  # fmt: skip
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     evals = [r["eval/episode_return"] for r in rows if "eval/episode_return" in r]
-    assert len(evals) == 4 and evals[-1] > -400, evals
+    assert len(evals) >= 4 and evals[-1] > -400, evals
