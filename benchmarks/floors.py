@@ -8,7 +8,10 @@
   collection floor: the env's own cost and the policy's math, interleaved as they run);
 - ``compiled_step_us``: one PPO minibatch step (actor and critic forward, clipped loss, backward,
   gradient clip, Adam) in plain torch, the whole step one ``torch.compile``d function
-  (``benchmarks/ppo_floor.py``'s); ``eager_step_us`` the same uncompiled.
+  (``benchmarks/ppo_floor.py``'s); ``eager_step_us`` the same uncompiled;
+- ``sac_compiled_step_us``: one SAC gradient step (twin critics, tanh-Gaussian actor, alpha, three
+  Adam steps, the soft target update; 256x256, batch 256) in plain torch, its losses one
+  ``torch.compile``d function (``benchmarks/sac_floor.py``); ``sac_eager_step_us`` uncompiled.
 
 Each figure is the median of ``--repeats`` blocks. One torch thread. ``--json`` writes them for
 ``end_to_end.py``, which runs this in the same invocation as rlexp and SB3 and prints rlexp's phases
@@ -130,6 +133,14 @@ def measure(env_id: str, hidden: int, repeats: int, steps: int, mb_steps: int) -
             call()
         if compiled:
             out["compile_s"] = time.perf_counter() - t0
+        out[key] = _median_us(call, mb_steps, repeats)
+    import sac_floor  # noqa: E402  (the SAC update's floor: 256x256, batch 256)
+
+    sac_floor.OBS, sac_floor.ACT = obs_dim, act_dim
+    for compiled, key in ((True, "sac_compiled_step_us"), (False, "sac_eager_step_us")):
+        call = sac_floor.plain_step_fn(compiled)
+        for _ in range(20):  # the first compiles
+            call()
         out[key] = _median_us(call, mb_steps, repeats)
     return out
 

@@ -42,7 +42,11 @@ def test_every_conf_file_composes_to_a_typed_config(group, option):
         "env=gym": ["env.name=Acrobot-v1"],  # any Gymnasium id: the user names it
         "policy=actor_only": ["algorithm=grpo", "env.num_envs=4"],
         "policy=actor_only_256": ["algorithm=grpo", "env.num_envs=4"],
+        "policy=sac": ["algorithm=sac"],  # SAC's / TD3's networks are theirs alone
+        "policy=td3": ["algorithm=td3"],
     }
+    if group in ("sac_zoo", "td3_zoo"):  # an off-policy preset sets its algorithm's keys
+        needs[f"{group}={option}"] = [f"algorithm={group.split('_')[0]}"]
     config = to_root_config(compose([f"{group}={option}", *needs.get(f"{group}={option}", [])]))
     assert isinstance(config, RootConfig)
 

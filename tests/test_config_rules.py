@@ -65,7 +65,7 @@ BAD = {
     "policy.critic.hidden_sizes": "[-1]",
     "policy.min_log_std": -50.0,
     "policy.max_log_std": 50.0,
-    "algorithm.name": "sac",
+    "algorithm.name": "dqn",
     "algorithm.gamma": 1.5,
     "algorithm.lmbda": -0.1,
     "algorithm.clip_epsilon": 0.0,

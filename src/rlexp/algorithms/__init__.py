@@ -1,4 +1,6 @@
-"""Learners, one file each: PPO (``ppo.py``), GRPO (``grpo.py``); what they share is in ``base.py``.
+"""Learners, one file each: PPO (``ppo.py``), GRPO (``grpo.py``), SAC (``sac.py``) and TD3
+(``td3.py``, both on ``offpolicy.py`` and the replay buffer ``replay.py``); what they share is in
+``base.py``.
 
 Importing this package is cheap: torch and TorchRL load when ``make_algorithm`` first runs.
 
@@ -11,12 +13,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from rlexp.algorithms.base import Algorithm, GradSync
     from rlexp.config.schema import BaseAlgorithmConfig
     from rlexp.policies.actor_critic import Policy
 
 #: ``algorithm.name`` values make_algorithm builds.
-ALGORITHMS = ("ppo", "grpo")
+ALGORITHMS = ("ppo", "grpo", "sac", "td3")
 
 
 def make_algorithm(
@@ -25,8 +29,11 @@ def make_algorithm(
     total_iterations: int,
     nan_guard: bool = True,
     grad_sync: GradSync | None = None,
+    run_dir: Path | None = None,
+    seed: int = 0,
 ) -> Algorithm:
-    """Build the configured learner around ``policy`` (``grad_sync``: the distributed all-reduce)."""
+    """Build the configured learner around ``policy`` (``grad_sync``: the distributed all-reduce;
+    ``run_dir`` and ``seed``: where SAC's / TD3's replay buffer keeps its files, and its seed)."""
     if cfg.name == "ppo" and getattr(policy, "recurrent", False):
         from rlexp.algorithms.recurrent_ppo import RecurrentPPO
 
@@ -39,4 +46,10 @@ def make_algorithm(
         from rlexp.algorithms.grpo import GRPO
 
         return GRPO(cfg, policy, total_iterations, nan_guard, grad_sync)
+    if cfg.name in ("sac", "td3"):
+        from rlexp.algorithms.sac import SAC
+        from rlexp.algorithms.td3 import TD3
+
+        learner = SAC if cfg.name == "sac" else TD3
+        return learner(cfg, policy, total_iterations, nan_guard, grad_sync, run_dir, seed)
     raise ValueError(f"algorithm.name={cfg.name!r}; choose from {list(ALGORITHMS)}")

@@ -415,6 +415,13 @@ def _check_optimizer_state(algorithm: dict[str, Any], policy: torch.nn.Module) -
         raise ValueError(
             f"the checkpoint has algorithm.iteration={iteration!r}; expected an int >= 0"
         )
+    if "optimizers" in algorithm:  # SAC / TD3: one per network, their shapes checked on loading
+        opts = algorithm["optimizers"]
+        if not isinstance(opts, dict) or not all(
+            isinstance(o, dict) and isinstance(o.get("param_groups"), list) for o in opts.values()
+        ):
+            raise ValueError("the checkpoint has no optimiser state")
+        return
     opt = algorithm.get("optimizer")
     if not isinstance(opt, dict) or not isinstance(opt.get("param_groups"), list):
         raise ValueError("the checkpoint has no optimiser state")

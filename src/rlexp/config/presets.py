@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 #: The preset groups (rlexp.launch.precheck.PRESET_GROUPS; repeated: that module imports this one).
-GROUPS = ("tuned", "rl_zoo")
+GROUPS = ("tuned", "rl_zoo", "sac_zoo", "td3_zoo")
 
 
 def _raw(loader: Any, path: str) -> Any:

@@ -65,6 +65,8 @@ EVAL_METRICS = (
 MUTABLE_HYPERPARAMETERS = {
     "ppo": ("lr", "clip_epsilon", "entropy_coeff", "max_grad_norm", "critic_coeff"),
     "grpo": ("lr", "clip_epsilon", "entropy_coeff", "max_grad_norm", "kl_coeff"),
+    "sac": ("lr", "critic_lr", "alpha_lr", "tau", "target_entropy"),
+    "td3": ("lr", "critic_lr", "tau", "target_policy_noise", "exploration_noise"),
 }
 MAX_ENVS = 65_536  # per process; far above what fits in memory for MuJoCo tasks here
 
@@ -194,14 +196,14 @@ FIELD_RULES: dict[str, Rule] = {
     ),
     "trainer.stop_grace_s": above(0, " seconds"),
     # policy
-    "policy.name": one_of("actor_critic", "actor_only"),
+    "policy.name": one_of("actor_critic", "actor_only", "sac", "td3"),
     "policy.actor.hidden_sizes": Rule(_widths, "a list of widths in [1, 65536] ([]: linear)"),
     "policy.actor.activation": one_of(*ACTIVATIONS),
     "policy.critic.hidden_sizes": Rule(
-        _widths, "a list of widths in [1, 65536] ([]: linear); actor_critic only"
+        _widths, "a list of widths in [1, 65536] ([]: linear); actor_critic, sac and td3 only"
     ),
     "policy.critic.activation": Rule(
-        lambda v: v in ACTIVATIONS, f"one of {list(ACTIVATIONS)}; actor_critic only"
+        lambda v: v in ACTIVATIONS, f"one of {list(ACTIVATIONS)}; actor_critic, sac and td3 only"
     ),
     "policy.init_log_std": Rule(_num, "a finite number in [min_log_std, max_log_std]"),
     "policy.min_log_std": between(-20.0, 20.0, ", below max_log_std"),
@@ -237,11 +239,17 @@ FIELD_RULES: dict[str, Rule] = {
     "policy.memory.hidden_size": between(1, 65_536),
     "policy.memory.num_layers": between(1, 16),
     "policy.memory.shared": FLAG,
+    "policy.num_qvalue_nets": between(
+        1, 16, " (Q networks; the target takes their minimum); sac, td3"
+    ),
+    "policy.normalize_observations": Rule(
+        FLAG.check, "true or false (with env.normalize_observations); sac and td3 only"
+    ),
     # algorithm
     "algorithm.name": Rule(
-        lambda v: v in ("ppo", "grpo"),
-        "one of ['ppo', 'grpo'] (chosen with algorithm=ppo / algorithm=grpo; ppo needs "
-        "policy.name=actor_critic)",
+        lambda v: v in ("ppo", "grpo", "sac", "td3"),
+        "one of ['ppo', 'grpo', 'sac', 'td3'] (chosen with algorithm=ppo / grpo / sac / td3; ppo "
+        "needs policy.name=actor_critic, sac policy.name=sac, td3 policy.name=td3)",
     ),
     "algorithm.gamma": between(0.0, 1.0),
     "algorithm.lmbda": between(0.0, 1.0, "; ppo only"),
@@ -271,6 +279,29 @@ FIELD_RULES: dict[str, Rule] = {
     "algorithm.epsilon": above(0.0, "; grpo only"),
     "algorithm.reset_every_rollout": Rule(FLAG.check, "true or false; grpo only"),
     "algorithm.truncate_at_first_done": Rule(FLAG.check, "true or false; grpo only"),
+    # sac and td3 (docs/sac.md, docs/td3.md)
+    "algorithm.critic_lr": at_least(0.0, "; sac and td3 only"),
+    "algorithm.tau": between(0.0, 1.0, " (1: hard target copies); sac and td3 only"),
+    "algorithm.buffer_size": at_least(1, ", at least algorithm.batch_size; sac and td3 only"),
+    "algorithm.buffer_storage": Rule(
+        lambda v: v in ("auto", "memory", "memmap"),
+        "one of ['auto', 'memory', 'memmap']; sac and td3 only",
+    ),
+    "algorithm.batch_size": at_least(1, ", at most algorithm.buffer_size; sac and td3 only"),
+    "algorithm.learning_starts": at_least(0, " env steps; sac and td3 only"),
+    "algorithm.updates_per_step": above(0.0, " (gradient steps per env step); sac and td3 only"),
+    "algorithm.train_freq": at_least(1, " (env steps per env between updates); sac and td3 only"),
+    "algorithm.n_step": between(1, 1000, "; sac and td3 only"),
+    "algorithm.alpha_lr": at_least(0.0, "; sac only"),
+    "algorithm.alpha_init": above(0.0, "; sac only"),
+    "algorithm.fixed_alpha": Rule(FLAG.check, "true or false; sac only"),
+    "algorithm.target_entropy": Rule(
+        lambda v: v == "auto" or _num(v), "auto (-act_dim) or a finite number; sac only"
+    ),
+    "algorithm.policy_delay": at_least(1, "; td3 only"),
+    "algorithm.target_policy_noise": at_least(0.0, "; td3 only"),
+    "algorithm.target_noise_clip": at_least(0.0, "; td3 only"),
+    "algorithm.exploration_noise": at_least(0.0, "; td3 only"),
     "algorithm.lr": at_least(0.0, " (0: the policy does not learn, a baseline)"),
     "algorithm.adam_eps": above(0.0),
     "algorithm.anneal_lr": FLAG,

@@ -16,6 +16,19 @@ from typing import Any
 from omegaconf import MISSING, OmegaConf
 
 from rlexp.config.native_task import EventTermConfig, NativeTaskConfig
+from rlexp.config.schema_base import (
+    BaseAlgorithmConfig,
+    BasePolicyConfig,
+    EncoderConfig,  # noqa: F401  (re-exported: importable from here as before)
+    MemoryConfig,  # noqa: F401  (re-exported: importable from here as before)
+    MLPConfig,
+)
+from rlexp.config.schema_offpolicy import (
+    SACConfig,
+    SACPolicyConfig,
+    TD3Config,
+    TD3PolicyConfig,
+)
 
 
 def file_name(value: object) -> str:
@@ -93,67 +106,6 @@ class TrainerConfig:
 
 
 @dataclass
-class MLPConfig:
-    """A plain Linear/activation stack, and what it reads of the observation."""
-
-    hidden_sizes: list[int] = field(default_factory=lambda: [64, 64])  # widths of the hidden layers
-    activation: str = "tanh"  # relu | elu | tanh | gelu | silu | swish
-    # observation keys, key prefixes ("goal" selects "goal/position") or group names this network
-    # reads (None: the actor reads group "policy", the critic every group; docs/policies.md)
-    observations: list[str] | None = None
-
-
-@dataclass
-class EncoderConfig:
-    """The CNN that turns each image observation into features (one per image key; docs/policies.md).
-    Images are uint8 and scaled by 1/255 inside it; unused when the env has no images."""
-
-    name: str = "nature"  # nature (SB3's / CleanRL's Atari CNN) | impala (Espeholt et al.'s ResNet)
-    # conv channels per layer (nature) or per stage (impala); None: nature [32, 64, 64], impala
-    # [16, 32, 32]
-    channels: list[int] | None = None
-    # nature only: kernel size and stride per conv layer (None: [8, 4, 3] and [4, 2, 1])
-    kernel_sizes: list[int] | None = None
-    strides: list[int] | None = None
-    num_res_blocks: int = 2  # impala only: residual blocks per stage
-    features_dim: int | None = (
-        None  # the Linear layer after the convs (None: nature 512, impala 256)
-    )
-
-
-@dataclass
-class MemoryConfig:
-    """A recurrent core between each network's input features and its MLP (docs/policies.md,
-    "Memory"); type none is the plain MLP policy."""
-
-    type: str = "none"  # none | lstm | gru
-    hidden_size: int = 256  # units of the LSTM / GRU (its output is the MLP's input)
-    num_layers: int = 1  # stacked recurrent layers
-    # true: one core (the actor's, reading the actor's observations) feeds actor and critic MLPs;
-    # false: actor and critic each own a core
-    shared: bool = False
-
-
-@dataclass
-class BasePolicyConfig:
-    """A Gaussian actor: MLP for the action mean, a learned state-independent log-std (clamped),
-    no squashing. The policy group's options are the subclasses (``policy.name`` says which)."""
-
-    name: str = MISSING  # actor_critic | actor_only
-    actor: MLPConfig = field(default_factory=MLPConfig)
-    init_log_std: float = 0.0  # initial log standard deviation of the actions
-    min_log_std: float = -5.0  # log-std is clamped to [min_log_std, max_log_std]
-    max_log_std: float = 2.0
-    ortho_init: bool = (
-        True  # orthogonal init (gain sqrt(2), 0.01 for the action mean, 1 for the value)
-    )
-    encoder: EncoderConfig = field(default_factory=EncoderConfig)  # image observations' CNN
-    # actor and critic use the same image encoders (trained by both losses); false: one each
-    share_encoder: bool = True
-    memory: MemoryConfig = field(default_factory=MemoryConfig)  # recurrent policies (PPO)
-
-
-@dataclass
 class PolicyConfig(BasePolicyConfig):
     """Actor-critic (PPO): the Gaussian actor and a separate MLP critic."""
 
@@ -169,27 +121,6 @@ class ActorOnlyConfig(BasePolicyConfig):
     """The Gaussian actor alone, no critic (GRPO)."""
 
     name: str = "actor_only"
-
-
-@dataclass
-class BaseAlgorithmConfig:
-    """What every algorithm has: discount, clipped ratio, entropy bonus, Adam, epochs x minibatches.
-    The algorithm group's options are the subclasses (``algorithm.name`` says which)."""
-
-    name: str = MISSING  # ppo | grpo
-    gamma: float = 0.99  # discount
-    clip_epsilon: float = 0.2  # ratio clip
-    entropy_coeff: float = 0.0  # entropy bonus weight
-    # Optimisation
-    lr: float = 3e-4  # Adam learning rate
-    adam_eps: float = 1e-5  # Adam epsilon
-    anneal_lr: bool = False  # linearly anneal the learning rate to 0 over the run
-    max_grad_norm: float = 0.5  # gradient-norm clipping (<= 0: off)
-    num_epochs: int = 10  # passes over each rollout
-    mini_batch_size: int = 64  # transitions per minibatch
-    # torch.compile of the loss (forward and backward): auto | true | false. auto compiles when the
-    # run is long enough to win back the compile time (docs/performance.md)
-    compile: str = "auto"
 
 
 @dataclass
@@ -355,18 +286,27 @@ GROUP_SCHEMAS: dict[str, tuple[str, type]] = {
 
 #: group -> {``name`` value: its schema class}: a section's schema follows its ``name``.
 VARIANTS: dict[str, dict[str, type]] = {
-    "policy": {"actor_critic": PolicyConfig, "actor_only": ActorOnlyConfig},
-    "algorithm": {"ppo": AlgorithmConfig, "grpo": GRPOConfig},
+    "policy": {
+        "actor_critic": PolicyConfig,
+        "actor_only": ActorOnlyConfig,
+        "sac": SACPolicyConfig,
+        "td3": TD3PolicyConfig,
+    },
+    "algorithm": {"ppo": AlgorithmConfig, "grpo": GRPOConfig, "sac": SACConfig, "td3": TD3Config},
 }
 #: group -> {``name`` value: the conf/ group option that selects its schema}.
 VARIANT_OPTIONS: dict[str, dict[str, str]] = {
-    "policy": {"actor_critic": "mlp", "actor_only": "actor_only"},
-    "algorithm": {"ppo": "ppo", "grpo": "grpo"},
+    "policy": {"actor_critic": "mlp", "actor_only": "actor_only", "sac": "sac", "td3": "td3"},
+    "algorithm": {"ppo": "ppo", "grpo": "grpo", "sac": "sac", "td3": "td3"},
 }
 #: ConfigStore names of the variants that are not their group's first schema (GROUP_SCHEMAS).
 VARIANT_SCHEMAS: dict[str, tuple[str, type]] = {
     "actor_only_schema": ("policy", ActorOnlyConfig),
     "grpo_schema": ("algorithm", GRPOConfig),
+    "sac_policy_schema": ("policy", SACPolicyConfig),
+    "td3_policy_schema": ("policy", TD3PolicyConfig),
+    "sac_schema": ("algorithm", SACConfig),
+    "td3_schema": ("algorithm", TD3Config),
 }
 
 

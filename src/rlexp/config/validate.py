@@ -16,6 +16,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from rlexp.config.aliases import alias_hint
 from rlexp.config.memory import memory_problem
+from rlexp.config.offpolicy_checks import (
+    derive_frames_per_batch,
+    is_off_policy,
+    off_policy_problem,
+)
 from rlexp.config.rules import (
     ACTIVATIONS,
     FIELD_RULES,
@@ -53,6 +58,7 @@ def to_root_config(cfg: DictConfig | dict[str, Any]) -> RootConfig:
     if not isinstance(config, RootConfig):
         raise ConfigError("the composed config does not use the rlexp_schema root schema")
     config.hooks = typed_hooks(config.hooks)
+    derive_frames_per_batch(config)  # sac / td3: env.num_envs * algorithm.train_freq
     validate(config)
     return config
 
@@ -207,7 +213,10 @@ def validate(config: RootConfig) -> None:
             f"trainer.frames_per_batch={t.frames_per_batch} must be a positive multiple of "
             f"env.num_envs={e.num_envs} (each env contributes frames_per_batch / num_envs steps)"
         )
-    if a.mini_batch_size > t.frames_per_batch:
+    problem = off_policy_problem(config)
+    if problem is not None:
+        raise ConfigError(problem)
+    if a.mini_batch_size > t.frames_per_batch and not is_off_policy(a):
         raise ConfigError(
             f"algorithm.mini_batch_size={a.mini_batch_size} must be in "
             f"[1, trainer.frames_per_batch={t.frames_per_batch}]"

@@ -54,7 +54,7 @@ class DeterministicActor(nn.Module):
     # TorchScript: fixed branches
     __constants__ = [
         "normalize", "clip", "clamp_actions", "rescale", "categorical", "uniform", "k", "n",
-        "reads_vector", "masked", "masked_logit", "recurrent",
+        "reads_vector", "masked", "masked_logit", "recurrent", "squash", "act_dim",
     ]  # fmt: skip
 
     def __init__(
@@ -109,6 +109,13 @@ class DeterministicActor(nn.Module):
         core = recurrent_step(policy)
         self.recurrent = core is not None
         self.core = core if core is not None else nn.Identity()
+        # SAC / TD3 (policies/offpolicy.py): tanh of the mean (SAC: the MLP's first half) mapped
+        # onto the policy's bounds, as ``policy.deterministic_action``
+        self.squash = getattr(policy, "kind", None) in ("sac", "td3")
+        self.act_dim = int(low.shape[-1])
+        bounds = (policy.action_low, policy.action_high) if self.squash else (low, high)
+        self.register_buffer("squash_low", bounds[0].detach().cpu().clone().float())
+        self.register_buffer("squash_high", bounds[1].detach().cpu().clone().float())
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         return self.act(observation, [], None)
@@ -167,6 +174,12 @@ class DeterministicActor(nn.Module):
             else:
                 index = torch.stack([b.argmax(-1) for b in torch.split(out, self.nvec, -1)], -1)
             return index + self.action_start
+        if self.squash:
+            out = out[..., : self.act_dim]
+            out = (
+                self.squash_low
+                + (self.squash_high - self.squash_low) * (torch.tanh(out) + 1.0) * 0.5
+            )
         if self.clamp_actions:
             out = torch.clamp(out, self.action_low, self.action_high)
         if self.rescale:

@@ -301,7 +301,9 @@ def _run_dir(cfg: Any) -> Path | None:
 #: The config groups of the per-task presets (conf/<group>/<env>.yaml), each selected for the env
 #: chosen by ``+experiment=<group>``: the tuned ones (the best measured) and rl-baselines3-zoo's.
 TUNED_GROUP = "tuned"
-PRESET_GROUPS = (TUNED_GROUP, "rl_zoo")
+PRESET_GROUPS = (TUNED_GROUP, "rl_zoo", "sac_zoo", "td3_zoo")
+#: The experiment that selects a preset group named otherwise (``+experiment=sac``: ``sac_zoo``).
+PRESET_EXPERIMENT = {"sac_zoo": "sac", "td3_zoo": "td3"}
 #: The env option of a --config-json run (``rlexp.launch.json_entry.ENV_NODE``; not imported: the
 #: entry imports rlexp.app, which imports this module).
 JSON_ENV_OPTION = "json_task"
@@ -329,9 +331,11 @@ def no_tuned_preset(env: str, loader: Any = None, group: str = TUNED_GROUP) -> s
     tasks: list[str] = []
     if loader is not None:
         tasks = [o for o in loader.get_group_options(group) if o != "none"]
+    experiment = PRESET_EXPERIMENT.get(group, group)
     return (
-        f"+experiment={group} has no preset for {what} (no conf/{group}/{env}.yaml); the tasks "
-        f"with one: {tasks}: choose one of them with env=..., or leave out +experiment={group}"
+        f"+experiment={experiment} has no preset for {what} (no conf/{group}/{env}.yaml); the "
+        f"tasks with one: {tasks}: choose one of them with env=..., or leave out "
+        f"+experiment={experiment}"
     )
 
 

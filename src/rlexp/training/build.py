@@ -160,7 +160,15 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
         distributed.broadcast_([*policy.parameters(), *policy.buffers()])
     iterations = -(-total // (t.frames_per_batch * dist.world_size))
     grad_sync = distributed.all_reduce_mean_ if dist.enabled else None
-    algorithm = make_algorithm(config.algorithm, policy, iterations, t.nan_guard, grad_sync)
+    algorithm = make_algorithm(
+        config.algorithm,
+        policy,
+        iterations,
+        t.nan_guard,
+        grad_sync,
+        run_dir,
+        config.seed + dist.rank,
+    )
     return Built(
         config=config,
         run_dir=run_dir,

@@ -1,5 +1,5 @@
-"""The training loop: collect a rollout, update the algorithm (PPO, GRPO), log, evaluate, checkpoint.
-Read it top to bottom."""
+"""The training loop: collect a rollout, update the algorithm (PPO, GRPO, SAC, TD3), log, evaluate,
+checkpoint. Read it top to bottom."""
 
 from __future__ import annotations
 
@@ -203,8 +203,7 @@ class Trainer:
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """The algorithm's update on the rollout, then fold its observations into the normaliser."""
-        t0 = time.perf_counter()
-        batch = batch.to(module_device(self.policy))  # (a no-op: the collector stores it there)
+        t0, batch = time.perf_counter(), batch.to(module_device(self.policy))  # (a no-op)
         try:
             losses = self.algorithm.update(batch)
         except NonFiniteError as exc:
@@ -340,6 +339,7 @@ class Trainer:
         save_checkpoint(path, state)
         self.last_checkpoint = path
         prune_checkpoints(self.ckpt_dir, self.cfg.keep_last, newest=path)
+        getattr(self.algorithm, "checkpoint_written", lambda: None)()  # SAC: stale replay chunks
         log.info("[ckpt] saved %s", path)
         self.event_manager.fire("trigger", self._ctx(), signal="checkpoint")
         self._hook("checkpoint", checkpoint=path)

@@ -144,6 +144,11 @@ def to_json_experiment(config: RootConfig) -> tuple[dict[str, Any], dict[str, An
     keys, plus an ``rlexp`` section with every other config key (and any the format rounds)."""
     from rlexp.config.schema import RootConfig
 
+    if config.algorithm.name not in ALGORITHM_FORMAT_KEYS:  # the users' format names ppo / grpo
+        raise ConfigError(
+            f"algorithm={config.algorithm.name}: the JSON format has PPO and GRPO only (config.yaml "
+            "holds this run's config)"
+        )
     train, gym = _format_dicts(config)
     env_backend = {"env.backend": config.env.backend}
     mapped = _convert(
