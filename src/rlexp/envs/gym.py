@@ -1,7 +1,8 @@
 """Gymnasium environments (the MuJoCo suite, classic control, the user's own) as batched TorchRL
 environments, stepped in the training process (``env.backend=gymnasium``). Images (uint8) are
 emitted as a TensorDict of ``vector`` and uint8 ``[C, H, W]`` entries (``images.py``); with
-``env.frame_stack`` each copy is wrapped in ``images.FrameStack``.
+``env.frame_stack`` each copy is wrapped in ``images.FrameStack``; ``env.observation_indices`` keeps
+chosen entries of a Box observation (the layout's encoder selects them).
 
 ``GymnasiumEnv`` is a lean ``EnvBase`` over ``num_envs`` Gymnasium copies (``adapter.py`` holds
 what it shares with the vectorised backends): the spaces become TorchRL specs (``spaces.py``:
@@ -47,6 +48,7 @@ class GymnasiumEnv(GymShapedEnv):
         device: str | torch.device = "cpu",
         image_keys: tuple[str, ...] | list[str] = (),
         frame_stack: int = 0,
+        observation_indices: tuple[int, ...] | list[int] = (),
     ) -> None:
         check_gym_id(env_id)
         os.environ.setdefault("MUJOCO_GL", "egl")
@@ -59,7 +61,8 @@ class GymnasiumEnv(GymShapedEnv):
         self._make = lambda: frame_stacked(make(), frame_stack, keys, where)
         with mujoco_build_warnings(env_id):
             envs = [self._make() for _ in range(num_envs)]
-        layout = obs_layout(envs[0].observation_space, where, keys, frame_stack)
+        space = envs[0].observation_space
+        layout = obs_layout(space, where, keys, frame_stack, tuple(observation_indices))
         coding = action_coding(envs[0].action_space, where)
         super().__init__(env_id, num_envs, layout, coding, device)
         self._envs = envs

@@ -107,14 +107,16 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         make_kwargs: dict | None = None,
         image_keys: tuple[str, ...] | list[str] = (),
         frame_stack: int = 0,
+        observation_indices: tuple[int, ...] | list[int] = (),
     ) -> None:
         check_gym_id(env_id)
         os.environ.setdefault("MUJOCO_GL", "egl")  # (the workers inherit it)
         kwargs = dict(make_kwargs or {})
         if max_episode_steps is not None:
             kwargs["max_episode_steps"] = max_episode_steps
+        kept = tuple(observation_indices)
         make = functools.partial(
-            make_worker_env, env_id, kwargs, os.getpid(), tuple(image_keys), frame_stack
+            make_worker_env, env_id, kwargs, os.getpid(), tuple(image_keys), frame_stack, kept
         )
         self._where = f"env.name={env_id!r} (env.backend=gymnasium_async)"
         method = start_method()
@@ -132,7 +134,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
                 )
             obs_space, act_space, kind = self._guarded(vec, vec.call, "rlexp_info")[0]
             where = f"env.name={env_id!r}"
-            layout = obs_layout(obs_space, where, tuple(image_keys), frame_stack)
+            layout = obs_layout(obs_space, where, tuple(image_keys), frame_stack, kept)
             coding = action_coding(act_space, where)
         except (EOFError, ConnectionError) as exc:  # (AsyncVectorEnv terminates the others)
             if vec is not None:
