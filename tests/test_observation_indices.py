@@ -10,9 +10,9 @@ import runpy
 import numpy as np
 import pytest
 import torch
-from conftest import compose, run_train
 from gymnasium import spaces
 
+from conftest import compose, run_train
 from rlexp.envs.spaces import UnsupportedSpace, check_layout, obs_layout
 
 KEEP = (3, 0)  # asymmetric and out of order: the env's entry 3 first, then entry 0
