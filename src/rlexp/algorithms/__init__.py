@@ -27,6 +27,10 @@ def make_algorithm(
     grad_sync: GradSync | None = None,
 ) -> Algorithm:
     """Build the configured learner around ``policy`` (``grad_sync``: the distributed all-reduce)."""
+    if cfg.name == "ppo" and getattr(policy, "recurrent", False):
+        from rlexp.algorithms.recurrent_ppo import RecurrentPPO
+
+        return RecurrentPPO(cfg, policy, total_iterations, nan_guard, grad_sync)
     if cfg.name == "ppo":
         from rlexp.algorithms.ppo import PPO
 

@@ -28,6 +28,11 @@ DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "swish", "tanh")
 #: Image encoders (rlexp.policies.encoders.ENCODERS; a test keeps the two in step).
 ENCODERS = ("nature", "impala")
+#: Recurrent cores of ``policy.memory.type`` (rlexp.policies.memory; none: the MLP policy).
+MEMORY_TYPES = ("none", "lstm", "gru")
+#: Backends whose envs a recurrent policy can collect from: rlexp's own stepping (``step_action``),
+#: where the collector carries the hidden state; torchrl_gym goes through TorchRL's generic loop.
+MEMORY_BACKENDS = ("gymnasium", "gymnasium_async", "envpool", "native", "vecenv", "torchrl")
 #: Env backends (rlexp.envs.factory builds them; docs/envs.md). gymnasium: Gymnasium copies stepped
 #: in the training process; gymnasium_async: Gymnasium's AsyncVectorEnv (a worker process per copy);
 #: envpool: EnvPool's C++ thread pool; native: rlexp's batched MuJoCo tasks; vecenv: a batched torch
@@ -225,6 +230,10 @@ FIELD_RULES: dict[str, Rule] = {
     "policy.encoder.num_res_blocks": between(0, 16, " (impala: residual blocks per stage)"),
     "policy.encoder.features_dim": optional(between(1, 65_536), "nature 512, impala 256"),
     "policy.share_encoder": FLAG,
+    "policy.memory.type": one_of(*MEMORY_TYPES),
+    "policy.memory.hidden_size": between(1, 65_536),
+    "policy.memory.num_layers": between(1, 16),
+    "policy.memory.shared": FLAG,
     # algorithm
     "algorithm.name": Rule(
         lambda v: v in ("ppo", "grpo"),
@@ -249,6 +258,10 @@ FIELD_RULES: dict[str, Rule] = {
     "algorithm.overlap": Rule(
         FLAG.check,
         f"true or false; ppo only, env.backend one of {list(OVERLAP_BACKENDS)}, no events.train",
+    ),
+    "algorithm.sequence_length": Rule(
+        lambda v: isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 65_536,
+        "in [1, 65536] (steps per training sequence of a recurrent policy); ppo only",
     ),
     "algorithm.kl_coeff": at_least(0.0, " (0: no reference policy); grpo only"),
     "algorithm.group_size": between(2, MAX_ENVS, ", a divisor of env.num_envs; grpo only"),

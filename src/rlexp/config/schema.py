@@ -122,6 +122,19 @@ class EncoderConfig:
 
 
 @dataclass
+class MemoryConfig:
+    """A recurrent core between each network's input features and its MLP (docs/policies.md,
+    "Memory"); type none is the plain MLP policy."""
+
+    type: str = "none"  # none | lstm | gru
+    hidden_size: int = 256  # units of the LSTM / GRU (its output is the MLP's input)
+    num_layers: int = 1  # stacked recurrent layers
+    # true: one core (the actor's, reading the actor's observations) feeds actor and critic MLPs;
+    # false: actor and critic each own a core
+    shared: bool = False
+
+
+@dataclass
 class BasePolicyConfig:
     """A Gaussian actor: MLP for the action mean, a learned state-independent log-std (clamped),
     no squashing. The policy group's options are the subclasses (``policy.name`` says which)."""
@@ -137,6 +150,7 @@ class BasePolicyConfig:
     encoder: EncoderConfig = field(default_factory=EncoderConfig)  # image observations' CNN
     # actor and critic use the same image encoders (trained by both losses); false: one each
     share_encoder: bool = True
+    memory: MemoryConfig = field(default_factory=MemoryConfig)  # recurrent policies (PPO)
 
 
 @dataclass
@@ -203,6 +217,9 @@ class AlgorithmConfig(BaseAlgorithmConfig):
     # Collect the next rollout in a second process (a spare core) while the update runs; each
     # rollout is then collected by the policy one update behind (docs/performance.md "Overlap")
     overlap: bool = False
+    # Recurrent policies (policy.memory): each env's rollout is cut into sequences of this many
+    # steps, trained from the hidden state stored at their start (docs/policies.md "Memory")
+    sequence_length: int = 32
 
 
 PPOConfig = AlgorithmConfig

@@ -15,6 +15,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from rlexp.config.aliases import alias_hint
+from rlexp.config.memory import memory_problem
 from rlexp.config.rules import (
     ACTIVATIONS,
     FIELD_RULES,
@@ -290,6 +291,9 @@ def validate(config: RootConfig) -> None:
             f"policy.max_log_std={p.max_log_std}]"
         )
     _check_encoder(p)
+    memory = memory_problem(config)
+    if memory is not None:
+        raise ConfigError(memory)
     if e.backend == "native" and e.native is None:
         raise ConfigError(
             f"env.backend=native needs env.native (env.name={e.name!r}); use env=push_cube or "

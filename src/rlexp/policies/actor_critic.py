@@ -261,10 +261,13 @@ class Policy(nn.Module):
         self.normalizer = ObservationNormalizer(obs_dim, clip_observations, normalize_observations)
         self.nvec = None if nvec is None else tuple(int(n) for n in nvec)
         out_dim = act_dim if self.nvec is None else sum(self.nvec)
-        actor_mlp = make_mlp(actor_in.out_dim, out_dim, cfg.actor, "policy.actor")
+        actor_dim, critic_dim = self._core_outputs(
+            cfg, actor_in.out_dim, None if critic_in is None else critic_in.out_dim
+        )
+        actor_mlp = make_mlp(actor_dim, out_dim, cfg.actor, "policy.actor")
         critic_mlp = None
-        if critic_cfg is not None and critic_in is not None:
-            critic_mlp = make_mlp(critic_in.out_dim, 1, critic_cfg, "policy.critic")
+        if critic_cfg is not None and critic_dim is not None:
+            critic_mlp = make_mlp(critic_dim, 1, critic_cfg, "policy.critic")
         if cfg.ortho_init:
             _ortho_init(actor_mlp, 0.01)
             if critic_mlp is not None:
@@ -302,6 +305,14 @@ class Policy(nn.Module):
         if critic_mlp is not None:
             self.critic_net = CriticNet(self.normalizer, critic_mlp, critic_in)
             self.critic = ValueOperator(self.critic_net, in_keys=["observation"])
+
+    #: Whether the policy has memory (policies/memory.py: a recurrent state carried across steps).
+    recurrent = False
+
+    def _core_outputs(self, cfg, actor_dim: int, critic_dim: int | None) -> tuple[int, int | None]:
+        """The MLPs' input widths: the networks' features here; a recurrent policy builds its
+        cores between features and MLPs and returns their width."""
+        return actor_dim, critic_dim
 
     @property
     def obs_structured(self) -> bool:
@@ -352,6 +363,9 @@ class ActorOnly(Policy):
 
 #: ``policy.name`` -> the policy class.
 POLICIES: dict[str, type[Policy]] = {"actor_critic": ActorCritic, "actor_only": ActorOnly}
+#: A policy class -> its recurrent version (``policy.memory``), registered by policies/memory.py,
+#: which the package imports.
+RECURRENT: dict[type[Policy], type[Policy]] = {}
 
 
 def make_policy(
@@ -369,7 +383,16 @@ def make_policy(
     env's observation layout, None for one flat vector)."""
     if cfg.name not in POLICIES:
         raise ValueError(f"policy.name={cfg.name!r}; choose from {sorted(POLICIES)}")
-    return POLICIES[cfg.name](
+    cls = POLICIES[cfg.name]
+    memory = getattr(cfg, "memory", None)
+    if memory is not None and memory.type != "none":
+        if cls not in RECURRENT:
+            raise ValueError(
+                f"policy.memory.type={memory.type}: recurrent policies are actor-critics (PPO); "
+                f"policy.name={cfg.name!r} is not: use policy=mlp, or policy.memory.type=none"
+            )
+        cls = RECURRENT[cls]
+    return cls(
         cfg, obs_dim, act_dim, action_spec, normalize_observations, clip_observations, nvec, layout
     )
 

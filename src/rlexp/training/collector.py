@@ -32,6 +32,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 
 from rlexp.policies.actor_critic import SamplingPolicy
 from rlexp.runtime.devices import module_device, same_device
+from rlexp.training.recurrent_collect import Carry, recurrent_rollout
 
 
 def supports_fast_rollout(env: EnvBase, policy) -> bool:
@@ -68,6 +69,9 @@ class RolloutCollector(Collector):
         # the observation to act on next (fast path): a tensor, or (images) a TensorDict of the
         # vector and uint8 images, stacked per key into the rollout as they are (no float copy)
         self._obs: torch.Tensor | TensorDictBase | None = None
+        # a recurrent policy's hidden state and episode starts between steps (recurrent_collect.py)
+        self._recurrent = bool(getattr(policy, "recurrent", False))
+        self._carry: Carry | None = None
 
     def next_observation(self) -> torch.Tensor | TensorDictBase | None:
         """The observation the policy acts on at the next step (after any step events)."""
@@ -88,11 +92,14 @@ class RolloutCollector(Collector):
         """Start new episodes in every env (GRPO resets all envs before each rollout)."""
         super().reset(index, **kwargs)
         self._obs = None  # the fast path reads the reset observation from the carrier
+        self._carry = None  # every env starts an episode
 
     @torch.no_grad()
     def rollout(self) -> TensorDictBase:
         if isinstance(self._sampler, SamplingPolicy) and self._sampler.noise is not None:
             self._sampler.noise.restart()  # a rollout's noise block starts with it
+        if self._recurrent:
+            return self._recurrent_rollout()
         if not self._fast:
             return super().rollout()
         env, sample = self.env, self._sampler.sampler()  # constants of this rollout computed once
@@ -131,6 +138,35 @@ class RolloutCollector(Collector):
         if to_env is not None:  # the env's side of the rollout, once, to where the update runs
             batch["next"] = batch["next"].to(to_policy)
         return TensorDict(batch, batch_size=size, device=to_policy)
+
+    def carried_state(self) -> dict[str, Any] | None:
+        """A recurrent policy's carried state and episode starts, as a checkpoint holds them (None:
+        not recurrent, or every env starts an episode next)."""
+        return None if self._carry is None else self._carry.to_plain()
+
+    def resume_from(
+        self, obs: torch.Tensor | TensorDictBase | None, carried: dict[str, Any] | None
+    ) -> None:
+        """Resume: act first on ``obs`` (``set_next_observation``) from a recurrent policy's
+        ``carried`` state (``carried_state``); None: what the envs' reset gave."""
+        if obs is not None:
+            self.set_next_observation(obs)
+        if carried is not None and self._recurrent:
+            self._carry = Carry.from_plain(carried, module_device(self._sampler))
+
+    def _recurrent_rollout(self) -> TensorDictBase:
+        """A recurrent policy's rollout: the lean loop with the hidden state carried."""
+        if not self._fast:
+            raise ValueError(
+                "a recurrent policy (policy.memory.type) collects through rlexp's own env loop; "
+                "this env (a TorchRL env, or one wrapped in transforms by events.train) has none"
+            )
+        to_policy, to_env = devices(self.env, self._sampler)
+        obs = self._obs if self._obs is not None else self._carrier.get("observation")
+        batch, self._obs, self._carry = recurrent_rollout(
+            self.env, self._sampler, self.frames_per_batch, obs, self._carry, to_policy, to_env
+        )
+        return batch
 
     def _array_rollout(self, sample, steps: int, obs: torch.Tensor) -> TensorDictBase:
         """The lean loop with no torch operation per step but the noise's draw: the numpy

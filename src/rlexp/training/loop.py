@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -145,3 +146,10 @@ def check_ranks_in_sync(policy: torch.nn.Module, world_size: int) -> None:
     if len(set(digests)) != 1:
         raise RuntimeError(f"ranks diverged: parameter digests {digests}")
     log.info("[dist] parameters identical on all %d ranks (sha256 %s)", world_size, digest)
+
+
+def carried_state(collector: Any, resumed: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The checkpoint's ``recurrent_carry``: the collector's (a recurrent policy's hidden state and
+    episode starts between steps), or what a resumed run has not handed to its collector yet."""
+    carried = getattr(collector, "carried_state", None)  # (an overlap collector: never recurrent)
+    return resumed if carried is None else carried()

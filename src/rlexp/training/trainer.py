@@ -98,7 +98,7 @@ class Trainer:
         self.collector: RolloutCollector | None = None  # built when training starts, after a resume
         self._event_transform: EventTransform | None = None
         self._resume_rng: dict[str, Any] | None = None
-        self._resume_obs: torch.Tensor | None = None  # what the policy acts on next, on resume
+        self._resume_obs = self._resume_carry = None  # on resume: obs to act on, recurrent state
         self.stop_reason: str | None = None  # set by request_stop (a signal handler)
         self.hooks = hooks or HookManager({})  # user code at the loop's hook points (docs/hooks.md)
         self.stopped_early: str | None = None  # why a hook ended the run (status stopped_early)
@@ -368,6 +368,7 @@ class Trainer:
             "best_metric": self.best_metric,
             "hooks": self.hooks.state_dict(),
             "pending_observation": to_plain(self._pending_observation()),  # (a dict: images)
+            "recurrent_carry": loop.carried_state(self.collector, self._resume_carry),
             "eval_in_flight": record(
                 getattr(self.eval_worker, "in_flight", None) or self._resume_round
             ),  # resume: first
@@ -393,8 +394,9 @@ class Trainer:
         self._resume_rollout = sd.get("pending_rollout")
         if self.dist.is_main:  # with the env state it belongs to (rank 0's)
             self._resume_obs = from_plain(sd.get("pending_observation"))
+            self._resume_carry = sd.get("recurrent_carry")
         if self.env_resume is not None and self.env_resume.startswith("restarted"):
-            self._resume_obs = self._resume_rollout = None  # new episodes: nothing carries over
+            self._resume_obs = self._resume_rollout = self._resume_carry = None  # new episodes
             self.episodes.drop_running()
             loop.restart_returns(self.algorithm)
         if not self.dist.is_main:  # rank 0's RNG would give every rank the same noise
@@ -418,9 +420,7 @@ class Trainer:
     def _pending_observation(self) -> torch.Tensor | None:
         """The observation the policy acts on at the next step: the env's own one, or what a step
         event (observation noise) made of it, which the env state alone cannot give back."""
-        if self.collector is None:
-            return self._resume_obs
-        return self.collector.next_observation()
+        return self._resume_obs if self.collector is None else self.collector.next_observation()
 
     def _start_collector(self) -> None:
         if self.collector is None:
@@ -433,9 +433,9 @@ class Trainer:
                 track_traj_ids=False,
                 auto_register_policy_transforms=False,  # the policy needs no env transforms
             )
-            obs, self._resume_obs = self._resume_obs, None
-            if obs is not None:  # resumed: act first on what the interrupted run would have
-                self.collector.set_next_observation(obs)
+            # resumed: act first on what the interrupted run would have, from its recurrent state
+            self.collector.resume_from(self._resume_obs, self._resume_carry)
+            self._resume_obs = self._resume_carry = None
             if self.overlap:  # envs and collector move to a child (rlexp/training/overlap.py)
                 timeout = self.cfg.stall_timeout_s
                 self.collector = overlap.OverlapCollector(self.collector, self.policy, timeout)
