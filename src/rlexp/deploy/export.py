@@ -21,6 +21,12 @@ Only the actor is exported (PPO's critic is not); actor-critic and actor-only po
 policy whose actor reads a selection of the observation (groups, an asymmetric critic) or images
 takes the actor's inputs only: its vector parts and uint8 [batch, C, H, W] images, listed in the
 metadata's ``inputs`` (``export_actor.py``; docs/export.md "Grouped and image policies").
+
+A recurrent policy's file (``policy.memory.type`` lstm / gru) also takes the actor's state after
+those inputs (``actor_h``, and ``actor_c`` for an LSTM: float32 [batch, num_layers, hidden_size])
+and returns the next one after the action (``actor_h_out``, ``actor_c_out``); the metadata's
+``memory`` says so, and that the state is zeros at each episode's start (docs/export.md "Recurrent
+policies").
 """
 
 from __future__ import annotations
@@ -42,6 +48,8 @@ from rlexp.deploy.export_actor import (
     input_names,
     input_records,
     probe_inputs,
+    state_names,
+    state_shape,
 )
 from rlexp.deploy.export_meta import json_safe
 from rlexp.deploy.policy_eval import (
@@ -222,10 +230,37 @@ def _actor_of(
                 "clip": actor.clip if actor.normalize else None,
                 "count": float(policy.normalizer.count),
             },
+            # a recurrent actor's state: inputs after the observation, outputs after the action
+            "memory": memory_record(actor, config.policy),
         }
     finally:
         env.close()
     return actor, config, info, samples
+
+
+def memory_record(actor: DeterministicActor, policy_cfg: Any) -> dict[str, Any] | None:
+    """The metadata's ``memory`` (None: a feed-forward policy): the actor's LSTM / GRU, its state
+    inputs and outputs (the critic's memory is not in the file) and how to reset them."""
+    names = state_names(actor)
+    if not names:
+        return None
+    layers, hidden = state_shape(actor)
+    return {
+        "type": "lstm" if len(names) == 2 else "gru",
+        "num_layers": layers,
+        "hidden_size": hidden,
+        "shared": bool(getattr(getattr(policy_cfg, "memory", None), "shared", False)),
+        "state": [
+            {
+                "name": n,
+                "output": f"{n}_out",
+                "dtype": "float32",
+                "shape": ["batch", layers, hidden],
+            }
+            for n in names
+        ],
+        "reset": "zeros at episode start",
+    }
 
 
 def _sample_observations(base: Any, n: int = 8) -> list[tuple[Any, Any]]:
@@ -315,9 +350,11 @@ def _keys(records: list[dict[str, Any]]) -> list[str]:
 def _io_fields(info: dict[str, Any]) -> dict[str, Any]:
     """The first input's name, shape and dtype (every input: ``inputs``) and the output's."""
     first = info["inputs"][0]
+    states = [s["output"] for s in (info["memory"] or {}).get("state", [])]
     return {
         "input_name": first["name"],
         "output_name": OUTPUT_NAME,
+        "output_names": [OUTPUT_NAME, *states],  # the action, then a recurrent policy's state
         "input_shape": first["shape"],
         "output_shape": ["batch", info["action_dim"]],
         "dtype": first["dtype"],  # the first input's; the output's is action_dtype
@@ -368,7 +405,8 @@ def _write_torchscript(actor: DeterministicActor, path: Path) -> None:
 def _write_onnx(actor: DeterministicActor, path: Path) -> None:
     """torch.export-based exporter (torch's default and future; the TorchScript-based one is
     deprecated), a dynamic batch axis on every input, weights inside the file (no ``.data``)."""
-    names = input_names(actor)
+    states = state_names(actor)
+    names = [*input_names(actor), *states]
     batch = torch.export.Dim("batch")
     with warnings.catch_warnings(), quiet("torch.onnx"), quiet("torch.export"):
         warnings.simplefilter("ignore")
@@ -380,7 +418,7 @@ def _write_onnx(actor: DeterministicActor, path: Path) -> None:
             external_data=False,
             verbose=False,
             input_names=names,
-            output_names=[OUTPUT_NAME],
+            output_names=[OUTPUT_NAME, *(f"{n}_out" for n in states)],
             dynamic_shapes={name: {0: batch} for name in names},
         )
 
@@ -395,10 +433,14 @@ def _check_file(path: Path, meta: dict[str, Any], actor: DeterministicActor) -> 
     with torch.no_grad():
         want = call_actor(actor, probe)
         got = load_exported(path, meta)(*probe)
-    if got.shape != want.shape or not torch.allclose(
-        got.double(), want.double(), rtol=1e-5, atol=1e-5
-    ):
-        raise ValueError(
-            f"the exported {meta['format']} file {str(path)!r} does not reproduce the policy "
-            f"(max difference {float((got - want).abs().max()):.3g}); please report it"
-        )
+    # (a recurrent policy's file: the action and the next state, each compared)
+    wants = list(want) if isinstance(want, tuple) else [want]
+    gots = list(got) if isinstance(got, tuple | list) else [got]
+    for g, w in zip(gots, wants, strict=False):
+        same = len(gots) == len(wants) and g.shape == w.shape
+        if not same or not torch.allclose(g.double(), w.double(), rtol=1e-5, atol=1e-5):
+            diff = f"{float((g - w).abs().max()):.3g}" if same else "its outputs' shapes differ"
+            raise ValueError(
+                f"the exported {meta['format']} file {str(path)!r} does not reproduce the policy "
+                f"(max difference {diff}); please report it"
+            )

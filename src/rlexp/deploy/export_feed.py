@@ -7,6 +7,10 @@ env's vector, its images taken by their TensorDict key; the critic's parts are n
 actor reads that the env does not give, or gives in another shape, is one line naming it.
 
 Exports made before ``inputs`` existed take the env's whole flat vector, checked as they were.
+
+``ExportedPolicy`` is the file acting in the eval loop: the action as the run's env takes it, and for
+a recurrent policy (metadata ``memory``) the state carried from step to step, zeros at each
+episode's start (``episodes_ended``).
 """
 
 from __future__ import annotations
@@ -92,3 +96,60 @@ def _whole_vector(
         )
     check_layout(meta.get("observation_layout"), env, where)
     return lambda obs: [obs.cpu()]
+
+
+def env_actions(meta: dict[str, Any]) -> Callable[[torch.Tensor], torch.Tensor] | None:
+    """The file's action -> the action the run's env takes (None: the same): categorical values
+    back to indices (``start`` subtracted); an ``env.rescale_actions`` run's output (in the env's
+    bounds) back to the [-1, 1] the env maps onto them itself."""
+    space = meta.get("action_space") or {}
+    if space.get("kind", "box") != "box":
+        start = torch.tensor(space["start"], dtype=torch.int64)
+        return lambda action: action - start
+    if meta.get("actions_rescaled"):
+        low = torch.tensor(meta["action_low"], dtype=torch.float64)
+        half = (torch.tensor(meta["action_high"], dtype=torch.float64) - low) / 2.0
+        return lambda action: ((action.double() - low) / half - 1.0).float()
+    return None
+
+
+class ExportedPolicy:
+    """An exported file acting in TorchRL's loop: ``observation`` -> ``action`` (``feed``: the
+    observation, a tensor or a TensorDict, -> the file's inputs on the CPU; ``post``: the file's
+    action -> the env's). ``memory`` (the metadata's, recurrent policies): the file also takes its
+    state and returns the next one; it starts at zeros and is zeroed for the copies whose episode
+    ended (``episodes_ended``), as the metadata's ``reset`` says."""
+
+    def __init__(
+        self,
+        act: Callable[..., Any],
+        feed: Callable[[Any], list[Any]],
+        post: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        memory: dict[str, Any] | None = None,
+    ) -> None:
+        self.act, self.feed, self.post, self.memory = act, feed, post, memory
+        self.state: list[torch.Tensor] | None = None
+
+    def __call__(self, td: Any) -> Any:
+        obs = td.get("observation")  # the file runs on the CPU; the env may be on a GPU
+        inputs = self.feed(obs)
+        if self.memory is None:
+            action = self.act(*inputs)
+        else:
+            if self.state is None:  # every copy at an episode's start
+                batch = int(inputs[0].shape[0])
+                self.state = [
+                    torch.zeros(batch, *s["shape"][1:], dtype=torch.float32)
+                    for s in self.memory["state"]
+                ]
+            action, *self.state = self.act(*inputs, *self.state)
+        if self.post is not None:
+            action = self.post(action)
+        td.set("action", action.to(obs.device))
+        return td
+
+    def episodes_ended(self, done: torch.Tensor) -> None:
+        """Zero the state of the copies whose episode ended (``done``: bool [num_copies])."""
+        if self.state is not None:
+            ended = done.reshape(-1, 1, 1).bool().cpu()
+            self.state = [s.masked_fill(ended, 0.0) for s in self.state]

@@ -46,6 +46,8 @@ def check_fields(meta: dict[str, Any], where: str) -> None:
         raise bad("observation_dim", "a whole number >= 1 (>= 0 with inputs)")
     if meta.get("inputs") is not None:
         check_inputs(meta["inputs"], where)
+    if meta.get("memory") is not None:
+        check_memory(meta, where)
     for key in ("actor_observations", "critic_observations"):
         value = meta.get(key)
         if value is not None and not (
@@ -120,6 +122,46 @@ def check_inputs(inputs: Any, where: str) -> None:
         if kind == "image" and (len(parts) != 1 or parts[0]["kind"] != "image"
                                 or parts[0]["shape"] != shape[1:]):  # fmt: skip
             raise bad("parts", f"one image part of shape {shape[1:]}")
+
+
+#: A recurrent export's memory type -> its state inputs (outputs: each name + ``_out``).
+MEMORY_STATES = {"lstm": ["actor_h", "actor_c"], "gru": ["actor_h"]}
+#: The one reset rule an export writes (export.memory_record).
+MEMORY_RESET = "zeros at episode start"
+
+
+def check_memory(meta: dict[str, Any], where: str) -> None:
+    """A recurrent export's ``memory`` (and ``output_names``) as ``rlexp export`` writes them
+    (export.memory_record): a ValueError of one line naming the field otherwise."""
+    memory = meta["memory"]
+
+    def bad(key: str, want: str) -> ValueError:
+        value = memory.get(key) if isinstance(memory, dict) else memory
+        return ValueError(
+            f"{where}: memory.{key}={value!r} is not {want} (export metadata is data)"
+        )
+
+    if not isinstance(memory, dict) or memory.get("type") not in MEMORY_STATES:
+        raise bad("type", f"one of {list(MEMORY_STATES)}")
+    for key in ("num_layers", "hidden_size"):
+        if not _int(memory.get(key), 1):
+            raise bad(key, "a whole number >= 1")
+    if not isinstance(memory.get("shared", False), bool):
+        raise bad("shared", "true or false")
+    if memory.get("reset") != MEMORY_RESET:
+        raise bad("reset", repr(MEMORY_RESET))
+    names = MEMORY_STATES[memory["type"]]
+    shape = ["batch", memory["num_layers"], memory["hidden_size"]]
+    want = [{"name": n, "output": f"{n}_out", "dtype": "float32", "shape": shape} for n in names]
+    if memory.get("state") != want:
+        raise bad("state", f"{want}")
+    taken = {i.get("name") for i in meta.get("inputs") or [] if isinstance(i, dict)}
+    if taken & set(names):
+        raise bad("state", f"names apart from the inputs' {sorted(taken)}")
+    outputs = ["action", *(f"{n}_out" for n in names)]
+    if meta.get("output_names", outputs) != outputs:
+        raise ValueError(f"{where}: output_names={meta['output_names']!r} is not {outputs} "
+                         "(export metadata is data)")  # fmt: skip
 
 
 def _part(p: Any) -> bool:

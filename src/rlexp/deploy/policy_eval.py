@@ -160,8 +160,11 @@ def _from_ckpt(ckpt: dict[str, Any]) -> PolicyBuilder:
         check_checkpoint_fits(
             ckpt, config, policy
         )  # loads the weights; ValueError if they do not fit
+        from rlexp.training.evaluation import acting_policy
+
         # on the env's device: a batched torch env on a GPU is evaluated without copies per step
-        return policy.to(env.device or "cpu").sampling_policy(deterministic=True)
+        # (a recurrent policy: its state carried across steps, reset per episode)
+        return acting_policy(policy.to(env.device or "cpu"))
 
     return build
 
@@ -194,23 +197,17 @@ def _exported_source(path: Path) -> EvalSource:
     meta = read_metadata(path)
 
     def build(config: Any, env: Any) -> Callable[[Any], Any]:
-        from rlexp.deploy.export_feed import actor_feed
+        from rlexp.deploy.export_feed import ExportedPolicy, actor_feed, env_actions
         from rlexp.deploy.export_meta import check_action_space
 
         where = f"exported policy {str(path)!r}"
         # the actor's inputs gathered from the env's observation (the critic's are never read)
         feed = actor_feed(meta, env, where)
         check_action_space(meta, env, where)
-        act = load_exported(path, meta)
-        space = meta.get("action_space") or {}
-        if space.get("kind", "box") != "box":  # the file gives the env's values: back to indices
-            import torch
-
-            start = torch.tensor(space["start"], dtype=torch.int64)
-            return ExportedPolicy(lambda *xs: act(*xs) - start, feed)
-        if meta.get("actions_rescaled"):  # the file gives the env's values; the env maps [-1, 1]
-            return ExportedPolicy(_unit_actions(act, meta), feed)
-        return ExportedPolicy(act, feed)
+        # (a recurrent policy's file also takes and returns its state: carried, reset per episode)
+        return ExportedPolicy(
+            load_exported(path, meta), feed, env_actions(meta), meta.get("memory")
+        )
 
     return EvalSource(
         str(path), meta["format"], int(meta["global_step"]), meta["config"], build,
@@ -218,19 +215,10 @@ def _exported_source(path: Path) -> EvalSource:
     )  # fmt: skip
 
 
-def _unit_actions(act: Callable[[Any], Any], meta: dict[str, Any]) -> Callable[[Any], Any]:
-    """An export of an ``env.rescale_actions`` run (its output in the env's bounds) as the
-    [-1, 1] actions the run's env, which maps them onto the bounds itself, takes."""
-    import torch
-
-    low = torch.tensor(meta["action_low"], dtype=torch.float64)
-    half = (torch.tensor(meta["action_high"], dtype=torch.float64) - low) / 2.0
-    return lambda *xs: ((act(*xs).double() - low) / half - 1.0).float()
-
-
 def load_exported(path: Path, meta: dict[str, Any]) -> Callable[[Any], Any]:
-    """The exported file as a function of its inputs (``meta["inputs"]``' order; older exports:
-    ``obs [batch, obs_dim] float32``) -> the action (tensors)."""
+    """The exported file as a function of its inputs (``meta["inputs"]``' order, then a recurrent
+    policy's state inputs, ``meta["memory"]["state"]``; older exports: ``obs [batch, obs_dim]
+    float32``) -> the action, or (recurrent) the tuple of the action and the new state (tensors)."""
     import torch
 
     if meta["format"] == "torchscript":
@@ -252,26 +240,18 @@ def load_exported(path: Path, meta: dict[str, Any]) -> Callable[[Any], Any]:
         text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ValueError(f"exported policy {str(path)!r} does not load: {text}") from None
     names = [i["name"] for i in meta.get("inputs") or [{"name": meta["input_name"]}]]
-    out = meta["output_name"]
+    outs = [meta["output_name"]]
+    memory = meta.get("memory")
+    if memory is not None:  # the state in after the observation, out after the action
+        names += [s["name"] for s in memory["state"]]
+        outs += [s["output"] for s in memory["state"]]
 
     def act(*inputs: Any) -> Any:
         feed = {n: x.numpy() for n, x in zip(names, inputs, strict=True)}
-        return torch.from_numpy(session.run([out], feed)[0])
+        got = [torch.from_numpy(y) for y in session.run(outs, feed)]
+        return got[0] if memory is None else tuple(got)
 
     return act
-
-
-class ExportedPolicy:
-    """An exported file acting in TorchRL's loop: ``observation`` -> ``action`` (``feed``: the
-    observation, a tensor or a TensorDict, -> the file's inputs on the CPU)."""
-
-    def __init__(self, act: Callable[..., Any], feed: Callable[[Any], list[Any]]) -> None:
-        self.act, self.feed = act, feed
-
-    def __call__(self, td: Any) -> Any:
-        obs = td.get("observation")  # the file runs on the CPU; the env may be on a GPU
-        td.set("action", self.act(*self.feed(obs)).to(obs.device))
-        return td
 
 
 def evaluate(

@@ -36,6 +36,50 @@ log = logging.getLogger(__name__)
 MAX_EPISODE_STEPS = 100_000
 
 
+class RecurrentActor:
+    """A recurrent policy's deterministic actions for a batch of env copies, its state carried.
+
+    ``policy`` is a recurrent ``Policy`` (``policy.act``, ``initial_state``, ``reset_state``). The
+    state is made at the first step (the batch of the observation: every copy at an episode's
+    start); ``episodes_ended(done)`` resets the copies whose episode ended, so their next step reads
+    the initial state. Callable on a TensorDict (TorchRL's loop) or, through ``act``, on the
+    observation alone (the lean loop)."""
+
+    def __init__(self, policy: Any, deterministic: bool = True) -> None:
+        self.policy = policy
+        self.deterministic = deterministic
+        self.state: dict[str, torch.Tensor] | None = None
+        # the parameters do not change during a round: the sampler (policy.act's) built once
+        self._sample = policy.sampling_policy(deterministic).sampler()
+
+    def act(self, obs: Any) -> torch.Tensor:
+        """The action for ``obs`` (a Tensor or a TensorDict: a batch of copies); the state moves on
+        (the actor's entries; the critic's, which acting does not need, stay as they were)."""
+        if self.state is None:
+            batch = int(obs.batch_size.numel() if isinstance(obs, TensorDictBase) else obs.shape[0])
+            self.state = self.policy.initial_state(batch, device=obs.device)
+        out, self.state = self._sample(obs, self.state, critic=False)
+        return out[-2]  # (..., action, log-prob), as policy.act
+
+    def episodes_ended(self, done: torch.Tensor) -> None:
+        """Reset the state of the copies whose episode ended (``done``: bool [num_copies])."""
+        if self.state is not None:
+            device = next(iter(self.state.values())).device  # the env's may be another
+            self.state = self.policy.reset_state(self.state, done.reshape(-1).bool().to(device))
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        td.set("action", self.act(td.get("observation")))
+        return td
+
+
+def acting_policy(policy: Any) -> Any:
+    """What an eval round acts with: the fast deterministic sampler, or for a recurrent policy a
+    :class:`RecurrentActor` carrying its state."""
+    if getattr(policy, "recurrent", False):
+        return RecurrentActor(policy)
+    return policy.sampling_policy(deterministic=True)
+
+
 class EpisodeTally:
     """Per-copy running returns, lengths and success, kept for each copy's first ``quota`` episodes
     (the copies' quotas sum to ``episodes`` and differ by at most one), so copies whose episodes
@@ -166,8 +210,7 @@ def run_round(
     # Fresh episodes from the same seed every round: rounds compare like with like, and a resumed
     # run evaluates exactly as an uninterrupted one (no eval episode spans two rounds).
     env.set_seed(seed)
-    sampling = policy.sampling_policy(deterministic=True)
-    metrics = run_episodes(env, sampling, episodes, on_step, on_reset)
+    metrics = run_episodes(env, acting_policy(policy), episodes, on_step, on_reset)
     metrics.pop("eval/episodes")
     if events is not None:
         events.finalize(ctx())
@@ -194,11 +237,11 @@ def run_episodes(
     reference the lean one is tested against); True insists on the lean loop. ``max_steps``: an
     episode not ended after that many steps is cut there, with one warning (``EpisodeTally``).
     """
-    usable = on_step is None and supports_fast_rollout(env, policy)
+    usable = on_step is None and _lean_applies(env, policy)
     if lean and not usable:
         raise ValueError(
             "run_episodes(lean=True) needs an rlexp env without transforms, rlexp's sampling "
-            "policy and no on_step callback"
+            "policy (or a RecurrentActor) and no on_step callback"
         )
     tally = EpisodeTally(int(env.batch_size.numel()), episodes, max_steps)
     td = env.reset()
@@ -224,12 +267,29 @@ def run_episodes(
 DEVICE_CHUNK = 32
 
 
+def _lean_applies(env: EnvBase, policy: Any) -> bool:
+    """The lean loop's conditions (``supports_fast_rollout``), a RecurrentActor standing for
+    rlexp's sampling policy."""
+    if isinstance(policy, RecurrentActor):
+        return supports_fast_rollout(env, policy.policy.sampling_policy(deterministic=True))
+    return supports_fast_rollout(env, policy)
+
+
+def _actor(policy: Any) -> tuple[Callable[[Any], torch.Tensor], Callable[[Any], None] | None]:
+    """``obs -> action`` for the lean loops, and what to tell where episodes ended (None: nothing,
+    a policy without state)."""
+    if isinstance(policy, RecurrentActor):
+        return policy.act, policy.episodes_ended
+    sample = policy.sampler()  # the parameters do not change during a round: built once
+    return (lambda obs: sample(obs)[-2]), None  # (..., action, log-prob)
+
+
 def _lean_loop(env: EnvBase, policy, obs: torch.Tensor, tally: EpisodeTally) -> None:
     """The collector's fast path: deterministic actions from plain tensors, the env's own step."""
-    sample = policy.sampler()  # the parameters do not change during a round: built once
-    to_policy, to_env = devices(env, policy)
+    act, ended = _actor(policy)
+    to_policy, to_env = devices(env, getattr(policy, "policy", policy))
     if env.device.type != "cpu":
-        _device_loop(env, sample, obs, tally, to_policy, to_env)
+        _device_loop(env, act, ended, obs, tally, to_policy, to_env)
         return
     n = len(tally.quota)
     success_key = None
@@ -237,17 +297,20 @@ def _lean_loop(env: EnvBase, policy, obs: torch.Tensor, tally: EpisodeTally) -> 
     while not tally.finished:
         if to_env is not None:
             obs = obs.to(to_policy)
-        action = sample(obs)[-2]  # (..., action, log-prob)
+        action = act(obs)
         nxt = env.step_action(action if to_env is None else action.to(to_env))
         if first:  # an env's step output always has the same keys
             first = False
             success_key = _success_key(env, nxt)
         success = None if success_key is None else nxt.get(success_key).numpy().reshape(n)
-        tally.add(nxt.get("reward").numpy().reshape(n), nxt.get("done").numpy().reshape(n), success)
+        done = nxt.get("done")
+        tally.add(nxt.get("reward").numpy().reshape(n), done.numpy().reshape(n), success)
+        if ended is not None:  # a recurrent policy: the ended copies start from the initial state
+            ended(done.reshape(n))
         obs = env.autoreset_observation(nxt)
 
 
-def _device_loop(env, sample, obs, tally: EpisodeTally, to_policy, to_env) -> None:
+def _device_loop(env, act, ended, obs, tally: EpisodeTally, to_policy, to_env) -> None:
     """The lean loop for an env on a GPU: rewards and done flags stay there, read back to the host
     once per ``DEVICE_CHUNK`` steps (no host round trip per step); the same tally, step by step."""
     n = len(tally.quota)
@@ -257,7 +320,7 @@ def _device_loop(env, sample, obs, tally: EpisodeTally, to_policy, to_env) -> No
         for _ in range(DEVICE_CHUNK):
             if to_env is not None:
                 obs = obs.to(to_policy)
-            action = sample(obs)[-2]  # (..., action, log-prob)
+            action = act(obs)
             nxt = env.step_action(action if to_env is None else action.to(to_env))
             if first:  # an env's step output always has the same keys
                 success_key, first = _success_key(env, nxt), False
@@ -265,6 +328,8 @@ def _device_loop(env, sample, obs, tally: EpisodeTally, to_policy, to_env) -> No
                     ("reward", "done") if success_key is None else ("reward", "done", success_key)
                 )
             chunk.append(tuple(nxt.get(k).reshape(n) for k in keys))
+            if ended is not None:  # on the device: no read back
+                ended(nxt.get("done").reshape(n))
             obs = env.autoreset_observation(nxt)
         host = [torch.stack(col).detach().float().cpu().numpy() for col in zip(*chunk, strict=True)]
         for t in range(DEVICE_CHUNK):
@@ -280,9 +345,11 @@ def _torchrl_loop(
     tally: EpisodeTally,
     on_step: Callable[[TensorDictBase], None] | None,
 ) -> None:
-    """TorchRL's ``step_and_maybe_reset`` loop: any env, any policy, each step's tensordict."""
+    """TorchRL's ``step_and_maybe_reset`` loop: any env, any policy, each step's tensordict; a
+    policy with state (``episodes_ended``) is told which copies' episodes ended."""
     n = len(tally.quota)
     key, first = None, True
+    ended = getattr(policy, "episodes_ended", None)
     while not tally.finished:
         td = policy(td)
         if on_step is not None:
@@ -295,3 +362,5 @@ def _torchrl_loop(
         tally.add(
             nxt["reward"].reshape(n).cpu().numpy(), nxt["done"].reshape(n).cpu().numpy(), success
         )
+        if ended is not None:
+            ended(nxt["done"].reshape(n))
