@@ -310,9 +310,11 @@ FIELD_RULES: dict[str, Rule] = {
         "are uint8 images; checked by building one env",
     ),
     "env.observation_indices": Rule(
-        lambda v: isinstance(v, list | tuple)
-        and all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in v)
-        and len(set(v)) == len(v),
+        lambda v: (
+            isinstance(v, list | tuple)
+            and all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in v)
+            and len(set(v)) == len(v)
+        ),
         f"distinct indices >= 0 of a Box observation's entries, kept in the order given (empty: "
         f"every entry); only with env.backend one of {list(IMAGE_BACKENDS)} (each below the "
         "observation's width: checked by building one env)",
