@@ -105,7 +105,7 @@ class EnvPoolEnv(GymShapedEnv):
                 where,
                 tuple(image_keys),
                 frame_stack,
-                tuple(observation_indices),
+                indices=tuple(observation_indices),
             )
             if not layout.batchable:
                 raise UnsupportedSpace(

@@ -24,13 +24,19 @@ def make_env(cfg: EnvConfig, num_envs: int, seed: int, device: str = "cpu") -> E
         from rlexp.envs.gym import GymnasiumEnv
 
         env = GymnasiumEnv(
-            cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs, device, *images, kept
+            cfg.name,
+            num_envs,
+            cfg.max_episode_steps,
+            cfg.kwargs,
+            device,
+            *images,
+            observation_indices=kept,
         )
     elif cfg.backend == "gymnasium_async":
         from rlexp.envs.gym_async import AsyncGymnasiumEnv
 
         env = AsyncGymnasiumEnv(
-            cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs, *images, kept
+            cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs, *images, observation_indices=kept
         )
     elif cfg.backend == "envpool":
         from rlexp.envs.envpool_env import EnvPoolEnv
@@ -43,7 +49,7 @@ def make_env(cfg: EnvConfig, num_envs: int, seed: int, device: str = "cpu") -> E
             cfg.kwargs,
             cfg.num_threads,
             *images,
-            kept,
+            observation_indices=kept,
         )
     elif cfg.backend == "native":
         from rlexp.envs.native import make_native_env

@@ -62,7 +62,7 @@ class GymnasiumEnv(GymShapedEnv):
         with mujoco_build_warnings(env_id):
             envs = [self._make() for _ in range(num_envs)]
         space = envs[0].observation_space
-        layout = obs_layout(space, where, keys, frame_stack, tuple(observation_indices))
+        layout = obs_layout(space, where, keys, frame_stack, indices=tuple(observation_indices))
         coding = action_coding(envs[0].action_space, where)
         super().__init__(env_id, num_envs, layout, coding, device)
         self._envs = envs

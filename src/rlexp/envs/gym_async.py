@@ -116,7 +116,13 @@ class AsyncGymnasiumEnv(GymShapedEnv):
             kwargs["max_episode_steps"] = max_episode_steps
         kept = tuple(observation_indices)
         make = functools.partial(
-            make_worker_env, env_id, kwargs, os.getpid(), tuple(image_keys), frame_stack, kept
+            make_worker_env,
+            env_id,
+            kwargs,
+            os.getpid(),
+            tuple(image_keys),
+            frame_stack,
+            observation_indices=kept,
         )
         self._where = f"env.name={env_id!r} (env.backend=gymnasium_async)"
         method = start_method()
@@ -134,7 +140,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
                 )
             obs_space, act_space, kind = self._guarded(vec, vec.call, "rlexp_info")[0]
             where = f"env.name={env_id!r}"
-            layout = obs_layout(obs_space, where, tuple(image_keys), frame_stack, kept)
+            layout = obs_layout(obs_space, where, tuple(image_keys), frame_stack, indices=kept)
             coding = action_coding(act_space, where)
         except (EOFError, ConnectionError) as exc:  # (AsyncVectorEnv terminates the others)
             if vec is not None:

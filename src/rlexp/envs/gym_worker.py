@@ -96,7 +96,9 @@ def make_worker_env(
         from rlexp.plugins import load_plugins
 
         load_plugins()
-    return WorkerEnv(None, env_id, kwargs, image_keys, frame_stack, observation_indices)
+    return WorkerEnv(
+        None, env_id, kwargs, image_keys, frame_stack, observation_indices=observation_indices
+    )
 
 
 class WorkerEnv(gym.Wrapper):
@@ -117,7 +119,10 @@ class WorkerEnv(gym.Wrapper):
         self._stacking = (tuple(image_keys), int(frame_stack))
         super().__init__(env if env is not None else self._make())
         self.layout = obs_layout(
-            self.env.observation_space, self._where, *self._stacking, tuple(observation_indices)
+            self.env.observation_space,
+            self._where,
+            *self._stacking,
+            indices=tuple(observation_indices),
         )
         # what shared memory holds: the flat vector, or a Dict of it and the uint8 CHW images
         self.observation_space = encoded_space(self.layout)
