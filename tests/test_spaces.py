@@ -16,7 +16,8 @@ from torchrl.data import MultiCategorical as MultiCategoricalSpec
 import conftest
 from conftest import PLAIN_PPO
 from rlexp.config.schema import AlgorithmConfig, PolicyConfig
-from rlexp.envs.spaces import UnsupportedSpace, action_coding, check_layout, obs_layout
+from rlexp.envs.layout_check import check_layout
+from rlexp.envs.spaces import UnsupportedSpace, action_coding, obs_layout
 from rlexp.policies.actor_critic import make_policy
 from rlexp.policies.heads import MultiCategorical, categorical_kl
 

@@ -352,6 +352,16 @@ FIELD_RULES: dict[str, Rule] = {
         "a list of observation keys (a Dict key path like cam/front, or pixels for the root) that "
         "are uint8 images; checked by building one env",
     ),
+    "env.observation_indices": Rule(
+        lambda v: (
+            isinstance(v, list | tuple)
+            and all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in v)
+            and len(set(v)) == len(v)
+        ),
+        f"distinct indices >= 0 of a Box observation's entries, kept in the order given (empty: "
+        f"every entry); only with env.backend one of {list(IMAGE_BACKENDS)} (each below the "
+        "observation's width: checked by building one env)",
+    ),
     "env.kwargs": Rule(
         lambda v: isinstance(v, dict),
         "keyword arguments the env accepts (checked by building one env; render_mode=human "

@@ -200,6 +200,9 @@ class EnvConfig:
     # observation keys read as images besides the detected ones (uint8 Box of rank 3 or 4), e.g. a
     # [H, W] grey image; an image at the root is "pixels"
     image_keys: list[str] = field(default_factory=list)
+    # keep only these entries of a Box observation (flattened in C order), in this order, e.g.
+    # [0, 2]: CartPole-v1 without its velocities (gymnasium, gymnasium_async, envpool; empty: all)
+    observation_indices: list[int] = field(default_factory=list)
     kwargs: dict[str, Any] = field(
         default_factory=dict
     )  # extra keyword arguments for gymnasium.make

@@ -262,6 +262,13 @@ def validate(config: RootConfig) -> None:
             f"{list(IMAGE_BACKENDS)} (a torchrl env's uint8 entries are images as they are), or "
             f"drop {what.split('=')[0]}"
         )
+    if e.observation_indices and e.backend not in IMAGE_BACKENDS:
+        raise ConfigError(
+            f"env.observation_indices={list(e.observation_indices)}: env.backend={e.backend!r} "
+            f"builds its observation itself; use one of {list(IMAGE_BACKENDS)}, or choose the "
+            "entries where the env is defined (a native task's env.native.observations, a "
+            "vecenv / torchrl factory's own observation), and drop env.observation_indices"
+        )
     if getattr(a, "overlap", False) and e.backend not in OVERLAP_BACKENDS:
         raise ConfigError(
             f"algorithm.overlap=true steps the training envs in a collection process; "

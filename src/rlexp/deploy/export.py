@@ -189,7 +189,7 @@ def _actor_of(
         policy = policy_for_env(config.policy, e, env)
         obs_dim = int(policy.obs_layout.dim)  # the env's whole vector (every group's parts)
         act_dim = int(env.action_spec.shape[-1])
-        from rlexp.envs.spaces import check_layout
+        from rlexp.envs.layout_check import check_layout
 
         check_layout(ckpt.get("observation_layout"), env, f"checkpoint {ckpt.get('path')!r}")
         check_checkpoint_fits(ckpt, config, policy)  # loads the weights; ValueError if they don't

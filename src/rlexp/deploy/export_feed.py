@@ -105,7 +105,7 @@ def _whole_vector(
     meta: dict[str, Any], env: Any, where: str
 ) -> Callable[[Any], list[torch.Tensor]]:
     """An export without ``inputs`` (older rlexp): the env's whole flat vector, as then."""
-    from rlexp.envs.spaces import check_layout
+    from rlexp.envs.layout_check import check_layout
 
     spec = env.observation_spec["observation"]
     obs_dim = int(spec.shape[-1]) if not hasattr(spec, "keys") else -1

@@ -75,6 +75,9 @@ def flatten(obs, batch=False):
         if not batch:
             x = x[None]
         n = x.shape[0]
+        if part.get("indices"):  # env.observation_indices: the Box entries kept, in this order
+            columns.append(x.reshape(n, -1)[:, part["indices"]].astype(np.float32))
+            continue
         if part["kind"] in ("box", "multi_binary"):
             columns.append(x.reshape(n, part["size"]).astype(np.float32))
             continue

@@ -151,7 +151,7 @@ def _is_torchscript(path: Path) -> bool:
 def _from_ckpt(ckpt: dict[str, Any]) -> PolicyBuilder:
     def build(config: Any, env: Any) -> Callable[[Any], Any]:
         from rlexp.checkpoints.files import check_checkpoint_fits, check_policy_before_building
-        from rlexp.envs.spaces import check_layout
+        from rlexp.envs.layout_check import check_layout
         from rlexp.policies.actor_critic import policy_for_env
 
         check_layout(ckpt.get("observation_layout"), env, f"checkpoint {ckpt.get('path')!r}")

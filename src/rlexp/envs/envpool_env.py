@@ -86,6 +86,7 @@ class EnvPoolEnv(GymShapedEnv):
         num_threads: int = 0,
         image_keys: tuple[str, ...] | list[str] = (),
         frame_stack: int = 0,
+        observation_indices: tuple[int, ...] | list[int] = (),
     ) -> None:
         require("envpool", "env.backend=envpool")
         check_envpool_id(name)
@@ -99,7 +100,13 @@ class EnvPoolEnv(GymShapedEnv):
         self.num_threads = pool_threads(num_threads, num_envs)
         pool = self._make_pool(seed)
         try:
-            layout = obs_layout(pool.observation_space, where, tuple(image_keys), frame_stack)
+            layout = obs_layout(
+                pool.observation_space,
+                where,
+                tuple(image_keys),
+                frame_stack,
+                indices=tuple(observation_indices),
+            )
             if not layout.batchable:
                 raise UnsupportedSpace(
                     f"{where}: env.backend=envpool takes tasks with a flat Box or one image "

@@ -19,24 +19,45 @@ def make_env(cfg: EnvConfig, num_envs: int, seed: int, device: str = "cpu") -> E
     backends (``vecenv``, ``torchrl``) are built on ``env.device`` instead: the env lives where its
     simulator does, and the policy follows ``trainer.device``."""
     images = (tuple(cfg.image_keys), cfg.frame_stack)  # the Gymnasium-shaped backends' images
+    kept = tuple(cfg.observation_indices)  # the Box entries they keep (empty: all)
     masking = (cfg.action_mask, cfg.action_mask_key)  # where action masks come from (masks.py)
     if cfg.backend == "gymnasium":
         from rlexp.envs.gym import GymnasiumEnv
 
         env = GymnasiumEnv(
-            cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs, device, *images, *masking
+            cfg.name,
+            num_envs,
+            cfg.max_episode_steps,
+            cfg.kwargs,
+            device,
+            *images,
+            *masking,
+            observation_indices=kept,
         )
     elif cfg.backend == "gymnasium_async":
         from rlexp.envs.gym_async import AsyncGymnasiumEnv
 
         env = AsyncGymnasiumEnv(
-            cfg.name, num_envs, cfg.max_episode_steps, cfg.kwargs, *images, *masking
+            cfg.name,
+            num_envs,
+            cfg.max_episode_steps,
+            cfg.kwargs,
+            *images,
+            *masking,
+            observation_indices=kept,
         )
     elif cfg.backend == "envpool":
         from rlexp.envs.envpool_env import EnvPoolEnv
 
         env = EnvPoolEnv(
-            cfg.name, num_envs, seed, cfg.max_episode_steps, cfg.kwargs, cfg.num_threads, *images
+            cfg.name,
+            num_envs,
+            seed,
+            cfg.max_episode_steps,
+            cfg.kwargs,
+            cfg.num_threads,
+            *images,
+            kept,
         )
     elif cfg.backend == "native":
         from rlexp.envs.native import make_native_env

@@ -1,7 +1,8 @@
 """Gymnasium environments (the MuJoCo suite, classic control, the user's own) as batched TorchRL
 environments, stepped in the training process (``env.backend=gymnasium``). Images (uint8) are
 emitted as a TensorDict of ``vector`` and uint8 ``[C, H, W]`` entries (``images.py``); with
-``env.frame_stack`` each copy is wrapped in ``images.FrameStack``.
+``env.frame_stack`` each copy is wrapped in ``images.FrameStack``; ``env.observation_indices`` keeps
+chosen entries of a Box observation (the layout's encoder selects them).
 
 ``GymnasiumEnv`` is a lean ``EnvBase`` over ``num_envs`` Gymnasium copies (``adapter.py`` holds
 what it shares with the vectorised backends): the spaces become TorchRL specs (``spaces.py``:
@@ -50,6 +51,7 @@ class GymnasiumEnv(GymShapedEnv):
         frame_stack: int = 0,
         action_mask: str = "auto",
         action_mask_key: str = MASK_KEY,
+        observation_indices: tuple[int, ...] | list[int] = (),
     ) -> None:
         check_gym_id(env_id)
         os.environ.setdefault("MUJOCO_GL", "egl")
@@ -64,7 +66,8 @@ class GymnasiumEnv(GymShapedEnv):
             envs = [self._make() for _ in range(num_envs)]
         coding = action_coding(envs[0].action_space, where)
         mask = env_mask(envs[0], self._make, coding, action_mask, action_mask_key, where)
-        layout = obs_layout(envs[0].observation_space, where, keys, frame_stack, mask)
+        kept = tuple(observation_indices)
+        layout = obs_layout(envs[0].observation_space, where, keys, frame_stack, mask, indices=kept)
         super().__init__(env_id, num_envs, layout, coding, device)
         self._envs = envs
         self._plain_obs = layout.plain

@@ -126,6 +126,7 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         frame_stack: int = 0,
         action_mask: str = "auto",
         action_mask_key: str = MASK_KEY,
+        observation_indices: tuple[int, ...] | list[int] = (),
     ) -> None:
         check_gym_id(env_id)
         os.environ.setdefault("MUJOCO_GL", "egl")  # (the workers inherit it)
@@ -133,8 +134,9 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         if max_episode_steps is not None:
             kwargs["max_episode_steps"] = max_episode_steps
         mask = _resolve_mask(env_id, kwargs, action_mask, action_mask_key)
+        kept = tuple(observation_indices)
         make = functools.partial(
-            make_worker_env, env_id, kwargs, os.getpid(), tuple(image_keys), frame_stack, mask
+            make_worker_env, env_id, kwargs, os.getpid(), tuple(image_keys), frame_stack, mask, kept
         )
         self._where = f"env.name={env_id!r} (env.backend=gymnasium_async)"
         method = start_method()
@@ -152,7 +154,9 @@ class AsyncGymnasiumEnv(GymShapedEnv):
                 )
             obs_space, act_space, kind = self._guarded(vec, vec.call, "rlexp_info")[0]
             where = f"env.name={env_id!r}"
-            layout = obs_layout(obs_space, where, tuple(image_keys), frame_stack, mask)
+            layout = obs_layout(
+                obs_space, where, tuple(image_keys), frame_stack, mask, indices=kept
+            )
             coding = action_coding(act_space, where)
         except (EOFError, ConnectionError) as exc:  # (AsyncVectorEnv terminates the others)
             if vec is not None:

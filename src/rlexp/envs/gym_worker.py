@@ -1,7 +1,7 @@
 """What runs inside a ``gymnasium_async`` worker process: the env, built there, behind a wrapper
 that flattens its observations (``spaces.py``, so shared memory holds one float32 vector per copy,
 or with images a Dict of that vector and uint8 ``[C, H, W]`` images; ``env.frame_stack`` stacks
-them here, per copy),
+them here, per copy; ``env.observation_indices`` keeps chosen Box entries here),
 drops the per-step infos (rlexp reads none of them: less to pickle through the pipe), and answers
 the adapter's checkpoint calls (``env_state.copy_state`` / ``restore_copy``, run in the worker).
 
@@ -79,6 +79,7 @@ def make_worker_env(
     image_keys: tuple = (),
     frame_stack: int = 0,
     mask: MaskSpec | None = None,
+    observation_indices: tuple = (),
 ) -> WorkerEnv:
     """Build the env in a worker (``AsyncVectorEnv`` also calls this once in the training process,
     ``parent_pid``, for the spaces). ``module:EnvId`` imports its module here; an id an rlexp
@@ -97,7 +98,7 @@ def make_worker_env(
         from rlexp.plugins import load_plugins
 
         load_plugins()
-    return WorkerEnv(None, env_id, kwargs, image_keys, frame_stack, mask)
+    return WorkerEnv(None, env_id, kwargs, image_keys, frame_stack, mask, observation_indices)
 
 
 class WorkerEnv(gym.Wrapper):
@@ -112,12 +113,19 @@ class WorkerEnv(gym.Wrapper):
         image_keys: tuple = (),
         frame_stack: int = 0,
         mask: MaskSpec | None = None,
+        observation_indices: tuple = (),
     ) -> None:
         self.env_id = env_id
         self.kwargs = dict(kwargs or {})
         self._stacking = (tuple(image_keys), int(frame_stack))
         super().__init__(env if env is not None else self._make())
-        self.layout = obs_layout(self.env.observation_space, self._where, *self._stacking, mask)
+        self.layout = obs_layout(
+            self.env.observation_space,
+            self._where,
+            *self._stacking,
+            mask,
+            indices=tuple(observation_indices),
+        )
         # what shared memory holds: the flat vector, or a Dict of it and the uint8 CHW images
         self.observation_space = encoded_space(self.layout)
         self.kind = env_state_kind(self.env)

@@ -10,6 +10,9 @@ index; a part's key is its path joined with ``/`` (``"goal/position"``, ``"0"``)
 ``Box`` of rank 3 or 4, or a key ``env.image_keys`` names; ``images.py``) are not in the vector:
 with images the observation is a TensorDict of ``"vector"`` (float32) and one uint8 ``[C, H, W]``
 entry per image (``ObsLayout.encode``). ``Text``, ``Graph``, ``Sequence``, ``OneOf`` are refused.
+``env.observation_indices`` keeps chosen entries of a ``Box`` observation (flattened in C order), in
+the order given: the layout's one part is then a Box of that many values whose record names the
+kept ``indices``, so a checkpoint or export made with other entries is refused.
 
 Actions (``ActionCoding``): ``Box`` (a Gaussian head; actions clipped to the box), ``Discrete``,
 ``MultiDiscrete`` and ``MultiBinary`` (a categorical head per component). A categorical action is an
@@ -64,6 +67,9 @@ class ObsPart:
     group: str = "policy"  # observation group (policy, critic, ...): what a network may select
     image_key: str = ""  # image: its entry in the observation TensorDict ("pixels" at the root)
     source_layout: str = ""  # image: how the env gave it (hwc | chw | stack_hwc | ...)
+    #: box: the entries of the env's flat Box kept, in this order (env.observation_indices; empty:
+    #: every entry, as the env gives them)
+    indices: tuple[int, ...] = ()
 
     def record(self) -> dict[str, Any]:
         out = {
@@ -79,6 +85,8 @@ class ObsPart:
             out["group"] = self.group
         if self.kind == "image":
             out["image_key"], out["source_layout"] = self.image_key, self.source_layout
+        if self.indices:  # written only when set: old records compare equal
+            out["indices"] = list(self.indices)
         return out
 
 
@@ -165,9 +173,19 @@ class ObsLayout:
             arrays[MASK_KEY][...] = self.encode_mask(obs, info)
 
     @property
+    def indices(self) -> tuple[int, ...]:
+        """``env.observation_indices``: the env's flat Box entries kept, in order (empty: all)."""
+        return self.parts[0].indices if len(self.parts) == 1 else ()
+
+    @property
     def batchable(self) -> bool:
-        """Whether ``encode_batch`` takes this layout: a plain Box, or one image at the root."""
-        return self.plain or (len(self.parts) == 1 and self.parts[0].kind == "image")
+        """Whether ``encode_batch`` takes this layout: a plain Box (entries kept or not), or one
+        image at the root."""
+        return (
+            self.plain
+            or bool(self.indices)
+            or (len(self.parts) == 1 and self.parts[0].kind == "image")
+        )
 
     def encode_batch(self, obs: np.ndarray) -> np.ndarray | ObsBatch:
         """A vector env's raw batch [n, ...] as the env emits it (``batchable`` layouts): float32
@@ -175,6 +193,9 @@ class ObsLayout:
         if self.plain:
             return np.asarray(obs).astype(np.float32)
         part = self.parts[0]
+        if part.indices:
+            flat = np.asarray(obs).reshape(len(obs), -1)
+            return flat[:, list(part.indices)].astype(np.float32)
         return ObsBatch({part.image_key: np.array(self._encoders[0](obs), order="C")})
 
     def record(self) -> dict[str, Any]:
@@ -241,12 +262,16 @@ def obs_layout(
     image_keys: Sequence[str] = (),
     frame_stack: int = 1,
     mask: MaskSpec | None = None,
+    indices: Sequence[int] = (),
 ) -> ObsLayout:
     """The layout of ``space``; ``UnsupportedSpace`` naming the part that cannot be flattened
     (``where``: the config key and value the env came from, for the message). ``image_keys``:
     keys ``env.image_keys`` names as images (a part's key, or its TensorDict key); ``frame_stack``
     is recorded (``space`` is the stacked one already: ``images.FrameStack``); ``mask``: the action
-    mask (``masks.resolve_mask``; from the observation: that key is not a part of the vector)."""
+    mask (``masks.resolve_mask``; from the observation: that key is not a part of the vector);
+    ``indices``: ``env.observation_indices``, the entries of a Box ``space`` kept (in this order)."""
+    if indices:
+        return _kept_layout(space, where, tuple(int(i) for i in indices), mask)
     parts: list[ObsPart] = []
     encoders: list[Callable[[Any], np.ndarray]] = []
     named = set(image_keys)
@@ -326,6 +351,37 @@ def obs_layout(
     encode_mask = None if mask is None else mask_encoder(mask, where)
     return ObsLayout(
         type(space).__name__, tuple(parts), dim, plain, tuple(encoders), stack, mask, encode_mask
+    )
+
+
+def _kept_layout(
+    space: spaces.Space, where: str, indices: tuple[int, ...], mask: MaskSpec | None = None
+) -> ObsLayout:
+    """``env.observation_indices``: the layout of the entries ``indices`` of the Box ``space``
+    (flattened in C order; an image or any other space is refused in one line)."""
+    what = f"env.observation_indices={list(indices)}"
+    if not isinstance(space, spaces.Box) or obs_layout(space, where).images:
+        kind = "an image" if isinstance(space, spaces.Box) else type(space).__name__
+        raise UnsupportedSpace(
+            f"{what} keeps entries of a Box observation, and {where}'s observation is {kind} "
+            f"({_describe(space)}); leave env.observation_indices empty"
+        )
+    width = int(np.prod(space.shape))
+    wrong = [i for i in indices if not 0 <= i < width]
+    if wrong:
+        raise UnsupportedSpace(
+            f"{what}: {wrong[0]} is not an entry of {where}'s observation, which has {width} "
+            f"values ({_describe(space)}); use indices 0 to {width - 1}"
+        )
+    keep = np.asarray(indices, dtype=np.int64)
+    part = ObsPart("", "box", (len(indices),), 0, len(indices), indices=indices)
+
+    def encode(x: Any) -> np.ndarray:
+        return np.asarray(x, dtype=np.float32).reshape(-1)[keep]
+
+    encode_mask = None if mask is None else mask_encoder(mask, where)
+    return ObsLayout(
+        type(space).__name__, (part,), len(indices), False, (encode,), 1, mask, encode_mask
     )
 
 
@@ -410,31 +466,6 @@ def action_coding(space: spaces.Space, where: str) -> ActionCoding:
         f"{where}: the action space is {type(space).__name__} ({_describe(space)}); rlexp's "
         f"policies take {SUPPORTED_ACTIONS}"
     )
-
-
-def check_layout(saved: dict[str, Any] | None, env: Any, what: str) -> None:
-    """ValueError when ``saved`` (an observation layout a checkpoint or export recorded) is not the
-    layout of ``env``'s observations: the same vector would mean other things."""
-    base = env
-    while hasattr(base, "base_env"):
-        base = base.base_env
-    layout = getattr(base, "obs_layout", None)
-    if saved is None or layout is None:
-        return
-    current = layout.record()
-    if _parts_of(saved) != _parts_of(current):
-        have = [p["key"] or "(root)" for p in saved.get("parts", [])]
-        now = [p["key"] or "(root)" for p in current["parts"]]
-        raise ValueError(
-            f"{what} was made for observations flattened as {have} ({saved.get('dim')} values); "
-            f"the env now gives {now} ({current['dim']} values): the observation space changed"
-        )
-
-
-def _parts_of(record: dict[str, Any]) -> list[dict[str, Any]]:
-    """A layout record's parts, a missing ``group`` read as ``"policy"`` (records made before
-    observation groups have none; new ones write it only when it is not ``"policy"``)."""
-    return [{"group": "policy", **p} if isinstance(p, dict) else p for p in record.get("parts", [])]
 
 
 def frame_stacked(env: Any, n: int, image_keys: Sequence[str], where: str) -> Any:

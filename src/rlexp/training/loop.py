@@ -110,7 +110,7 @@ def restore_envs(env: EnvBase | None, sd: dict, is_main: bool) -> str | None:
     """Put the training envs back as checkpoint ``sd`` holds them (rank 0's; other ranks continue
     with fresh episodes): what happened (restored, or new episodes, and why), or None. ValueError
     when the checkpoint's observations were flattened otherwise than this env's."""
-    from rlexp.envs.spaces import check_layout
+    from rlexp.envs.layout_check import check_layout
 
     check_layout(sd.get("observation_layout"), env, f"checkpoint {sd.get('path')!r}")
     base = base_env(env)
