@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from conftest import compose
-from rlexp.config.validate import to_root_config
+from conftest import CONF_DIR, compose
+from rlexp.config.validate import ConfigError, to_root_config
 
 #: rl-zoo's entries: n_envs, n_steps, batch_size (PendulumNoVel: RecurrentPPO's default 128),
 #: gae_lambda, gamma, n_epochs, ent_coef, learning_rate (lin_: annealed), n_timesteps.
@@ -50,3 +50,41 @@ def test_the_mlp_baseline_differs_from_the_lstm_preset_in_the_policy_alone():
         **vars(lstm.algorithm),
         "sequence_length": 0,
     }
+
+
+# -- a preset for a velocity-hidden task is not the full task's (same env id, other entries) -------
+@pytest.mark.parametrize(
+    "overrides, kept",
+    [
+        (["+experiment=cart_pole_novel_lstm", "env=gym_cartpole"], "None"),
+        (["+experiment=cart_pole_novel_lstm", "env.observation_indices=[2,0]"], "[2, 0]"),
+        (["+experiment=cartpole_ppo", "env=cart_pole_novel"], "[0, 2]"),
+        (["+experiment=pendulum_novel_lstm", "env=pendulum"], "None"),
+        (["-m", "+experiment=cart_pole_novel_lstm", "env=cart_pole_novel,gym_cartpole"], "None"),
+    ],
+)
+def test_a_preset_for_other_observation_entries_is_refused(overrides, kept, tmp_path):
+    from rlexp.launch.precheck import precheck
+
+    with pytest.raises(ConfigError) as err:
+        precheck([*overrides, "trainer.total_frames=256", f"hydra.run.dir={tmp_path / 'r'}",
+                  f"hydra.sweep.dir={tmp_path / 's'}"], CONF_DIR)  # fmt: skip
+    msg = str(err.value)
+    assert "\n" not in msg and f"this run has env.observation_indices={kept}" in msg, msg
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["+experiment=cart_pole_novel_lstm"],
+        ["+experiment=cart_pole_novel_ppo"],
+        ["+experiment=cartpole_ppo"],
+        ["-m", "+experiment=cart_pole_novel_lstm", "seed=1,2"],
+    ],
+)
+def test_a_preset_on_its_own_observation_entries_passes(overrides, tmp_path):
+    from rlexp.launch.precheck import precheck
+
+    precheck([*overrides, "trainer.total_frames=256", f"hydra.run.dir={tmp_path / 'r'}",
+              f"hydra.sweep.dir={tmp_path / 's'}"], CONF_DIR)  # fmt: skip

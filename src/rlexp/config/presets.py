@@ -31,6 +31,25 @@ def env_id(loader: Any, option: str) -> str | None:
     return name if isinstance(name, str) and "${" not in name else None
 
 
+#: ``indices`` when the observation entries a run keeps are not known (nothing to compare).
+UNKNOWN = "unknown"
+
+
+def env_indices(loader: Any, option: str) -> list[int] | None | str:
+    """The ``observation_indices`` ``conf/env/<option>.yaml`` sets (None: all entries; ``UNKNOWN``:
+    no such file, or not a plain list of ints)."""
+    found = _raw(loader, f"env/{option}")
+    if found is None:
+        return UNKNOWN
+    value = found.config.get("observation_indices")
+    if value is None or (not isinstance(value, (str, bytes)) and len(value) == 0):
+        return None  # [] (the schema's default) and None: every entry
+    items = list(value) if not isinstance(value, (str, bytes)) else None
+    if items is None or not all(isinstance(i, int) and not isinstance(i, bool) for i in items):
+        return UNKNOWN
+    return [int(i) for i in items]
+
+
 def _experiment_env(loader: Any, experiment: str) -> str | None:
     """The env option an experiment file picks (``override /env: X`` in its defaults), if any."""
     found = _raw(loader, f"experiment/{experiment}")
@@ -44,9 +63,17 @@ def _bare(name: str) -> str:
     return name.split(":", 1)[-1]
 
 
-def check_preset_env(choices: Mapping[str, Any], name: str, loader: Any, where: str = "") -> None:
+def check_preset_env(
+    choices: Mapping[str, Any],
+    name: str,
+    loader: Any,
+    where: str = "",
+    indices: Sequence[int] | None | str = UNKNOWN,
+) -> None:
     """A ValueError of one line when a per-task preset chosen in ``choices`` (Hydra's group
-    choices) is for another env id than ``name`` (``env.name``); ``where``: a sweep job's label."""
+    choices) is for another env id than ``name`` (``env.name``), or for the same id with other
+    observation entries (``indices``: the run's ``env.observation_indices``; a preset for
+    CartPoleNoVel is not CartPole's); ``where``: a sweep job's label."""
     experiment = choices.get("experiment")
     presets: list[tuple[str, str]] = []  # (what the user chose, the env option it is for)
     for group in GROUPS:
@@ -64,8 +91,19 @@ def check_preset_env(choices: Mapping[str, Any], name: str, loader: Any, where: 
             presets.append((f"+experiment={experiment}", option))
     for what, option in presets:
         expected = env_id(loader, option)
-        if expected is None or _bare(expected) == _bare(name):
+        if expected is None:
             continue
+        if _bare(expected) == _bare(name):
+            kept = env_indices(loader, option)
+            given = indices if indices in (None, UNKNOWN) else [int(i) for i in indices] or None
+            if UNKNOWN in (kept, given) or kept == given:
+                continue
+            raise ValueError(
+                f"{where}{what} is the preset for {expected} with env.observation_indices={kept} "
+                f"(env={option}), but this run has env.observation_indices={given}: its values "
+                f"were chosen for that observation, not this one; use env={option} or leave out "
+                "the preset"
+            )
         raise ValueError(
             f"{where}{what} is the preset for {expected} (env={option}), but env.name={name!r}: "
             f"its values were chosen for {expected}, not this task; choose the env option of "
@@ -95,5 +133,6 @@ def check_sweep_presets(
         job_name = given.get("env.name")
         if job_name is None:
             job_name = env_id(loader, env_option) if "env" in given else name
+        kept = UNKNOWN if "env.observation_indices" in given else env_indices(loader, env_option)
         if job_name is not None:
-            check_preset_env(mine, job_name, loader, f"job {job.num} ({job.label}): ")
+            check_preset_env(mine, job_name, loader, f"job {job.num} ({job.label}): ", kept)

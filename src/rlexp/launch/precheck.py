@@ -380,7 +380,9 @@ def _check_presets(cfg: Any, loader: Any, overrides: Sequence[str], multirun: bo
                 choices, name, _sweep_plan(cfg, overrides, loader).jobs or [], loader
             )
         else:
-            check_preset_env(choices, name, loader)
+            kept = OmegaConf.select(cfg, "env.observation_indices", default=None)
+            kept = list(kept) if kept is not None else None
+            check_preset_env(choices, name, loader, indices=kept)
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
 
