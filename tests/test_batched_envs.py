@@ -202,7 +202,8 @@ def test_the_chunked_eval_loop_equals_torchrl_s_loop(monkeypatch):
     tally = evaluation.EpisodeTally(3, 7)
     obs = env.reset()["observation"]
     with torch.no_grad():  # (as run_episodes runs it)
-        evaluation._device_loop(env, policy.sampler(), obs, tally, torch.device("cpu"), None)
+        act, ended = evaluation._actor(policy)
+        evaluation._device_loop(env, act, ended, obs, tally, torch.device("cpu"), None)
     reference = evaluation.run_episodes(*env_and_policy(), 7, lean=False)
     assert tally.metrics() == reference and reference["eval/episodes"] == 7
 

@@ -28,7 +28,7 @@ def test_train_help_lists_the_group_options_but_not_the_schemas(tmp_path):
         for line in out.stdout.split("== Config ==")[0].splitlines()
         if ": " in line and not line.startswith(" ")
     }
-    assert [o.strip() for o in groups["algorithm"]] == ["grpo", "ppo"]
+    assert [o.strip() for o in groups["algorithm"]] == ["grpo", "ppo", "sac", "td3"]
     assert "hopper" in [o.strip() for o in groups["env"]]
     assert "_schema" not in out.stdout.split("== Config ==")[0]
 

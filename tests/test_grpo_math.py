@@ -115,8 +115,10 @@ def test_make_algorithm_dispatches_and_ppo_needs_a_critic():
     assert not make_algorithm(
         GRPOConfig(reset_every_rollout=False), actor_only, 1
     ).reset_each_rollout
-    with pytest.raises(ValueError, match=r"algorithm\.name='sac'; choose from \['ppo', 'grpo'\]"):
-        make_algorithm(GRPOConfig(name="sac"), actor_only, 1)
+    with pytest.raises(
+        ValueError, match=r"algorithm\.name='dqn'; choose from \['ppo', 'grpo', 'sac', 'td3'\]"
+    ):
+        make_algorithm(GRPOConfig(name="dqn"), actor_only, 1)
     # compile=true compiles GRPO's fused step: refused where the fused step cannot cover the run
     with pytest.raises(ConfigError, match=r"algorithm\.compile=true.*distributed gradient"):
         make_algorithm(GRPOConfig(compile="true"), actor_only, 1, grad_sync=lambda tensors: None)

@@ -26,7 +26,8 @@ from rlexp.config.schema import (
     PolicyConfig,
 )
 from rlexp.config.validate import ConfigError, to_root_config
-from rlexp.envs.spaces import ObsLayout, ObsPart, check_layout
+from rlexp.envs.layout_check import check_layout
+from rlexp.envs.spaces import ObsLayout, ObsPart
 from rlexp.policies.actor_critic import make_policy
 from rlexp.policies.inputs import layout_of
 from rlexp.policies.numpy_sampler import numpy_sampler

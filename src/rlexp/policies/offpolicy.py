@@ -258,7 +258,12 @@ class OffPolicyPolicy(nn.Module):
     def critic_input_parts(self) -> list[dict]:
         return []
 
-    def sampling_policy(self, deterministic: bool = False) -> OffPolicySampler:
+    def sampling_policy(
+        self, deterministic: bool = False, values: bool = False
+    ) -> OffPolicySampler:
+        """The collection (or, ``deterministic``, evaluation) policy; ``values`` is PPO's (the
+        critic's values written while collecting) and means nothing for SAC / TD3."""
+        del values
         return OffPolicySampler(self, deterministic)
 
     def deterministic_action(self, obs: torch.Tensor) -> torch.Tensor:
