@@ -89,6 +89,27 @@ class MutableHyperparameters:
     iteration: int
     total_iterations: int
 
+    def backward_and_step(
+        self, total: torch.Tensor, terms: dict[str, torch.Tensor], where: str
+    ) -> torch.Tensor:
+        """One optimiser step of an on-policy learner's TensorDict path: zero the gradients,
+        backward ``total``, then ``guarded_step`` with the learner's optimiser, parameters, gradient
+        clipping, distributed averaging and NaN guard; the gradient norm (``where``: the message's
+        place, e.g. the epoch and minibatch)."""
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        return guarded_step(
+            self.optimizer,
+            self.params,
+            self.param_names,
+            total,
+            terms,
+            max_grad_norm=self.cfg.max_grad_norm,
+            grad_sync=self.grad_sync,
+            nan_guard=self.nan_guard,
+            where=where,
+        )
+
     def mutable(self) -> tuple[str, ...]:
         from rlexp.config.rules import MUTABLE_HYPERPARAMETERS
 

@@ -47,7 +47,6 @@ from rlexp.algorithms.base import (
     GradSync,
     MutableHyperparameters,
     compile_saving_s,
-    guarded_step,
     make_optimizer,
     parse_compile,
 )
@@ -273,18 +272,8 @@ class GRPO(MutableHyperparameters):
                 for key in LOSS_KEYS[1:]:
                     if key in terms:
                         total = total + terms[key]
-                self.optimizer.zero_grad(set_to_none=True)
-                total.backward()
-                out["grad_norm"] = guarded_step(
-                    self.optimizer,
-                    self.params,
-                    self.param_names,
-                    total,
-                    terms,
-                    max_grad_norm=self.cfg.max_grad_norm,
-                    grad_sync=self.grad_sync,
-                    nan_guard=self.nan_guard,
-                    where=f"GRPO update (epoch {epoch}, minibatch {start // mb})",
+                out["grad_norm"] = self.backward_and_step(
+                    total, terms, f"GRPO update (epoch {epoch}, minibatch {start // mb})"
                 )
                 keys = keys or [k for k in STAT_KEYS if k in out]
                 rows.append(torch.stack([out[k].detach() for k in keys]))

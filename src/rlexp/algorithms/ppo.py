@@ -40,7 +40,6 @@ from rlexp.algorithms.base import (
     MutableHyperparameters,
     NonFiniteError,
     compile_saving_s,
-    guarded_step,
     make_optimizer,
     parse_compile,
 )
@@ -340,18 +339,8 @@ class PPO(MutableHyperparameters):
                     total = total + terms["loss_entropy"]
                 else:
                     del terms["loss_entropy"]
-                self.optimizer.zero_grad(set_to_none=True)
-                total.backward()
-                grad_norm = guarded_step(
-                    self.optimizer,
-                    self.params,
-                    self.param_names,
-                    total,
-                    terms,
-                    max_grad_norm=self.cfg.max_grad_norm,
-                    grad_sync=self.grad_sync,
-                    nan_guard=self.nan_guard,
-                    where=f"PPO update (epoch {epoch}, minibatch {start // mb})",
+                grad_norm = self.backward_and_step(
+                    total, terms, f"PPO update (epoch {epoch}, minibatch {start // mb})"
                 )
                 rows.append(
                     torch.stack([grad_norm if k == "grad_norm" else out[k] for k in keys]).detach()

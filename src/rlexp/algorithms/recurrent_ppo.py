@@ -30,7 +30,6 @@ import torch
 from tensordict import TensorDictBase
 from torch.nn import functional as F
 
-from rlexp.algorithms.base import guarded_step
 from rlexp.algorithms.ppo import PPO, STAT_KEYS, adaptive_learning_rate
 from rlexp.policies.heads import MultiCategorical, categorical_kl, gaussian_kl
 
@@ -197,18 +196,8 @@ class RecurrentPPO(PPO):
                 terms = {k: stats[k] for k in ("loss_objective", "loss_critic", "loss_entropy")}
                 if self.cfg.entropy_coeff == 0.0:
                     del terms["loss_entropy"]
-                self.optimizer.zero_grad(set_to_none=True)
-                total.backward()
-                grad_norm = guarded_step(
-                    self.optimizer,
-                    self.params,
-                    self.param_names,
-                    total,
-                    terms,
-                    max_grad_norm=self.cfg.max_grad_norm,
-                    grad_sync=self.grad_sync,
-                    nan_guard=self.nan_guard,
-                    where=f"PPO update (epoch {epoch}, minibatch {start // per_batch})",
+                grad_norm = self.backward_and_step(
+                    total, terms, f"PPO update (epoch {epoch}, minibatch {start // per_batch})"
                 )
                 row = [grad_norm if k == "grad_norm" else stats[k] for k in STAT_KEYS]
                 rows.append(torch.stack([r.detach().reshape(()) for r in row]))
