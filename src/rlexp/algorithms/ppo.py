@@ -43,7 +43,7 @@ from rlexp.algorithms.base import (
     make_optimizer,
     parse_compile,
 )
-from rlexp.algorithms.fused_step import FusedPPOStep
+from rlexp.algorithms.fused_step import MINIBATCH_KEYS, FusedPPOStep
 from rlexp.algorithms.fused_step import unsupported as fused_unsupported
 from rlexp.algorithms.normalize import ReduceSum, RewardNormalizer
 from rlexp.common.observations import in_chunks, next_is_following, structured
@@ -252,12 +252,7 @@ class PPO(MutableHyperparameters):
         adaptive = self.cfg.desired_kl is not None
         dist_keys = self.policy.actor_net.dist_keys  # loc, scale (Gaussian) or logits
         flat = batch.reshape(-1).select(
-            "observation",
-            "action",
-            "action_log_prob",
-            "advantage",
-            "value_target",
-            "state_value",
+            *MINIBATCH_KEYS,
             *(dist_keys if adaptive else ()),
             strict=False,
         )

@@ -30,6 +30,7 @@ import torch
 from tensordict import TensorDictBase
 from torch.nn import functional as F
 
+from rlexp.algorithms.fused_step import MINIBATCH_KEYS
 from rlexp.algorithms.ppo import PPO, STAT_KEYS, adaptive_learning_rate
 from rlexp.policies.heads import MultiCategorical, categorical_kl, gaussian_kl
 
@@ -38,15 +39,7 @@ log = logging.getLogger(__name__)
 _HALF_LOG_2PI = math.log(math.sqrt(2 * math.pi))
 _DISTANCE = {"l1": F.l1_loss, "l2": F.mse_loss, "smooth_l1": F.smooth_l1_loss}
 #: The rollout's entries a sequence minibatch carries (besides the dist keys for desired_kl).
-SEQUENCE_KEYS = (
-    "observation",
-    "action",
-    "action_log_prob",
-    "advantage",
-    "value_target",
-    "state_value",
-    "is_init",
-)
+SEQUENCE_KEYS = (*MINIBATCH_KEYS, "is_init")
 
 
 def cut_sequences(
