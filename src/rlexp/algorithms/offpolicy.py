@@ -55,10 +55,9 @@ class OffPolicy(MutableHyperparameters):
         from rlexp.config.validate import ConfigError
 
         if grad_sync is not None:
-            raise ConfigError(
-                f"--distributed: algorithm={cfg.name} learns from one process's replay buffer; "
-                "run it without --distributed (a sweep runs seeds in parallel)"
-            )
+            from rlexp.config.offpolicy_checks import distributed_refusal
+
+            raise ConfigError(distributed_refusal(cfg))
         if getattr(policy, "kind", None) != cfg.name:
             raise ValueError(f"algorithm={cfg.name} needs policy={cfg.name}")
         self.cfg = dataclasses.replace(cfg)  # its own copy: hooks may change its values

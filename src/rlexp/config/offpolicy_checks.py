@@ -17,6 +17,14 @@ def is_off_policy(algorithm: Any) -> bool:
     return getattr(algorithm, "name", None) in OFF_POLICY
 
 
+def distributed_refusal(algorithm: Any) -> str:
+    """``--distributed`` with SAC / TD3, as one line: one learner, one process's replay buffer."""
+    return (
+        f"--distributed: algorithm={algorithm.name} learns from one process's replay buffer; run "
+        "it without --distributed (a sweep runs seeds in parallel: python train.py -m seed=0,1,2)"
+    )
+
+
 def derive_frames_per_batch(config: Any) -> None:
     """SAC / TD3: ``trainer.frames_per_batch = env.num_envs * algorithm.train_freq``."""
     a = config.algorithm

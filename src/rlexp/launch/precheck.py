@@ -200,10 +200,14 @@ def precheck(argv: Sequence[str], conf_dir: Path) -> RootConfig | None:
         raise ConfigError(message or _first_line(exc)) from None
     finally:
         GlobalHydra.instance().clear()
+    from rlexp.config.offpolicy_checks import distributed_refusal, is_off_policy
+    from rlexp.runtime import distributed
+
+    if distributed.info().enabled and is_off_policy(config.algorithm):
+        raise ConfigError(distributed_refusal(config.algorithm))  # before building anything
     from rlexp.launch.checks import check_buildable
 
     check_buildable(config)
-    from rlexp.runtime import distributed
 
     # Before Hydra writes .hydra/ and its log there; rank 0 alone (it takes the lock right after,
     # and another rank would find that lock).
