@@ -4,6 +4,7 @@ processes a test starts (ended on teardown, pass or fail)."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -318,3 +319,23 @@ def clipped_adam_step(params, grads, m, v, step: int, cfg, betas=(0.9, 0.999)) -
             m_hat = mi / (1 - beta1**step)
             v_hat = vi / (1 - beta2**step)
             p.sub_(cfg.lr * m_hat / (v_hat.sqrt() + cfg.adam_eps))
+
+
+def journal_order(sweep: Path) -> tuple[dict[int, int], dict[int, int]]:
+    """({trial id: index of its creation}, {trial id: index of its finishing state}) among the
+    operations of the sweep's journal file, in the order they were written."""
+    from optuna.storages.journal._storage import JournalOperation
+    from optuna.trial import TrialState
+
+    created: dict[int, int] = {}
+    finished: dict[int, int] = {}
+    lines = [line for line in (sweep / "optuna.journal").read_text().splitlines() if line.strip()]
+    if lines and not lines[-1].endswith("}"):  # a sweep SIGKILLed mid-write: Optuna skips it too
+        lines.pop()
+    for i, op in enumerate(map(json.loads, lines)):
+        if op["op_code"] == JournalOperation.CREATE_TRIAL:
+            created[len(created)] = i
+        elif op["op_code"] == JournalOperation.SET_TRIAL_STATE_VALUES:
+            if TrialState(op["state"]).is_finished():
+                finished.setdefault(op["trial_id"], i)
+    return created, finished

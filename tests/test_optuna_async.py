@@ -25,7 +25,7 @@ from hydra.core.utils import JobReturn, JobStatus
 from omegaconf import OmegaConf
 from optuna.trial import TrialState
 
-from conftest import SWEEP_TINY, Children, run_train
+from conftest import SWEEP_TINY, Children, journal_order, run_train
 from rlexp.hooks.base import HookControl, HookState
 from rlexp.hooks.optuna_prune import OptunaPrune
 from rlexp.launch.optuna_sweeper import EXIT_REFUSED, OptunaSweep, check_spec
@@ -471,25 +471,6 @@ def study_of(sweep: Path) -> optuna.Study:
     )
     (name,) = optuna.get_all_study_names(storage)
     return optuna.load_study(study_name=name, storage=storage)
-
-
-def journal_order(sweep: Path) -> tuple[dict[int, int], dict[int, int]]:
-    """({trial id: index of its creation}, {trial id: index of its finishing state}) among the
-    operations of the sweep's journal file, in the order they were written."""
-    from optuna.storages.journal._storage import JournalOperation
-
-    created: dict[int, int] = {}
-    finished: dict[int, int] = {}
-    lines = [line for line in (sweep / "optuna.journal").read_text().splitlines() if line.strip()]
-    if lines and not lines[-1].endswith("}"):  # a sweep SIGKILLed mid-write: Optuna skips it too
-        lines.pop()
-    for i, op in enumerate(map(json.loads, lines)):
-        if op["op_code"] == JournalOperation.CREATE_TRIAL:
-            created[len(created)] = i
-        elif op["op_code"] == JournalOperation.SET_TRIAL_STATE_VALUES:
-            if TrialState(op["state"]).is_finished():
-                finished.setdefault(op["trial_id"], i)
-    return created, finished
 
 
 def status(job: Path) -> dict:
