@@ -1,11 +1,13 @@
 """rlexp's child processes end with their parent (``runtime/signals.die_with_parent``, the one
 helper the eval worker, the overlap child, the ``gymnasium_async`` workers and a local sweep's jobs
 call): the signal they ask for comes when the parent is SIGKILLed, and at once where the parent was
-gone before the call (the race ``PR_SET_PDEATHSIG`` alone leaves open), with or without prctl."""
+gone before the call (the race ``PR_SET_PDEATHSIG`` alone leaves open), with or without prctl; and
+they start with the stop signals held (``blocked``)."""
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -132,3 +134,23 @@ def test_every_child_process_of_rlexp_sets_its_parent_death_signal_through_the_o
         "envs/gym_worker.py",
         "launch/job_pool.py",
     }
+
+
+def test_a_child_started_while_signals_are_blocked_inherits_them_and_none_is_lost(children):
+    """``blocked``, used while rlexp's children start: the child starts with the signals blocked
+    (SigBlk in /proc), and one that reaches this process meanwhile is handled when the block ends."""
+    from rlexp.runtime.signals import blocked
+
+    got: list[int] = []
+    previous = signal.signal(signal.SIGUSR1, lambda signum, frame: got.append(signum))
+    try:
+        with blocked((signal.SIGUSR1, signal.SIGHUP)):
+            child = children.popen([sys.executable, "-c", "import time; time.sleep(60)"])
+            os.kill(os.getpid(), signal.SIGUSR1)
+            assert got == []
+        assert got == [signal.SIGUSR1]
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    status = Path(f"/proc/{child.pid}/status").read_text()
+    mask = int(next(x for x in status.splitlines() if x.startswith("SigBlk:")).split()[1], 16)
+    assert {s for s in signal.Signals if mask >> (s - 1) & 1} == {signal.SIGUSR1, signal.SIGHUP}
