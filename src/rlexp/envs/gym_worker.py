@@ -136,6 +136,7 @@ class WorkerEnv(gym.Wrapper):
         obs, reward, terminated, truncated, info = self.env.step(action)
         return self.layout.encode(obs, info), reward, terminated, truncated, {}
 
+    @_plain_errors
     def rlexp_remake(self) -> None:
         """Replace the env by one made now (``GymnasiumEnv._set_seed``: a reseeded env starts from
         fresh copies, whatever state the old ones kept across resets)."""
