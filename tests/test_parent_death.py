@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from test_children import _alive  # running or stopped; a zombie counts as ended
 
 from conftest import REPO
 
@@ -49,15 +50,6 @@ if "orphan" in how:
     os._exit(0)
 time.sleep(120)
 """
-
-
-def _alive(pid: int) -> bool:
-    """Running or stopped; a zombie (dead, not yet reaped) counts as ended."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except FileNotFoundError:
-        return False
-    return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
 def _wait_for(check, timeout: float = 60) -> bool:
