@@ -26,16 +26,13 @@ the minibatch steps); SB3's ``collect_rollouts`` (its ``env_s``: EnvPool's steps
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
-import statistics
-import subprocess
-import sys
-import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+import alternate
 
 
 def sb3_worker(args: argparse.Namespace) -> None:
@@ -133,88 +130,26 @@ def rlexp_phases(run_dir: Path) -> dict[str, float]:
     return {"collect_s": round(collect, 2), "update_s": round(update, 2)}
 
 
-def run(cmd: list[str], env: dict[str, str] | None = None) -> dict:
-    """Launch to exit: wall seconds and the child's peak RSS (MiB)."""
-    start = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    out = proc.stdout.read() if proc.stdout else b""
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - start
-    if os.waitstatus_to_exitcode(status) != 0:
-        sys.stderr.write(out.decode(errors="replace")[-3000:])
-        raise SystemExit(f"failed: {' '.join(cmd)}")
-    return {"wall_s": wall, "peak_rss_mib": usage.ru_maxrss / 1024, "out": out.decode()[-400:]}
+def one_run(args: argparse.Namespace, side: str, r: int, tmp: Path) -> tuple[dict, dict, dict]:
+    """One process of ``side``; its line's entries after the common ones: the load, the phases."""
+    if side == "rlexp":
+        run_dir = tmp / f"rlexp_{r}"
+        cmd = alternate.rlexp_cmd(args, run_dir, "pong_ppo", f"env.num_envs={args.num_envs}")
+        res = alternate.run(cmd, rlexp=True)
+        phases = rlexp_phases(run_dir)
+    else:
+        res = alternate.run(alternate.sb3_cmd(args, __file__, f"--num-envs={args.num_envs}"))
+        tail = res["out"].split("PHASES ")[-1].splitlines()[0]
+        phases = {k: v for k, v in json.loads(tail).items() if k.endswith("_s")}
+    return res, {}, {"load_avg_1m": round(os.getloadavg()[0], 1), **phases}
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--sb3-python", help="the interpreter with stable-baselines3 and envpool")
-    p.add_argument("--steps", type=int, default=16384, help="env steps per run (both sides)")
-    p.add_argument("--rounds", type=int, default=2, help="rlexp/SB3 pairs, alternating")
+    p = alternate.parser(__doc__, "the interpreter with stable-baselines3 and envpool")
     p.add_argument("--num-envs", type=int, default=8)
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--threads", type=int, default=1, help="torch threads (both sides)")
-    p.add_argument("--only", choices=("rlexp", "sb3"), help="run one side only")
-    p.add_argument("--rlexp-arg", action="append", default=[], help="extra train.py override")
-    p.add_argument("--sb3-worker", action="store_true", help=argparse.SUPPRESS)
-    args = p.parse_args()
-    if args.sb3_worker:
-        sb3_worker(args)
-        return
-    if args.only != "rlexp" and not args.sb3_python:
-        p.error("--sb3-python is required (or --only rlexp)")
-    env = dict(os.environ, PYTHONPATH=str(REPO / "src"))
-    rates: dict[str, list[float]] = {"rlexp": [], "sb3": []}
-    with tempfile.TemporaryDirectory(prefix="sb3_cnn_") as tmp:
-        for r in range(args.rounds):
-            for side in ("rlexp", "sb3"):
-                if args.only and side != args.only:
-                    continue
-                if side == "rlexp":
-                    cmd = [
-                        sys.executable,
-                        str(REPO / "train.py"),
-                        "+experiment=pong_ppo",
-                        f"seed={args.seed}",
-                        f"env.num_envs={args.num_envs}",
-                        f"trainer.total_frames={args.steps}",
-                        "trainer.eval_every=0",
-                        "trainer.save_every=0",
-                        f"trainer.torch_threads={args.threads}",
-                        f"hydra.run.dir={tmp}/rlexp_{r}",
-                        *args.rlexp_arg,
-                    ]
-                    res = run(cmd, env)
-                    res["phases"] = rlexp_phases(Path(tmp) / f"rlexp_{r}")
-                else:
-                    cmd = [
-                        args.sb3_python,
-                        str(Path(__file__).resolve()),
-                        "--sb3-worker",
-                        f"--steps={args.steps}",
-                        f"--num-envs={args.num_envs}",
-                        f"--seed={args.seed}",
-                        f"--threads={args.threads}",
-                    ]
-                    res = run(cmd)
-                    tail = res["out"].split("PHASES ")[-1].splitlines()[0]
-                    res["phases"] = {k: v for k, v in json.loads(tail).items() if k.endswith("_s")}
-                rate = args.steps / res["wall_s"]
-                rates[side].append(rate)
-                line = {
-                    "side": side,
-                    "round": r,
-                    "steps": args.steps,
-                    "wall_s": round(res["wall_s"], 1),
-                    "steps_per_s": round(rate, 1),
-                    "peak_rss_mib": round(res["peak_rss_mib"]),
-                    "load_avg_1m": round(os.getloadavg()[0], 1),
-                    **res["phases"],
-                }
-                print(json.dumps(line), flush=True)
-    if rates["rlexp"] and rates["sb3"]:
-        ratio = statistics.median(rates["rlexp"]) / statistics.median(rates["sb3"])
-        print(json.dumps({"ratio_rlexp_over_sb3": round(ratio, 2)}), flush=True)
+    args = alternate.parse(p, sb3_worker)
+    if args is not None:
+        alternate.alternate(args, "sb3_cnn_", functools.partial(one_run, args))
 
 
 if __name__ == "__main__":

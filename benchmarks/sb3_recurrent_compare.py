@@ -27,16 +27,12 @@ mean return of the last episodes each side logged. The last line is the ratio of
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
-import statistics
-import subprocess
-import sys
-import tempfile
-import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+import alternate
 
 #: rl-zoo's ppo_lstm.yml entries (DLR-RM/rl-baselines3-zoo 22e3ff2, hyperparams/ppo_lstm.yml):
 #: the Gymnasium id, the kept observation indices, and RecurrentPPO's arguments. ``lin_`` values
@@ -132,19 +128,6 @@ def sb3_worker(args: argparse.Namespace) -> None:
     print(json.dumps({"steps": int(model.num_timesteps), "return": ret}))
 
 
-def run(cmd: list[str], env: dict[str, str] | None = None) -> dict:
-    """Launch to exit: wall seconds and the child's peak RSS (MiB)."""
-    start = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    out = proc.stdout.read() if proc.stdout else b""
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = time.perf_counter() - start
-    if os.waitstatus_to_exitcode(status) != 0:
-        sys.stderr.write(out.decode(errors="replace")[-3000:])
-        raise SystemExit(f"failed: {' '.join(cmd)}")
-    return {"wall_s": wall, "peak_rss_mib": usage.ru_maxrss / 1024, "out": out.decode()}
-
-
 def _sb3_return(out: str) -> float | None:
     for line in reversed(out.splitlines()):
         if line.startswith("{"):
@@ -165,75 +148,28 @@ def _rlexp_return(run_dir: Path) -> float | None:
     return found
 
 
+def one_run(args: argparse.Namespace, side: str, r: int, tmp: Path) -> tuple[dict, dict, dict]:
+    """One process of ``side``; its line's entries: the task, then the return and the load."""
+    if side == "rlexp":
+        run_dir = tmp / f"rlexp_{r}"
+        res = alternate.run(alternate.rlexp_cmd(args, run_dir, f"{args.task}_lstm"), rlexp=True)
+        ret = _rlexp_return(run_dir)
+    else:
+        res = alternate.run(alternate.sb3_cmd(args, __file__, f"--task={args.task}"))
+        ret = _sb3_return(res["out"])
+    after = {
+        "return": None if ret is None else round(float(ret), 1),
+        "load": round(os.getloadavg()[0], 2),
+    }
+    return res, {"task": args.task}, after
+
+
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--sb3-python", help="the interpreter with sb3-contrib")
+    p = alternate.parser(__doc__, "the interpreter with sb3-contrib")
     p.add_argument("--task", choices=sorted(TASKS), default="cart_pole_novel")
-    p.add_argument("--steps", type=int, default=16384, help="env steps per run (both sides)")
-    p.add_argument("--rounds", type=int, default=2, help="rlexp/SB3 pairs, alternating")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--threads", type=int, default=1, help="torch threads (both sides)")
-    p.add_argument("--only", choices=("rlexp", "sb3"), help="run one side only")
-    p.add_argument("--rlexp-arg", action="append", default=[], help="extra train.py override")
-    p.add_argument("--sb3-worker", action="store_true", help=argparse.SUPPRESS)
-    args = p.parse_args()
-    if args.sb3_worker:
-        sb3_worker(args)
-        return
-    if args.only != "rlexp" and not args.sb3_python:
-        p.error("--sb3-python is required (or --only rlexp)")
-    env = dict(os.environ, PYTHONPATH=str(REPO / "src"))
-    rates: dict[str, list[float]] = {"rlexp": [], "sb3": []}
-    with tempfile.TemporaryDirectory(prefix="sb3_rnn_") as tmp:
-        for r in range(args.rounds):
-            for side in ("rlexp", "sb3"):
-                if args.only and side != args.only:
-                    continue
-                if side == "rlexp":
-                    run_dir = Path(tmp) / f"rlexp_{r}"
-                    cmd = [
-                        sys.executable,
-                        str(REPO / "train.py"),
-                        f"+experiment={args.task}_lstm",
-                        f"seed={args.seed}",
-                        f"trainer.total_frames={args.steps}",
-                        "trainer.eval_every=0",
-                        "trainer.save_every=0",
-                        f"trainer.torch_threads={args.threads}",
-                        f"hydra.run.dir={run_dir}",
-                        *args.rlexp_arg,
-                    ]
-                    res = run(cmd, env)
-                    ret = _rlexp_return(run_dir)
-                else:
-                    cmd = [
-                        args.sb3_python,
-                        str(Path(__file__).resolve()),
-                        "--sb3-worker",
-                        f"--task={args.task}",
-                        f"--steps={args.steps}",
-                        f"--seed={args.seed}",
-                        f"--threads={args.threads}",
-                    ]
-                    res = run(cmd)
-                    ret = _sb3_return(res["out"])
-                rate = args.steps / res["wall_s"]
-                rates[side].append(rate)
-                line = {
-                    "side": side,
-                    "task": args.task,
-                    "round": r,
-                    "steps": args.steps,
-                    "wall_s": round(res["wall_s"], 1),
-                    "steps_per_s": round(rate, 1),
-                    "peak_rss_mib": round(res["peak_rss_mib"]),
-                    "return": None if ret is None else round(float(ret), 1),
-                    "load": round(os.getloadavg()[0], 2),
-                }
-                print(json.dumps(line), flush=True)
-    if rates["rlexp"] and rates["sb3"]:
-        ratio = statistics.median(rates["rlexp"]) / statistics.median(rates["sb3"])
-        print(json.dumps({"ratio_rlexp_over_sb3": round(ratio, 2)}), flush=True)
+    args = alternate.parse(p, sb3_worker)
+    if args is not None:
+        alternate.alternate(args, "sb3_rnn_", functools.partial(one_run, args))
 
 
 if __name__ == "__main__":

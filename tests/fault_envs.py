@@ -5,7 +5,8 @@ a step counter; what goes wrong is chosen by its kwargs.
 - ``Walk-v0``: ``kill_at=N`` SIGKILLs its own process at its N-th step (as the OOM killer would),
   once per ``marker`` file; ``exit_at=N`` raises ``raise_what`` (``exit0``: ``sys.exit(0)``,
   ``keyboard``: ``KeyboardInterrupt``, ``memory``: numpy's ``_ArrayMemoryError``) at its N-th step,
-  ``exit_in`` chooses ``step`` or ``reset``; ``bad_set_state`` (or ``FAULT_ENVS_BAD_SET_STATE=1``): ``set_state`` raises.
+  ``exit_in`` chooses ``step``, ``reset`` or ``close`` (its first close, once it was reset
+  ``exit_at`` times); ``bad_set_state`` (or ``FAULT_ENVS_BAD_SET_STATE=1``): ``set_state`` raises.
   ``interrupt_marker``: its 2nd construction gets a Ctrl-C and fails (a build that a Ctrl-C broke).
   ``FAULT_ENVS_EXIT_IN_RESET=1``: every ``reset`` calls ``sys.exit(0)``.
   ``endless``: episodes never end (registered without a time limit: ``Endless-v0``).
@@ -79,7 +80,7 @@ class Walk(gym.Env):
         self.kill_at, self.marker = int(kill_at), str(marker)
         self.exit_at, self.exit_in, self.raise_what = int(exit_at), exit_in, raise_what
         self.bad_set_state, self.endless, self.episode = bad_set_state, endless, int(episode)
-        self.x, self.t, self.steps, self.resets = 0.0, 0, 0, 0
+        self.x, self.t, self.steps, self.resets, self.closes = 0.0, 0, 0, 0, 0
 
     def _obs(self) -> np.ndarray:
         return np.array([self.x, self.t / 10.0, 1.0], dtype=np.float32)
@@ -105,6 +106,12 @@ class Walk(gym.Env):
         self.t += 1
         done = (not self.endless) and self.t >= self.episode
         return self._obs(), -abs(self.x), done, False, {}
+
+    def close(self):
+        closes, self.closes = self.closes, self.closes + 1
+        if self.exit_in == "close" and self.exit_at and self.resets >= self.exit_at and not closes:
+            _raise(self.raise_what)
+        super().close()
 
     def get_state(self):
         return {"x": self.x, "t": self.t}

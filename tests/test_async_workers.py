@@ -74,6 +74,59 @@ def test_what_user_code_raises_in_a_worker_is_one_clear_line(tmp_path, what, sho
     assert "TypeError" not in reason
 
 
+@pytest.mark.parametrize(
+    ("what", "shown"),
+    [("memory", "MemoryError: Unable to allocate 2.00 PiB"), ("exit0", "SystemExit(0)")],
+)
+def test_what_user_code_raises_while_a_reseeded_copy_is_made_anew_is_one_clear_line(
+    monkeypatch, what, shown
+):
+    """A reseed after use makes each copy anew (``rlexp_remake``: the old one closed, a new one
+    made): what the env's ``close`` raises there is one line, as in ``step``, not a garbled
+    ``TypeError`` or a worker that ``SystemExit`` ended; every worker is closed."""
+    from rlexp.envs.gym_async import AsyncGymnasiumEnv, WorkerError
+
+    monkeypatch.setenv("PYTHONPATH", PYPATH["PYTHONPATH"])
+    env = AsyncGymnasiumEnv(
+        "fault_envs:Walk-v0", 2, make_kwargs={"exit_in": "close", "exit_at": 1, "raise_what": what}
+    )
+    try:
+        env.set_seed(3)
+        env.reset()
+        with pytest.raises(WorkerError) as err:
+            env.set_seed(3)  # an eval round's reseed: the copies are made anew
+        msg = str(err.value)
+        assert "\n" not in msg and msg.startswith(
+            f"env.name='fault_envs:Walk-v0' (env.backend=gymnasium_async): a worker failed: {shown}"
+        ), msg
+        assert f"(raised in _raise() at {FAULT_ENVS}:" in msg and "TypeError" not in msg, msg
+        assert msg.endswith("; all workers are closed"), msg
+        assert not any(p.is_alive() for p in env._vec.processes)
+    finally:
+        env.close()
+
+
+def test_a_run_whose_env_exits_in_close_at_an_eval_reseed_fails_in_one_line_exit_1(tmp_path):
+    """The eval env is reseeded every round: the second round makes its copies anew, the old
+    copy's ``close`` calls ``sys.exit(0)``: docs/faults.md's worker error, exit 1, ``failed``."""
+    run_dir = tmp_path / "run"
+    proc = run_train(
+        [*RUN, "env.backend=gymnasium_async", "trainer.eval_every=128", "trainer.eval_episodes=1",
+         "trainer.eval_async=false", "+env.kwargs.exit_in=close", "+env.kwargs.exit_at=1",
+         f"hydra.run.dir={run_dir}"],
+        cwd=tmp_path, check=False, env_extra=PYPATH, timeout=300,
+    )  # fmt: skip
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 1, out[-3000:]
+    status = json.loads((run_dir / "status.json").read_text())
+    assert status["state"] == "failed" and status["global_step"] == 256, status
+    assert status["reason"].startswith(
+        "WorkerError: env.name='fault_envs:Walk-v0' (env.backend=gymnasium_async): a worker "
+        f"failed: SystemExit(0) (raised in _raise() at {FAULT_ENVS}:"
+    ), status["reason"]
+    assert "\n" not in status["reason"]
+
+
 def test_workers_stuck_in_a_step_end_when_the_training_process_group_is_killed(tmp_path):
     args = ["env=hopper", "env.name=stuck_envs:StuckAfter-v0", "+env.kwargs.after=300",
             "env.backend=gymnasium_async", "env.num_envs=2", "trainer.frames_per_batch=256",

@@ -112,6 +112,30 @@ def test_a_sweep_goes_on_after_a_job_whose_env_exits(tmp_path):
     assert f"sweep {sweep}: 1 of 2 jobs finished; 1 failed" in out
 
 
+@pytest.mark.parametrize(
+    ("exc", "expected"),
+    [
+        (KeyError("obs"), "KeyError: obs"),  # config.rules.first_line: no quotes
+        (ValueError("  "), "ValueError"),  # no message: the type alone
+        (RuntimeError("first line\nsecond line"), "RuntimeError: first line"),
+        (SystemExit(3), "SystemExit(3)"),
+        (KeyboardInterrupt(), "KeyboardInterrupt"),
+    ],
+)
+def test_describe_is_the_type_the_first_line_of_the_message_and_the_place(exc, expected):
+    from rlexp.runtime.user_code import describe
+
+    def raise_it():
+        raise exc
+
+    try:
+        raise_it()
+    except BaseException as caught:  # (SystemExit and KeyboardInterrupt too)
+        got = describe(caught)
+    where = f"{raise_it.__code__.co_filename}:{raise_it.__code__.co_firstlineno + 1}"
+    assert got == f"{expected} (raised in raise_it() at {where})"
+
+
 # -- item 6: set_state raising on resume --------------------------------------------------------
 def test_set_state_raising_on_resume_is_one_line_exit_2_and_the_status_no_longer_finished(
     tmp_path,

@@ -26,7 +26,6 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import signal
-import threading
 import weakref
 from collections.abc import Iterator
 
@@ -41,6 +40,7 @@ from rlexp.envs.gym_worker import HELD_SIGNALS, WorkerEnvError, make_worker_env
 from rlexp.envs.images import as_obs
 from rlexp.envs.masks import MASK_KEY, MaskSpec, env_mask
 from rlexp.envs.spaces import action_coding, obs_layout
+from rlexp.runtime.signals import blocked
 
 log = logging.getLogger(__name__)
 
@@ -72,23 +72,6 @@ def default_start_method(method: str) -> Iterator[None]:
         yield
     finally:
         multiprocessing.set_start_method(current, force=True)
-
-
-@contextlib.contextmanager
-def signals_held() -> Iterator[None]:
-    """While workers start: the stop signals blocked in this thread, so that the forkserver and
-    the workers start with them blocked (the mask is inherited). A Ctrl-C to the terminal's process
-    group before a worker has left that group (``make_worker_env``) used to kill it with
-    ``KeyboardInterrupt``, and the run failed as a config error (exit 2) instead of stopping (130);
-    now the training process takes it once the workers run."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, HELD_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 class WorkerError(RuntimeError):
@@ -143,7 +126,13 @@ class AsyncGymnasiumEnv(GymShapedEnv):
         # (AsyncVectorEnv builds one copy here for the spaces)
         vec = None
         try:
-            with mujoco_build_warnings(env_id), default_start_method(method), signals_held():
+            # The stop signals blocked meanwhile: the forkserver and the workers start with them
+            # blocked (the mask is inherited). A Ctrl-C to the terminal's process group before a
+            # worker has left that group (``make_worker_env``) used to kill it with
+            # ``KeyboardInterrupt``, and the run failed as a config error (exit 2) instead of
+            # stopping (130); now the training process takes it once the workers run.
+            held = blocked(HELD_SIGNALS)
+            with mujoco_build_warnings(env_id), default_start_method(method), held:
                 vec = AsyncVectorEnv(
                     [make] * num_envs,
                     shared_memory=True,

@@ -11,7 +11,6 @@ No torch here: each worker imports this module, and torch would cost every worke
 
 from __future__ import annotations
 
-import ctypes
 import functools
 import os
 import signal
@@ -25,10 +24,11 @@ from rlexp.envs.gym_ids import mujoco_build_warnings
 from rlexp.envs.images import encoded_space
 from rlexp.envs.masks import MaskSpec
 from rlexp.envs.spaces import frame_stacked, obs_layout
+from rlexp.runtime.signals import STOP_SIGNALS, die_with_parent
 from rlexp.runtime.user_code import describe
 
-#: Blocked while the workers start (``gym_async.signals_held``), unblocked in each worker.
-HELD_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: Blocked while the workers start (``gym_async``: ``signals.blocked``), unblocked in each worker.
+HELD_SIGNALS = STOP_SIGNALS
 
 
 class WorkerEnvError(RuntimeError):
@@ -38,22 +38,15 @@ class WorkerEnvError(RuntimeError):
 
 
 def _die_with_parent(training_pid: int) -> None:
-    """Linux: SIGKILL this worker when its parent (the forkserver, or the training process) ends,
-    even where an env step hangs and the closed pipe is never read; gone already: exit now."""
-    parent = os.getppid()
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
+    """SIGKILL this worker when its parent (the forkserver, or the training process) ends, even
+    where an env step hangs and the closed pipe is never read; either gone already: end now."""
+    die_with_parent(os.getppid())
     try:
         os.kill(training_pid, 0)
     except ProcessLookupError:
         os._exit(1)
     except PermissionError:
         pass
-    if os.getppid() != parent:  # the parent ended before the call: no signal will come
-        os._exit(1)
 
 
 def _plain_errors(fn: Any) -> Any:
@@ -88,7 +81,7 @@ def make_worker_env(
         # A worker leads a process group of its own: Ctrl-C (SIGINT to the terminal's process
         # group) and ``kill -TERM -PGID`` are the training process's to handle; it finishes its
         # iteration, checkpoints and closes the workers. A worker still exits when its pipe closes.
-        # It started with the stop signals blocked (``gym_async.signals_held``): one that came
+        # It started with the stop signals blocked (``gym_async``, ``signals.blocked``): one that came
         # before this point was meant for the training process; SIGINT stays ignored here.
         os.setpgrp()
         signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -143,6 +136,7 @@ class WorkerEnv(gym.Wrapper):
         obs, reward, terminated, truncated, info = self.env.step(action)
         return self.layout.encode(obs, info), reward, terminated, truncated, {}
 
+    @_plain_errors
     def rlexp_remake(self) -> None:
         """Replace the env by one made now (``GymnasiumEnv._set_seed``: a reseeded env starts from
         fresh copies, whatever state the old ones kept across resets)."""

@@ -18,7 +18,6 @@ SIGTERM when the sweep's process dies (``PR_SET_PDEATHSIG``): it saves at its sa
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -43,25 +42,14 @@ def n_jobs_of(value: Any) -> int:
     return max(1, n if n > 0 else cpus + 1 + n)
 
 
-def _die_with_parent(parent: int) -> None:
-    """Linux: SIGTERM this job when the sweep's process ends (a stop at its safe point)."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return
-    if os.getppid() != parent:  # the sweep's process ended before the call
-        os.kill(os.getpid(), signal.SIGTERM)
-
-
 def _job_main(payload: bytes, conn: Any, parent: int) -> None:
     """A job process: take the stop signals, run the job, send its ``JobReturn`` back."""
     import cloudpickle  # (a requirement of joblib, which hydra/launcher=local needs)
 
-    from rlexp.runtime.signals import become_sweep_worker
+    from rlexp.runtime.signals import become_sweep_worker, die_with_parent
 
     become_sweep_worker()
-    _die_with_parent(parent)
+    die_with_parent(parent, signal.SIGTERM)  # the sweep's process ended: a stop at a safe point
     fn, args = cloudpickle.loads(payload)
     ret = fn(*args)
     try:

@@ -9,10 +9,15 @@ last one on disk stays good). SLURM's preemption signal (USR2) goes through ``la
 A local sweep's joblib workers (``hydra/launcher=local``) are :class:`SweepWorker` processes: a stop
 signal that reaches one between jobs is remembered, no later job starts there, and the sweep's
 process (``launch/sweep_stop.py``) collects every job before it exits 128 + N.
+
+rlexp's child processes (the eval worker, the overlap child, the ``gymnasium_async`` workers, a local
+sweep's jobs) start with the stop signals :func:`blocked` and end with their parent
+(:func:`die_with_parent`).
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import signal
@@ -148,6 +153,35 @@ def become_sweep_worker() -> None:
             signal.signal(sig, _worker_handle)
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+
+
+@contextmanager
+def blocked(signals: tuple[signal.Signals, ...] | set[signal.Signals]) -> Iterator[None]:
+    """Meanwhile ``signals`` are blocked in this thread: a child started now inherits them blocked
+    (it unblocks them once its handlers are in place); one that arrives meanwhile is delivered here
+    afterwards, not lost. A no-op where there is no ``pthread_sigmask``."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def die_with_parent(parent: int, sig: signal.Signals = signal.SIGKILL) -> None:
+    """In a child process: ``sig`` to this process when ``parent`` (its parent's PID) ends, even
+    where it hangs and never reads the closed pipe (Linux's ``PR_SET_PDEATHSIG``; elsewhere only the
+    pipe's end stops it). A parent that ended before the call (or, elsewhere, before this process
+    started) sends nothing: this process then gets ``sig`` at once, as if it had come."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(sig))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError, TypeError):  # not Linux (TypeError: Windows's CDLL(None))
+        pass
+    if os.getppid() != parent:
+        os.kill(os.getpid(), sig)
 
 
 def _worker_handle(signum: int, frame: Any) -> None:

@@ -20,6 +20,7 @@ import signal
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+from rlexp.config.rules import first_line
 from rlexp.runtime.entry import SignalInterrupt
 
 
@@ -32,8 +33,8 @@ def describe(exc: BaseException) -> str:
     if isinstance(exc, SystemExit):
         line = f"SystemExit({exc.code!r})"
     else:
-        text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).strip()
-        line = f"{type(exc).__name__}: {text.splitlines()[0]}" if text else type(exc).__name__
+        name, text = type(exc).__name__, first_line(exc)  # (text: the name where it has none)
+        line = name if text == name else f"{name}: {text}"
     tb = exc.__traceback__
     while tb is not None and tb.tb_next is not None:
         tb = tb.tb_next

@@ -25,14 +25,13 @@ import os
 import signal
 import time
 import traceback
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 
 from rlexp.config.schema import BasePolicyConfig, EnvConfig, RootConfig
+from rlexp.runtime.signals import blocked, die_with_parent
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +117,7 @@ class EvalWorker:
         self._proc = ctx.Process(
             target=_serve, args=(child, self.setup, os.getpid()), name="rlexp-eval", daemon=True
         )
-        with _blocked(_TERMINAL_SIGNALS):  # a Ctrl-C during its start-up reaches this process only
+        with blocked(_TERMINAL_SIGNALS):  # a Ctrl-C during its start-up reaches this process only
             self._proc.start()
         child.close()
         log.info("[eval] eval worker started (pid %d): evaluation runs beside training", self.pid)
@@ -207,34 +206,9 @@ class EvalWorker:
         return payload
 
 
-@contextmanager
-def _blocked(signals: set[signal.Signals]) -> Iterator[None]:
-    """Block ``signals`` in this thread meanwhile: a child started now inherits them blocked; one
-    that arrives meanwhile is delivered here afterwards, not lost."""
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
-
-
-def _follow_parent(parent: int) -> None:
-    """Die with the training process even if it is SIGKILLed mid-round (Linux's parent-death
-    signal); elsewhere the closed pipe ends the worker after its round."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-    if os.getppid() != parent:  # the parent died before the line above
-        os._exit(0)
-
-
 def _serve(conn: Any, setup: EvalSetup, parent: int) -> None:
     """The worker: build once, then evaluate each (step, policy state) until told to stop."""
-    _follow_parent(parent)
+    die_with_parent(parent)  # even SIGKILLed mid-round; elsewhere the closed pipe ends it
     for sig in _TERMINAL_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _TERMINAL_SIGNALS)

@@ -27,7 +27,6 @@ to change (``config.validate``, ``build``).
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import logging
 import os
 import pickle
@@ -40,6 +39,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from rlexp.runtime.signals import die_with_parent
 from rlexp.runtime.user_code import describe
 from rlexp.training import loop
 
@@ -202,7 +202,7 @@ def _serve(conn: Any, collector: Any, policy: torch.nn.Module, parent: int) -> N
     """The child's loop: a rollout per ``collect`` (the weights to act with, the seed of its
     draws), the envs' state or next observation on request, until ``close`` or end of pipe."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the training process's to handle
-    _die_with_parent(parent)
+    die_with_parent(parent)  # also where an env step hangs and the closed pipe is never read
     torch.set_num_threads(1)
     after_fork = getattr(loop.base_env(collector.env), "after_fork", None)
     if after_fork is not None:  # thread pools do not survive a fork (native tasks' physics)
@@ -243,15 +243,3 @@ def _ended(pid: int) -> bool:
         return os.waitpid(pid, os.WNOHANG)[0] != 0
     except ChildProcessError:
         return True
-
-
-def _die_with_parent(parent: int) -> None:
-    """Linux: SIGKILL this child when the training process ends, also where an env step hangs and
-    the closed pipe is never read (elsewhere the pipe's end alone stops it)."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return
-    if os.getppid() != parent:  # the parent ended before the call: no signal will come
-        os._exit(0)
