@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from rlexp.algorithms.replay_files import locate_chunks
 from rlexp.checkpoints.fields import FieldError, Use, check_fields, check_tensors_fit
 from rlexp.checkpoints.scan import ScanError, scan
 from rlexp.files.fsutil import atomic_write, step_file_name
@@ -313,7 +314,10 @@ def latest_good_checkpoint(directory: Path, move_aside: bool = False) -> dict[st
 def _newest_loadable(directory: Path, use: Use, move_aside: bool = False) -> dict[str, Any] | None:
     for path in reversed(step_checkpoints(directory)):
         try:
-            return load_checkpoint_file(path, use)
+            ckpt = load_checkpoint_file(path, use)
+            if use == "resume":  # SAC / TD3: a checkpoint whose replay rows are gone is unusable
+                locate_chunks(ckpt, path)
+            return ckpt
         except (ValueError, OSError) as exc:  # OSError: unreadable, or pruned meanwhile
             dest = _move_aside(path) if move_aside and os.path.lexists(path) else None
             if dest is not None:

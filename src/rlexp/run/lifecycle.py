@@ -85,11 +85,12 @@ class RunLifecycle:
     def restore(self, trainer: Any, ckpt: dict) -> None:
         """Continue from ``ckpt``; the env's ``set_state`` raising is one line, exit 2, and
         ``status.json`` says ``failed`` with it (it must not keep saying the run finished)."""
+        from rlexp.algorithms.replay_files import ReplayFileError
         from rlexp.training.loop import EnvRestoreError
 
         try:
             trainer.load_state_dict(ckpt)
-        except EnvRestoreError as exc:
+        except (EnvRestoreError, ReplayFileError) as exc:  # ReplayFileError: a corrupt chunk
             trainer.close()
             step = int(ckpt["global_step"])
             write_status(self.run_dir, "failed", step, reason=str(exc), exit_code=2)
