@@ -97,6 +97,23 @@ def test_the_chunks_on_disk_are_those_the_kept_checkpoints_name(whole):
     assert named == {p.name for p in (whole / "replay").glob("chunk-*.pt")}
 
 
+def test_the_keeper_reads_the_checkpoints_names_and_a_corrupt_one_names_none(tmp_path, whole):
+    from rlexp.algorithms.replay_keep import ChunkKeeper
+
+    ckpts = tmp_path / "checkpoints"
+    shutil.copytree(whole / "checkpoints", ckpts)
+    paths = step_checkpoints(ckpts)
+    named = [
+        {c["file"] for c in load_checkpoint(p)["algorithm"]["replay"]["chunks"]} for p in paths
+    ]
+    keeper = ChunkKeeper()
+    assert keeper.named(ckpts) == set().union(*named)  # read from the files
+    paths[-1].write_bytes(paths[-1].read_bytes()[:1000])  # truncated: no resume can use it
+    assert keeper.named(ckpts) == named[0] | named[1]
+    (ckpts / "best.pt").symlink_to(paths[-1].name)  # whatever the file, by its content
+    assert keeper.named(ckpts) == named[0] | named[1]
+
+
 def test_a_resume_past_a_corrupt_newest_checkpoint_finds_the_older_one_s_chunks(tmp_path, whole):
     broken = tmp_path / "broken"
     ckpts = broken / "checkpoints"
@@ -210,11 +227,25 @@ def _assert_same_checkpoint(a_path: Path, b_path: Path) -> None:
     assert (na, wa) == (nb, wb) and (xa == xb).all(), f"{a_path.name}: buffer rows differ"
 
 
-def test_eval_snapshots_write_no_chunk_and_the_run_ends_the_same(tmp_path, monkeypatch):
+@pytest.fixture(scope="module")
+def sync_run(tmp_path_factory) -> Path:
+    """The reference: every round evaluated in-process, state_dict saved for best.pt."""
+    run_dir = tmp_path_factory.mktemp("sync") / "sync"
+    _train_in_process(run_dir, "trainer.eval_async=false")
+    return run_dir
+
+
+def _assert_same_files(sync_dir: Path, async_dir: Path) -> None:
+    assert _eval_rows(async_dir) == _eval_rows(sync_dir)
+    names = [p.name for p in step_checkpoints(sync_dir / "checkpoints")]
+    assert names == [p.name for p in step_checkpoints(async_dir / "checkpoints")]
+    for name in ("best.pt", *names):
+        _assert_same_checkpoint(sync_dir / "checkpoints" / name, async_dir / "checkpoints" / name)
+
+
+def test_eval_snapshots_write_no_chunk_and_the_run_ends_the_same(sync_run, tmp_path, monkeypatch):
     from rlexp.algorithms import replay_files
     from rlexp.training.trainer import Trainer
-
-    _train_in_process(tmp_path / "sync", "trainer.eval_async=false")  # rounds in-process
 
     writes: list[tuple[int, int, bool]] = []  # rows, and whether an eval's snapshot wrote them
     in_snapshot = [False]
@@ -239,9 +270,9 @@ def test_eval_snapshots_write_no_chunk_and_the_run_ends_the_same(tmp_path, monke
 
     assert [w for w in writes if w[2]] == [], "an eval's snapshot wrote replay chunks"
     assert all(b[0] >= a[1] for a, b in pairwise(writes)), f"a row written twice: {writes}"
-    rows = _eval_rows(tmp_path / "sync")
+    rows = _eval_rows(sync_run)
     assert [r["step"] for r in rows] == [40, 80, 120, 160, 200, 240]
-    assert _eval_rows(tmp_path / "async") == rows
+    _assert_same_files(sync_run, tmp_path / "async")
     # Chunks are written for what goes to disk only: best.pt (a round better than all before)
     # and the checkpoints of 120 and 240; an eval round that is neither writes nothing.
     best, bests = -float("inf"), set()
@@ -251,7 +282,32 @@ def test_eval_snapshots_write_no_chunk_and_the_run_ends_the_same(tmp_path, monke
             bests.add(r["step"])
     assert len(bests) < len(rows), "every round a new best: vacuous"
     assert [w[1] for w in writes] == sorted(bests | {120, 240})
-    for name in ("best.pt", *(p.name for p in step_checkpoints(tmp_path / "sync" / "checkpoints"))):
-        _assert_same_checkpoint(
-            tmp_path / "sync" / "checkpoints" / name, tmp_path / "async" / "checkpoints" / name
-        )
+
+
+def test_a_round_in_flight_at_a_stop_holds_its_rows_and_resumes_the_same(
+    sync_run, tmp_path, monkeypatch
+):
+    """A stop while the round of step 120 is out (its checkpoint waits for it): the stop's
+    checkpoint holds that round's state, its replay rows written then; the resume evaluates it,
+    writes its best.pt and checkpoint from it, and ends as the run that never stopped."""
+    from rlexp.app import RunEnded
+    from rlexp.training.trainer import Trainer
+
+    real_evaluate = Trainer.evaluate
+
+    def evaluate_then_stop(self):
+        real_evaluate(self)
+        if self.global_step == 120:
+            self.request_stop("stop injected by the test")
+
+    monkeypatch.setattr(Trainer, "evaluate", evaluate_then_stop)
+    run_dir = tmp_path / "async"
+    with pytest.raises(RunEnded):
+        _train_in_process(run_dir, "trainer.eval_async=true")
+    stopped = load_checkpoint(run_dir / "checkpoints" / "InvertedPendulum-v5_sac_step_000000120.pt")
+    pending = stopped["eval_in_flight"]
+    assert pending["step"] == 120 and pending["save"]
+    assert "unsaved" not in pending["state"]["algorithm"]["replay"]
+    monkeypatch.setattr(Trainer, "evaluate", real_evaluate)
+    _train_in_process(run_dir, "trainer.eval_async=true")
+    _assert_same_files(sync_run, run_dir)
