@@ -392,7 +392,7 @@ class Replay:
         if source is None:
             return manifest
         out = {k: v for k, v in manifest.items() if k != "directory"}
-        names = [c.get("file") for c in out.get("chunks") or [] if isinstance(c, dict)]
+        names = replay_files.chunk_names(out)
         if names and self.directory is not None:
             replay_files.adopt_chunks(Path(source), self.directory, names)
         return out

@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from rlexp.algorithms.replay_files import locate_chunks
 from rlexp.checkpoints.fields import FieldError, Use, check_fields, check_tensors_fit
 from rlexp.checkpoints.scan import ScanError, scan
 from rlexp.files.fsutil import atomic_write, step_file_name
@@ -316,6 +315,8 @@ def _newest_loadable(directory: Path, use: Use, move_aside: bool = False) -> dic
         try:
             ckpt = load_checkpoint_file(path, use)
             if use == "resume":  # SAC / TD3: a checkpoint whose replay rows are gone is unusable
+                from rlexp.algorithms.replay_files import locate_chunks
+
                 locate_chunks(ckpt, path)
             return ckpt
         except (ValueError, OSError) as exc:  # OSError: unreadable, or pruned meanwhile
