@@ -30,6 +30,7 @@ from torchrl.objectives import LossModule, SoftUpdate, ValueEstimators
 
 from rlexp.algorithms.base import GradSync, MutableHyperparameters, NonFiniteError
 from rlexp.algorithms.replay import Replay
+from rlexp.algorithms.replay_keep import ChunkKeeper
 from rlexp.config.schema_offpolicy import OffPolicyConfig
 
 log = logging.getLogger(__name__)
@@ -79,6 +80,7 @@ class OffPolicy(MutableHyperparameters):
             n_step=cfg.n_step,
             gamma=cfg.gamma,
         )
+        self._keeper = ChunkKeeper()  # which chunks the checkpoints on disk name
         qnets = [policy.make_q() for _ in range(policy.cfg.num_qvalue_nets)]
         self.loss = self._make_loss(qnets)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
@@ -165,6 +167,18 @@ class OffPolicy(MutableHyperparameters):
         """The loss (actor, twin Q networks, their targets, alpha), the optimisers, the counters,
         hyperparameters set by hooks, and the replay buffer's manifest (its rows are in chunk
         files under ``<run_dir>/replay``: ``save`` writes those added since the last one)."""
+        return self._state(self.replay.save())
+
+    def snapshot_state(self) -> dict[str, Any]:
+        """``state_dict`` for an eval round, with no file written: the buffer's manifest is a
+        ``Replay.snapshot``, made whole by ``settle_state`` if the round's state is ever saved."""
+        return self._state(self.replay.snapshot())
+
+    def settle_state(self, sd: dict[str, Any]) -> dict[str, Any]:
+        """``sd`` as a checkpoint file may hold it (``Replay.settle``)."""
+        return {**sd, "replay": self.replay.settle(sd["replay"])}
+
+    def _state(self, replay: dict[str, Any]) -> dict[str, Any]:
         return {
             "loss": self.loss.state_dict(),
             "optimizers": {k: o.state_dict() for k, o in self._optimizers().items()},
@@ -173,7 +187,7 @@ class OffPolicy(MutableHyperparameters):
             "gradient_steps": self.gradient_steps,
             "owed": self._owed,
             "hyperparameters": self.hyperparameters(),
-            "replay": self.replay.save(),
+            "replay": replay,
         }
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
@@ -193,7 +207,21 @@ class OffPolicy(MutableHyperparameters):
             o.load_state_dict(sd["optimizers"][k])
         self._load_hyperparameters(sd)
 
-    def checkpoint_written(self, keep: list[str] | None = None) -> None:
-        """After a checkpoint holding the buffer's manifest is on disk: delete the chunk files no
-        kept manifest names (``Replay.commit``)."""
-        self.replay.commit(keep)
+    def checkpoint_written(
+        self,
+        ckpt_dir: Path | None = None,
+        path: Path | None = None,
+        state: dict[str, Any] | None = None,
+    ) -> None:
+        """After the trainer state ``state`` is on disk at ``path`` and old checkpoints pruned:
+        delete the chunk files that no checkpoint in ``ckpt_dir`` names (``replay_keep``), so a
+        resume that falls back to an older checkpoint still finds its rows. Without ``ckpt_dir``:
+        only the last save's chunks are kept."""
+        if ckpt_dir is None:
+            self.replay.commit(None)
+            return
+        if path is not None and state is not None:
+            self._keeper.note(path, state)
+        named = self._keeper.named(ckpt_dir)
+        if named is not None:
+            self.replay.commit(None, named=named)

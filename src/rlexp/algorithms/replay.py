@@ -8,17 +8,19 @@ are kept: targets bootstrap through a truncation, never through a termination.
 
 Checkpoints (docs/replay.md): ``save(tag)`` writes only the rows added since the previous save, as
 one new chunk file (``replay_files.py``), and returns a small manifest (counters, generator state,
-the chunk list) that goes into the checkpoint. Once that checkpoint is on disk, ``commit(keep)``
-deletes the chunks no kept checkpoint needs any more (those whose rows the ring has overwritten);
-a crash before the commit leaves every chunk an existing checkpoint names. ``load_state_dict``
-rebuilds the storage from the chunks: the same rows at the same ring positions, the same generator,
-so the next samples are the uninterrupted run's.
+the chunk list) that goes into the checkpoint. Once that checkpoint is on disk, ``commit(named=...)``
+deletes the chunks that no checkpoint still on disk names (``replay_keep.py`` reads which); a crash
+before the commit leaves every chunk an existing checkpoint names. ``snapshot`` is a save without
+the write, for an eval round's copy of the state: ``settle`` writes its rows if that copy ever goes
+into a checkpoint (best.pt). ``load_state_dict`` rebuilds the storage from the chunks: the same rows
+at the same ring positions, the same generator, so the next samples are the uninterrupted run's.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import secrets
 import shutil
 from collections.abc import Iterable
 from pathlib import Path
@@ -118,6 +120,8 @@ class Replay:
         self._saved_upto = 0
         self._saved: dict[str, list[str]] = {}  # tag -> chunk names, for saves not yet released
         self._last_tag: str | None = None
+        #: the newest ``snapshot`` not yet settled or given up: its id, rows, chunks (``_Snap``)
+        self._snap: dict[str, Any] | None = None
 
     # ----- filling and sampling ------------------------------------------------------------------
 
@@ -134,6 +138,13 @@ class Replay:
         if count > self.capacity:  # only the last capacity rows survive: write them where they go
             rows = rows[count - self.capacity :]
         start = self.written + count - rows.batch_size[0]
+        snap, end = self._snap, start + rows.batch_size[0]
+        if snap is not None and snap["extends"] > 0:
+            self._snap = None  # its round was taken in after the last update: kept or dropped
+        elif snap is not None:
+            snap["extends"] = 1
+            if snap["done"] is None and end > snap["start"] + self.capacity:
+                self._settle_snap(snap)  # the ring would overwrite rows it may still need
         if self._rb is None:  # TorchRL allocates the storage from the first rows
             self._build(rows)
             self._set_cursor(start)
@@ -295,21 +306,71 @@ class Replay:
         the checkpoint ``tag`` names (its file name, say; default ``save-<written>``). Deletes
         nothing: see ``commit``."""
         tag = f"save-{self.written}" if tag is None else tag
+        snap = self._snap
+        if snap is not None and snap["done"] is None and snap["written"] != self.written:
+            self._snap = snap = None  # rows were added since: that round's copy was not kept
         first = self.written - len(self)
         start = max(self._saved_upto, first)
         if start < self.written:
-            if self.directory is None:
-                raise ValueError(
-                    "saving a replay buffer needs its directory (Replay(directory=...))"
-                )
-            positions = torch.arange(start, self.written) % self.capacity
-            rows = self._gather(positions)
-            self._chunks.append(replay_files.write_chunk(self.directory, rows, start))
+            entry = self._write_rows(start, self.written)
+            if snap is not None and snap["done"] is None:  # its rows are exactly this chunk's
+                snap["done"] = [*snap["chunks"], entry]
         self._chunks = [c for c in self._chunks if c["stop"] > first]
-        self._saved_upto = self.written
         self._saved.pop(tag, None)  # in save order: a tag saved again is the newest
         self._saved[tag] = [c["file"] for c in self._chunks]
         self._last_tag = tag
+        return self._manifest(self._chunks)
+
+    def snapshot(self) -> dict[str, Any]:
+        """The manifest ``save`` would return, without writing anything: an eval round's copy of
+        the state, which becomes a checkpoint only if its round is the best (best.pt) or a due
+        checkpoint waits for it. ``settle`` makes it a real manifest until the second ``extend``
+        after it, the next ``save`` of later rows or the next ``snapshot`` (the trainer takes a
+        round in after one update; rows that update overwrites are written first)."""
+        first = self.written - len(self)
+        start = max(self._saved_upto, first)
+        chunks = [dict(c) for c in self._chunks if c["stop"] > first]
+        done = chunks if start >= self.written else None
+        snap = {"id": secrets.token_hex(8), "written": self.written, "start": start}
+        self._snap = {**snap, "chunks": chunks, "done": done, "extends": 0}
+        return {**self._manifest(chunks), "unsaved": snap}
+
+    def settle(self, manifest: dict[str, Any]) -> dict[str, Any]:
+        """``manifest`` ready for a checkpoint file: a ``snapshot``'s with the rows it still lacks
+        written as a chunk (nothing else changes); any other as it is, chunks another run's
+        directory holds linked into this one (``replay_files.adopt_chunks``)."""
+        unsaved = manifest.get("unsaved")
+        if unsaved is None:
+            return self._adopted(manifest)
+        snap = self._snap
+        if snap is None or snap["id"] != unsaved.get("id"):
+            raise RuntimeError(
+                f"the replay buffer's snapshot at {unsaved.get('written')} transitions can no "
+                "longer be written: the buffer was saved or snapshot again since"
+            )
+        if snap["done"] is None:
+            self._settle_snap(snap)
+        out = {k: v for k, v in manifest.items() if k != "unsaved"}
+        out["chunks"] = [dict(c) for c in snap["done"]]
+        return out
+
+    def _settle_snap(self, snap: dict[str, Any]) -> None:
+        """Write the rows ``snap`` lacks, ``[start, written)``, still in the ring, as the next chunk."""
+        if self._saved_upto > snap["start"]:  # cannot happen: save() settles or drops it
+            raise RuntimeError("the replay buffer was saved past a snapshot it did not settle")
+        snap["done"] = [*snap["chunks"], self._write_rows(snap["start"], snap["written"])]
+
+    def _write_rows(self, start: int, stop: int) -> dict[str, Any]:
+        """Rows ``[start, stop)`` (in the ring) as the next chunk of the buffer's own sequence."""
+        if self.directory is None:
+            raise ValueError("saving a replay buffer needs its directory (Replay(directory=...))")
+        rows = self._gather(torch.arange(start, stop) % self.capacity)
+        entry = replay_files.write_chunk(self.directory, rows, start)
+        self._chunks.append(entry)
+        self._saved_upto = stop
+        return entry
+
+    def _manifest(self, chunks: list[dict[str, Any]]) -> dict[str, Any]:
         return {
             "format": MANIFEST_FORMAT,
             "capacity": self.capacity,
@@ -319,10 +380,22 @@ class Replay:
             "storage": self.storage_kind,
             "generator": self.generator.get_state(),
             "layout": [[list(k), d, list(s)] for k, d, s in self._layout_to_save()],
-            "chunks": [dict(c) for c in self._chunks],
+            "chunks": [dict(c) for c in chunks],
             "saved": {t: list(names) for t, names in self._saved.items()},
             "pending": nstep.nstep_state_dict(self._pending),
         }
+
+    def _adopted(self, manifest: dict[str, Any]) -> dict[str, Any]:
+        """``manifest`` whose chunks are in this buffer's directory: those of another run's
+        (``directory``, set by the resume's loader) hard-linked or copied here first."""
+        source = manifest.get("directory")
+        if source is None:
+            return manifest
+        out = {k: v for k, v in manifest.items() if k != "directory"}
+        names = replay_files.chunk_names(out)
+        if names and self.directory is not None:
+            replay_files.adopt_chunks(Path(source), self.directory, names)
+        return out
 
     def _layout_to_save(self) -> replay_files.Layout:
         """The storage's layout; before its first row, the one the waiting n-step steps give."""
@@ -331,12 +404,15 @@ class Replay:
         steps = replay_files.layout_of(self._pending.steps)
         return sorted([*steps, ((nstep.STEPS_KEY,), str(torch.int64), (1,))])
 
-    def commit(self, keep: Iterable[str] | int | None = None) -> list[str]:
+    def commit(
+        self, keep: Iterable[str] | int | None = None, *, named: Iterable[str] = ()
+    ) -> list[str]:
         """Call once the checkpoint holding the last save's manifest is on disk (and old ones
-        pruned): forget the saves not kept and delete the chunk files no remaining save names.
-        ``keep``: the tags of the checkpoints still on disk (the last save is always kept); an
-        int ``n``: the last ``n`` saves (``<= 0``: all); ``None``: the last save only. The
-        deleted names."""
+        pruned): forget the saves not kept and delete the chunk files nothing needs: no kept save,
+        not ``named`` (the chunks the checkpoints still on disk name: ``replay_keep.py``), not
+        the buffer's own rows, not a snapshot that may still be settled. ``keep``: the tags of
+        the saves to keep (the last save is always kept); an int ``n``: the last ``n`` saves
+        (``<= 0``: all); ``None``: the last save only. The deleted names."""
         tags = list(self._saved)
         if keep is None:
             kept = set(tags[-1:])
@@ -345,8 +421,10 @@ class Replay:
         else:
             kept = set(keep) | ({self._last_tag} if self._last_tag is not None else set())
         self._saved = {t: names for t, names in self._saved.items() if t in kept}
-        needed = {n for names in self._saved.values() for n in names}
+        needed = {n for names in self._saved.values() for n in names} | set(named)
         needed.update(c["file"] for c in self._chunks)  # the buffer's own, saved or loaded
+        if self._snap is not None:
+            needed.update(c["file"] for c in self._snap["done"] or self._snap["chunks"])
         deleted = []
         if self.directory is not None and self.directory.is_dir():
             for path in sorted(self.directory.iterdir()):
@@ -360,6 +438,9 @@ class Replay:
         ``directory``; ``ReplayFileError`` (one line, naming the file) when they are not usable."""
         if not isinstance(state, dict) or state.get("format") != MANIFEST_FORMAT:
             raise ReplayFileError(f"not a replay buffer manifest (format {MANIFEST_FORMAT!r})")
+        if "unsaved" in state:
+            raise ReplayFileError("replay: an eval snapshot's manifest, never settled (no rows)")
+        state = self._adopted(state)
         capacity = replay_files._int(state.get("capacity"), "capacity", 1, replay_files.MAX_ROWS)
         if capacity != self.capacity:
             raise ReplayFileError(
@@ -409,5 +490,5 @@ class Replay:
         except RuntimeError as exc:
             raise ReplayFileError(f"replay.generator is not a generator state ({exc})") from None
         self._chunks, self._saved_upto, self._saved = chunks, written, saved
-        self._last_tag = None
+        self._last_tag = self._snap = None
         self._pending = nstep.nstep_from_state_dict(pending)

@@ -299,3 +299,85 @@ def check_pending(value: Any, layout: Layout, n_step: int) -> dict | None:
         if str(t.dtype) != dtype or tuple(t.shape) != (*valid.shape, *shape):
             raise ReplayFileError(f"replay.pending.steps.{'.'.join(key)} is not {dtype} {shape}")
     return value
+
+
+# ----- where a checkpoint's chunks are --------------------------------------------------------
+
+
+def replay_manifests(ckpt: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The replay manifests in a checkpoint (a trainer state): its own, and that of the state of
+    an eval round in flight (a resume may write that state as best.pt or its step's checkpoint)."""
+    out = []
+    states = [ckpt]
+    flight = ckpt.get("eval_in_flight")
+    if isinstance(flight, Mapping) and isinstance(flight.get("state"), Mapping):
+        states.append(flight["state"])
+    for state in states:
+        algorithm = state.get("algorithm")
+        manifest = algorithm.get("replay") if isinstance(algorithm, Mapping) else None
+        if isinstance(manifest, dict):
+            out.append(manifest)
+    return out
+
+
+def chunk_names(manifest: Mapping[str, Any]) -> list[str]:
+    """The chunk files a manifest names (entries that name none are skipped: the load refuses them)."""
+    chunks = manifest.get("chunks")
+    if not isinstance(chunks, list | tuple):
+        return []
+    return [c["file"] for c in chunks if isinstance(c, Mapping) and isinstance(c.get("file"), str)]
+
+
+def locate_chunks(ckpt: dict[str, Any], path: Path) -> None:
+    """Before a resume from the checkpoint file ``path``: find the folder that holds every chunk
+    its manifests name, its run dir's ``replay/`` (``path`` in ``checkpoints/`` or beside
+    ``replay/``), and record it in each manifest (``directory``: the load links those chunks into
+    the resumed run's own folder, so it never deletes another run's). ``ReplayFileError`` naming
+    the first chunk missing: a checkpoint whose rows are gone is unusable, as a corrupt file is."""
+    path = Path(path)
+    places = list(dict.fromkeys([path.parent.parent / "replay", path.parent / "replay"]))
+    for manifest in replay_manifests(ckpt):
+        manifest.pop("directory", None)  # only ever this function's: never the file's own say
+        names = chunk_names(manifest)
+        if not names:
+            continue
+        found = next((d for d in places if all((d / n).is_file() for n in names)), None)
+        if found is None:
+            missing = next(n for n in names if not (places[0] / n).is_file())
+            raise ReplayFileError(
+                f"its replay buffer's chunk {missing} is not in {' or '.join(map(str, places))} "
+                "(deleted, or the checkpoint was copied without its run dir's replay/ folder)"
+            )
+        manifest["directory"] = str(found)
+
+
+def adopt_chunks(source: Path, directory: Path, names: list[str]) -> None:
+    """Put the chunks ``names`` of another run's folder ``source`` into ``directory``: a hard
+    link (no copy; the other run's file is never changed nor deleted) or, across filesystems, a
+    copy; each appears under its name at once (one rename)."""
+    if Path(source).resolve() == Path(directory).resolve():
+        return
+    directory.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        if not CHUNK_NAME.fullmatch(name):
+            raise ReplayFileError(f"replay.chunks names {name[:80]!r}, not a chunk file")
+        if (directory / name).is_file():
+            continue
+        src = Path(source) / name
+
+        def put(tmp: Path, src: Path = src) -> None:
+            tmp.unlink()  # atomic_write's empty temporary file, replaced by the link
+            try:
+                os.link(src, tmp)
+            except OSError:  # another filesystem, or none with hard links
+                with open(src, "rb") as fin, open(tmp, "wb") as fout:
+                    while block := fin.read(1 << 20):
+                        fout.write(block)
+
+        try:
+            atomic_write(directory / name, put)
+        except OSError as exc:
+            raise ReplayFileError(
+                f"replay chunk {str(src)!r} cannot be read ({exc.strerror or exc}): the "
+                "checkpoint needs it"
+            ) from None

@@ -313,7 +313,12 @@ def latest_good_checkpoint(directory: Path, move_aside: bool = False) -> dict[st
 def _newest_loadable(directory: Path, use: Use, move_aside: bool = False) -> dict[str, Any] | None:
     for path in reversed(step_checkpoints(directory)):
         try:
-            return load_checkpoint_file(path, use)
+            ckpt = load_checkpoint_file(path, use)
+            if use == "resume":  # SAC / TD3: a checkpoint whose replay rows are gone is unusable
+                from rlexp.algorithms.replay_files import locate_chunks
+
+                locate_chunks(ckpt, path)
+            return ckpt
         except (ValueError, OSError) as exc:  # OSError: unreadable, or pruned meanwhile
             dest = _move_aside(path) if move_aside and os.path.lexists(path) else None
             if dest is not None:

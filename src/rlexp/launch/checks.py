@@ -121,11 +121,15 @@ def _check_env_state(env: Any, name: str) -> None:
 def check_resume_checkpoint(config: RootConfig, policy: Any) -> dict[str, Any]:
     """Load ``trainer.resume`` and check it fits this run: an rlexp checkpoint of the same env whose
     policy loads into this policy; returns it."""
+    from pathlib import Path
+
+    from rlexp.algorithms.replay_files import locate_chunks
     from rlexp.checkpoints.files import check_checkpoint_fits, load_checkpoint
 
     where = f"trainer.resume={config.trainer.resume!r}"
     try:
         ckpt = load_checkpoint(config.trainer.resume, "resume")
+        locate_chunks(ckpt, Path(ckpt["path"]))  # SAC / TD3: its replay rows, in its run dir
     except (OSError, ValueError) as exc:
         raise ConfigError(f"{where}: {first_line(exc)}") from None
     try:

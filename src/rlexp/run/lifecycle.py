@@ -85,15 +85,18 @@ class RunLifecycle:
     def restore(self, trainer: Any, ckpt: dict) -> None:
         """Continue from ``ckpt``; the env's ``set_state`` raising is one line, exit 2, and
         ``status.json`` says ``failed`` with it (it must not keep saying the run finished)."""
+        from rlexp.algorithms.replay_files import ReplayFileError
         from rlexp.training.loop import EnvRestoreError
 
         try:
             trainer.load_state_dict(ckpt)
-        except EnvRestoreError as exc:
+        except (EnvRestoreError, ReplayFileError) as exc:
             trainer.close()
-            step = int(ckpt["global_step"])
-            write_status(self.run_dir, "failed", step, reason=str(exc), exit_code=2)
-            raise ConfigError(str(exc)) from None
+            step, reason = int(ckpt["global_step"]), str(exc)
+            if isinstance(exc, ReplayFileError):  # a chunk found but corrupt (docs/replay.md)
+                reason += f"; to resume from an older checkpoint, move {ckpt['path']} aside"
+            write_status(self.run_dir, "failed", step, reason=reason, exit_code=2)
+            raise ConfigError(reason) from None
 
     def run(self, trainer: Any, total: int, ckpt: dict | None) -> dict[str, float]:
         """Train; every way out leaves ``status.json`` saying how the run ended and why."""

@@ -33,7 +33,7 @@ from rlexp.run.metrics import MetricLogger
 from rlexp.run.progress import Progress
 from rlexp.runtime.devices import module_device
 from rlexp.runtime.distributed import DistInfo, all_gather_object, all_reduce_sum
-from rlexp.training import loop, overlap
+from rlexp.training import ckpt_state, loop, overlap
 from rlexp.training.collector import RolloutCollector
 from rlexp.training.episodes import EpisodeStats
 from rlexp.training.eval_worker import EvalRound, EvalWorker, record
@@ -252,7 +252,7 @@ class Trainer:
             return
         self._collect_eval()  # at most one round in flight
         t_start = time.perf_counter()
-        self.eval_worker.submit(EvalRound(self.global_step, self.state_dict()))
+        self.eval_worker.submit(EvalRound(self.global_step, self.state_dict(snapshot=True)))
         self._timing["eval"] += time.perf_counter() - t_start  # the round's cost on this process
 
     def eval_once(self) -> dict[str, float]:
@@ -336,10 +336,10 @@ class Trainer:
         self.save_checkpoint()
 
     def _write_checkpoint(self, path: Path, state: dict[str, Any]) -> Path:
-        save_checkpoint(path, state)
+        save_checkpoint(path, state := ckpt_state.settled(self.algorithm, state))
         self.last_checkpoint = path
         prune_checkpoints(self.ckpt_dir, self.cfg.keep_last, newest=path)
-        getattr(self.algorithm, "checkpoint_written", lambda: None)()  # SAC: stale replay chunks
+        ckpt_state.written(self.algorithm, self.ckpt_dir, path, state)  # SAC: stale replay chunks
         log.info("[ckpt] saved %s", path)
         self.event_manager.fire("trigger", self._ctx(), signal="checkpoint")
         self._hook("checkpoint", checkpoint=path)
@@ -350,12 +350,12 @@ class Trainer:
         self.stop_reason = reason
 
     # -- state ---------------------------------------------------------------------------------------
-    def state_dict(self) -> dict[str, Any]:
-        """Everything a bit-exact continuation needs (see docs/checkpoints.md)."""
+    def state_dict(self, snapshot: bool = False) -> dict[str, Any]:
+        """Everything a bit-exact continuation needs (docs/checkpoints.md); ``snapshot``: an eval's."""
         return {
             "global_step": self.global_step,
             "policy": self.policy.state_dict(),
-            "algorithm": self.algorithm.state_dict(),
+            "algorithm": ckpt_state.algorithm_state(self.algorithm, snapshot),
             "windows": self.episodes.state_dict(),
             "events": {
                 "train": self.event_manager.state_dict(),
@@ -487,7 +487,7 @@ class Trainer:
             log.error("[hooks] train_end failed: %s", exc)
 
     def _save_best(self, state: dict[str, Any]) -> None:
-        path = save_checkpoint(self.ckpt_dir / "best.pt", state)
+        path = save_checkpoint(self.ckpt_dir / "best.pt", ckpt_state.settled(self.algorithm, state))
         log.info("[ckpt] new best %s=%.3f -> %s", self.cfg.best_metric, self.best_metric, path)
         self.event_manager.fire("trigger", self._ctx(), signal="new_best")
 
