@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -130,7 +131,7 @@ def test_every_child_process_of_rlexp_sets_its_parent_death_signal_through_the_o
 
 def test_a_child_started_while_signals_are_blocked_inherits_them_and_none_is_lost(children):
     """``blocked``, used while rlexp's children start: the child starts with the signals blocked
-    (SigBlk in /proc), and one that reaches this process meanwhile is handled when the block ends."""
+    (SigBlk in /proc), and one that reaches this thread meanwhile is handled when the block ends."""
     from rlexp.runtime.signals import blocked
 
     got: list[int] = []
@@ -138,7 +139,9 @@ def test_a_child_started_while_signals_are_blocked_inherits_them_and_none_is_los
     try:
         with blocked((signal.SIGUSR1, signal.SIGHUP)):
             child = children.popen([sys.executable, "-c", "import time; time.sleep(60)"])
-            os.kill(os.getpid(), signal.SIGUSR1)
+            # to this thread: a signal sent to the process may go to another thread (one a test
+            # before this left running) that does not block it
+            signal.pthread_kill(threading.get_ident(), signal.SIGUSR1)
             assert got == []
         assert got == [signal.SIGUSR1]
     finally:
