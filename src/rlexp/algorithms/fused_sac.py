@@ -215,7 +215,9 @@ class FusedTD3:
             x_next = torch.cat([self._features(next_obs, self.q_index), a_next], -1)
             y = (
                 reward
-                + gamma * (1.0 - terminated) * self._qs(self.target_q, self.q_act, x_next).min(0).values
+                + gamma
+                * (1.0 - terminated)
+                * self._qs(self.target_q, self.q_act, x_next).min(0).values
             )
         x = torch.cat([self._features(obs, self.q_index), action], -1)
         q_loss = (self._qs(self.q, self.q_act, x) - y).pow(2).mean(1).sum()

@@ -48,7 +48,9 @@ class Mixed:
         return autocast(self.autocast_dtype, self.autocast_device)
 
 
-def autocast(dtype: torch.dtype | None, device_type: str = "cpu") -> contextlib.AbstractContextManager:
+def autocast(
+    dtype: torch.dtype | None, device_type: str = "cpu"
+) -> contextlib.AbstractContextManager:
     """``torch.autocast(device_type, dtype)``, or a no-op context for ``dtype=None``."""
     if dtype is None:
         return contextlib.nullcontext()
