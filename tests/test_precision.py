@@ -24,6 +24,7 @@ from test_shared_encoder import CLIP_EPS, CLIP_VALUE, CRITIC, ENT, SETTINGS, _mi
 from torch.nn import functional as F
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from conftest import needs_compiler
 from rlexp.algorithms.fused_step import MINIBATCH_KEYS, FusedPPOStep
 from rlexp.algorithms.ppo import LOSS_KEYS, make_algorithm
 from rlexp.algorithms.sac import SAC
@@ -409,3 +410,35 @@ def test_float32_policy_is_untouched_by_the_precision_machinery():
     for b, a in zip(before, after, strict=True):
         assert torch.equal(b, a)
     assert copy.deepcopy(pol).actor_net.autocast_dtype is None
+
+
+@pytest.mark.slow  # compiling takes ~50 s on the shared 2-core machine
+@needs_compiler
+def test_bf16_compiled_fused_steps_equal_their_eager_steps(tmp_path):
+    """algorithm.compile=true under bf16: PPO's compiled fused step (the autocast inside the
+    networks' forward traced by dynamo) and SAC's compiled step give their eager bf16 step's
+    losses (to bf16 rounding: inductor fuses the float32 maths around the matmuls)."""
+    from test_fast_update import SETTINGS as FAST
+    from test_fast_update import _policy as vector_policy
+    from test_fast_update import _rollout
+
+    from rlexp.config.schema import AlgorithmConfig
+
+    out = {}
+    for choice in ("false", "true"):
+        pol = vector_policy(None)
+        batch = _rollout(pol)
+        set_precision(pol, "bf16", "cpu")
+        algo = make_algorithm(AlgorithmConfig(**{**FAST, "compile": choice}), pol, 10)
+        torch.manual_seed(5)
+        out[choice] = algo.update(batch.clone())
+        assert algo.fused is not None and algo.fused.compiled == (choice == "true")
+    for key in ("loss/policy", "loss/value", "loss/grad_norm"):
+        assert out["true"][key] == pytest.approx(out["false"][key], rel=2e-2, abs=1e-4), key
+    sac = {}
+    for choice in ("auto", "true"):
+        algo = _sac(tmp_path / choice, choice, "bf16")
+        torch.manual_seed(123)
+        sac[choice] = {k: v.item() for k, v in algo._gradient_step(_batch()).items()}
+    for key, want in sac["auto"].items():
+        assert sac["true"][key] == pytest.approx(want, rel=1e-3, abs=1e-5), key
