@@ -442,3 +442,38 @@ def test_bf16_compiled_fused_steps_equal_their_eager_steps(tmp_path):
         sac[choice] = {k: v.item() for k, v in algo._gradient_step(_batch()).items()}
     for key, want in sac["auto"].items():
         assert sac["true"][key] == pytest.approx(want, rel=1e-3, abs=1e-5), key
+
+
+def test_bf16_grpo_fused_and_tensordict_paths_run_bf16_and_agree():
+    """GRPO (an actor-only policy, a KL penalty to the frozen initial policy): both minibatch paths
+    run the actor's and the reference's layers in bfloat16, give float32 statistics within bf16
+    rounding of each other and a nonzero distance from float32's; Adam's state float32."""
+    from test_fast_update_grpo import SETTINGS as GRPO_SETTINGS
+    from test_fast_update_grpo import _policy as actor_only
+    from test_fast_update_grpo import _rollout as grpo_rollout
+
+    from rlexp.config.schema import GRPOConfig
+
+    out = {}
+    for name, prec, fused in (
+        ("fp32", "fp32", True),
+        ("fused", "bf16", True),
+        ("td", "bf16", False),
+    ):
+        pol = actor_only(None)
+        batch = grpo_rollout(pol)
+        set_precision(pol, prec, "cpu")
+        algo = make_algorithm(GRPOConfig(**GRPO_SETTINGS), pol, 10)
+        algo.use_fused_step = fused
+        layers = _layer_dtypes(pol)
+        reference = _layer_dtypes(algo.reference)
+        torch.manual_seed(2)
+        out[name] = algo.update(batch.clone())
+        assert (algo.fused is not None) == fused
+        want = {BF16} if prec == "bf16" else {torch.float32}
+        assert set(layers) == want and set(reference) == want, (name, layers, reference)
+        state = [t for s in algo.optimizer.state.values() for t in s.values()]
+        assert state and all(t.dtype == torch.float32 for t in state)
+    for key, want in out["fused"].items():
+        assert out["td"][key] == pytest.approx(want, rel=1e-3, abs=1e-6), key
+    assert any(out["fused"][k] != out["fp32"][k] for k in out["fp32"] if k.startswith("loss/"))
