@@ -93,3 +93,13 @@ def test_a_recurrent_policy_with_bf16_is_refused_in_one_line():
         "only; use trainer.precision=fp32, or policy.memory.type=none"
     )
     assert to_root_config(compose(["env=gym_cartpole", "trainer.precision=bf16"]))
+
+
+def test_sigkill_and_resume_of_a_bf16_run_is_bit_identical(tmp_path):
+    """bf16's kernels are deterministic here: train -> SIGKILL -> resume under bf16 ends with the
+    uninterrupted bf16 run's weights, optimiser state, evaluation and best.pt, bit for bit."""
+    from test_resume import _assert_resume_is_exact
+
+    _assert_resume_is_exact(
+        tmp_path, "hopper", frames=512, batch=256, extra=["trainer.precision=bf16"], eval_every=512
+    )

@@ -90,7 +90,6 @@ def set_precision(module: torch.nn.Module, precision: str, device: str | torch.d
         if isinstance(m, Mixed):
             m.autocast_dtype = dtype
             m.autocast_device = device_type
-    module.precision = precision  # type: ignore[assignment]  (read by the samplers and learners)
 
 
 def check_precision(value: Any) -> str:
