@@ -4,10 +4,12 @@ Adam steps, the soft target update) as one function, ``torch.compile``d or eager
 SB3's / rl-zoo's MuJoCo SAC: 256x256 ReLU networks, batch 256 (HalfCheetah: obs 17, action 6).
 
     python benchmarks/sac_floor.py            # prints compiled and eager microseconds per step
+    python benchmarks/sac_floor.py --precision bf16 --threads 2   # networks under autocast (bf16)
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 import time
 
@@ -22,8 +24,17 @@ def _mlp(i: int, o: int) -> nn.Sequential:
                          nn.Linear(HIDDEN, o))  # fmt: skip
 
 
-def plain_step_fn(compiled: bool):
-    """A closure running one SAC gradient step on a fixed random batch."""
+def plain_step_fn(compiled: bool, precision: str = "fp32"):
+    """A closure running one SAC gradient step on a fixed random batch (``precision`` bf16: each
+    network under ``torch.autocast(bfloat16)``, its output cast to float32, as rlexp's
+    ``trainer.precision=bf16``)."""
+
+    def net(m: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        if precision == "fp32":
+            return m(x)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return m(x).float()
+
     torch.manual_seed(0)
     actor = _mlp(OBS, 2 * ACT)
     qs = nn.ModuleList(_mlp(OBS + ACT, 1) for _ in range(2))
@@ -36,7 +47,7 @@ def plain_step_fn(compiled: bool):
     rew, nobs, term = torch.randn(BATCH), torch.randn(BATCH, OBS), torch.zeros(BATCH)
 
     def policy(o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc, log_std = actor(o).chunk(2, -1)
+        loc, log_std = net(actor, o).chunk(2, -1)
         log_std = log_std.clamp(-20, 2)
         eps = torch.randn_like(loc)
         u = loc + log_std.exp() * eps
@@ -50,15 +61,15 @@ def plain_step_fn(compiled: bool):
             a2, lp2 = policy(nobs)
             x2 = torch.cat([nobs, a2], -1)
             y = rew + 0.99 * (1 - term) * (
-                torch.minimum(tq[0](x2), tq[1](x2)).squeeze(-1) - alpha * lp2
+                torch.minimum(net(tq[0], x2), net(tq[1], x2)).squeeze(-1) - alpha * lp2
             )
         x = torch.cat([obs, act], -1)
-        q_loss = sum((q(x).squeeze(-1) - y).pow(2).mean() for q in qs)
+        q_loss = sum((net(q, x).squeeze(-1) - y).pow(2).mean() for q in qs)
         a, lp = policy(obs)
         xa = torch.cat([obs, a], -1)
         for p in qs.parameters():
             p.requires_grad_(False)
-        q_pi = torch.minimum(qs[0](xa), qs[1](xa)).squeeze(-1)
+        q_pi = torch.minimum(net(qs[0], xa), net(qs[1], xa)).squeeze(-1)
         for p in qs.parameters():
             p.requires_grad_(True)
         actor_loss = (alpha * lp - q_pi).mean()
@@ -81,9 +92,13 @@ def plain_step_fn(compiled: bool):
 
 
 def main() -> None:
-    torch.set_num_threads(1)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
     for compiled in (True, False):
-        call = plain_step_fn(compiled)
+        call = plain_step_fn(compiled, args.precision)
         t0 = time.perf_counter()
         for _ in range(20):
             call()

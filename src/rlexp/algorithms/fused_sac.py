@@ -6,7 +6,11 @@ current one's), so the TorchRL path and this one compute the same step (tested);
 and the target update are the learner's own (fused Adam, one ``lerp_`` over the targets).
 
 ``torch.compile`` takes the loss function (forward and backward) whole; eager, it already skips
-TorchRL's per-step TensorDict and ``vmap`` bookkeeping."""
+TorchRL's per-step TensorDict and ``vmap`` bookkeeping.
+
+``trainer.precision=bf16``: the actor's and the Q networks' layers run under autocast, their
+outputs cast to float32 (``runtime.precision.mixed``) before the targets and losses, as the
+networks' own ``forward`` does on TorchRL's path."""
 
 from __future__ import annotations
 
@@ -16,6 +20,8 @@ from typing import Any
 
 import torch
 from torch.nn import functional as F
+
+from rlexp.runtime.precision import mixed
 
 _FUNCTIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
     "relu": torch.relu,
@@ -45,6 +51,15 @@ def _qs(layers: list[tuple[torch.Tensor, torch.Tensor]], act, x: torch.Tensor) -
     return x.squeeze(-1)
 
 
+def _networks(policy: Any) -> tuple[Callable, Callable]:
+    """``_mlp`` and ``_qs`` at the policy's precision (``trainer.precision``)."""
+    net = policy.actor_net
+    return (
+        mixed(_mlp, net.autocast_dtype, net.autocast_device),
+        mixed(_qs, net.autocast_dtype, net.autocast_device),
+    )
+
+
 class FusedSAC:
     """The step of ``algorithms.sac.SAC`` on its own parameters and optimisers."""
 
@@ -55,6 +70,7 @@ class FusedSAC:
         self.actor = [(m.weight, m.bias) for m in mlp if isinstance(m, torch.nn.Linear)]
         self.actor_act = _FUNCTIONS[policy.cfg.actor.activation]
         self.q_act = _FUNCTIONS[policy.cfg.critic.activation]
+        self._mlp, self._qs = _networks(policy)
         qp = loss.qvalue_network_params.flatten_keys(".")
         tq = loss.target_qvalue_network_params.flatten_keys(".")
         n_layers = len([k for k in qp.keys() if k.endswith(".weight")])
@@ -82,7 +98,7 @@ class FusedSAC:
 
     def _policy(self, obs: torch.Tensor, eps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """A reparameterised action of the tanh-squashed Gaussian and its log-density."""
-        loc, log_std = _mlp(
+        loc, log_std = self._mlp(
             self.actor, self.actor_act, self._features(obs, self.actor_index)
         ).chunk(2, -1)
         log_std = log_std.clamp(self.min_log_std, self.max_log_std)
@@ -100,14 +116,14 @@ class FusedSAC:
         with torch.no_grad():
             a_next, logp_next = self._policy(next_obs, eps_next)
             x_next = torch.cat([self._features(next_obs, self.q_index), a_next], -1)
-            q_next = _qs(self.target, self.q_act, x_next).min(0).values - alpha * logp_next
+            q_next = self._qs(self.target, self.q_act, x_next).min(0).values - alpha * logp_next
             y = reward + gamma * (1.0 - terminated) * q_next
         x = torch.cat([self._features(obs, self.q_index), action], -1)
-        q_loss = (_qs(self.q, self.q_act, x) - y).pow(2).mean(1).sum()
+        q_loss = (self._qs(self.q, self.q_act, x) - y).pow(2).mean(1).sum()
         a_new, logp = self._policy(obs, eps_now)
         frozen = [(w.detach(), b.detach()) for w, b in self.q]
         x_new = torch.cat([self._features(obs, self.q_index), a_new], -1)
-        actor_loss = (alpha * logp - _qs(frozen, self.q_act, x_new).min(0).values).mean()
+        actor_loss = (alpha * logp - self._qs(frozen, self.q_act, x_new).min(0).values).mean()
         alpha_loss = (-log_alpha * (logp.detach() + target_entropy)).mean()
         return q_loss, actor_loss, alpha_loss, alpha, -logp.detach().mean()
 
@@ -159,6 +175,7 @@ class FusedTD3:
         self.target_actor = _stacked(loss.target_actor_network_params, mlp)
         self.actor_act = _FUNCTIONS[policy.cfg.actor.activation]
         self.q_act = _FUNCTIONS[policy.cfg.critic.activation]
+        self._mlp, self._qs = _networks(policy)
         q_mlp = policy.make_q().module.mlp
         self.q = _stacked(loss.qvalue_network_params, q_mlp)
         self.target_q = _stacked(loss.target_qvalue_network_params, q_mlp)
@@ -174,7 +191,7 @@ class FusedTD3:
         return x if index is None else x.index_select(-1, index)
 
     def _mu(self, layers, obs: torch.Tensor) -> torch.Tensor:
-        u = _mlp(layers, self.actor_act, self._features(obs, self.actor_index))
+        u = self._mlp(layers, self.actor_act, self._features(obs, self.actor_index))
         return self.low + (self.high - self.low) * (torch.tanh(u) + 1.0) * 0.5
 
     def step(self, batch) -> dict[str, torch.Tensor]:
@@ -198,16 +215,18 @@ class FusedTD3:
             x_next = torch.cat([self._features(next_obs, self.q_index), a_next], -1)
             y = (
                 reward
-                + gamma * (1.0 - terminated) * _qs(self.target_q, self.q_act, x_next).min(0).values
+                + gamma
+                * (1.0 - terminated)
+                * self._qs(self.target_q, self.q_act, x_next).min(0).values
             )
         x = torch.cat([self._features(obs, self.q_index), action], -1)
-        q_loss = (_qs(self.q, self.q_act, x) - y).pow(2).mean(1).sum()
+        q_loss = (self._qs(self.q, self.q_act, x) - y).pow(2).mean(1).sum()
         algo._step(algo.q_optimizer, algo.q_params, q_loss, "qvalue")
         out = {"loss/qvalue": q_loss.detach()}
         if (algo.gradient_steps + 1) % algo.cfg.policy_delay == 0:
             frozen = [(w[:1].detach(), b[:1].detach()) for w, b in self.q]  # Q_1
             x_pi = torch.cat([self._features(obs, self.q_index), self._mu(self.actor, obs)], -1)
-            actor_loss = -_qs(frozen, self.q_act, x_pi)[0].mean()
+            actor_loss = -self._qs(frozen, self.q_act, x_pi)[0].mean()
             algo._step(algo.actor_optimizer, algo.actor_params, actor_loss, "actor")
             with torch.no_grad():
                 torch._foreach_lerp_(self.targets, self.sources, float(algo.cfg.tau))

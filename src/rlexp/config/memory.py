@@ -27,6 +27,11 @@ def memory_problem(config: Any) -> str | None:
             f"not carry the hidden state; use one of {list(MEMORY_BACKENDS)} (e.g. "
             "env.backend=gymnasium), or policy.memory.type=none"
         )
+    if getattr(config.trainer, "precision", "fp32") != "fp32":
+        return (
+            f"{what}: trainer.precision={config.trainer.precision}, but the recurrent core runs "
+            "in float32 only; use trainer.precision=fp32, or policy.memory.type=none"
+        )
     if str(a.compile).strip().lower() == "true":
         return (
             f"{what}: algorithm.compile=true, but the recurrent sequence loss runs eager (its "

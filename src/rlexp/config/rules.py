@@ -28,6 +28,8 @@ DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "swish", "tanh")
 #: Image encoders (rlexp.policies.encoders.ENCODERS; a test keeps the two in step).
 ENCODERS = ("nature", "impala")
+#: ``trainer.precision`` values (rlexp.runtime.precision.PRECISIONS; a test keeps the two in step).
+PRECISIONS = ("fp32", "bf16")
 #: Recurrent cores of ``policy.memory.type`` (rlexp.policies.memory; none: the MLP policy).
 MEMORY_TYPES = ("none", "lstm", "gru")
 #: Backends whose envs a recurrent policy can collect from: rlexp's own stepping (``step_action``),
@@ -190,6 +192,11 @@ FIELD_RULES: dict[str, Rule] = {
     "trainer.torch_threads": Rule(
         lambda v: isinstance(v, int) and 1 <= v <= available_cpus(),
         "in [1, the CPUs this process may use] (more threads than CPUs only slow it down)",
+    ),
+    "trainer.precision": Rule(
+        lambda v: v in PRECISIONS,
+        f"one of {list(PRECISIONS)} (bf16: mixed precision, float32 weights and loss maths, "
+        "Lightning's 'bf16-mixed'; not with policy.memory)",
     ),
     "trainer.stall_timeout_s": above(
         0, " seconds (longer than an eval round and the first iteration)"

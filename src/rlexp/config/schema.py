@@ -94,6 +94,10 @@ class TrainerConfig:
     # torch intra-op threads for the PPO update (collection and evaluation run with one): 1 is
     # fastest for small networks; large minibatches on a machine of your own: the cores you have
     torch_threads: int = 1
+    # the policy's arithmetic: fp32 | bf16. bf16 is mixed precision (Lightning's "bf16-mixed"): the
+    # networks' matmuls and convolutions under torch.autocast(bfloat16), weights, optimiser state,
+    # losses and checkpoints float32 (docs/performance.md "Mixed precision (bf16)")
+    precision: str = "fp32"
     # a run whose global_step has not moved for this long is `stalled` in `rlexp runs`, and the
     # longest wait for the eval worker's round or for another rank in a collective (then the run
     # fails, saving a checkpoint where one is consistent). Above the longest eval round and the

@@ -141,7 +141,9 @@ class CriticNet(ReadsObservation):
     def forward(
         self, obs: torch.Tensor | TensorDictBase, cache: dict | None = None
     ) -> torch.Tensor:
-        return self.mlp(self.features(obs, cache))
+        with self.autocast():
+            value = self.mlp(self.features(obs, cache))
+        return value.float()  # (a no-op in float32)
 
 
 class Policy(nn.Module):

@@ -29,6 +29,8 @@ from tensordict import TensorDictBase
 from torch import distributions as D
 from torch import nn
 
+from rlexp.runtime.precision import Mixed, mixed
+
 _LOG_SQRT_2PI = 0.5 * math.log(2 * math.pi)
 #: The observation TensorDict's entry holding the action mask (``envs.masks.MASK_KEY``).
 MASK_KEY = "action_mask"
@@ -124,9 +126,10 @@ def action_mask_of(obs: torch.Tensor | TensorDictBase) -> torch.Tensor | None:
     return None
 
 
-class ReadsObservation(nn.Module):
+class ReadsObservation(Mixed, nn.Module):
     """What a network does with the env's observation before its MLP: normalise it, and, with an
-    ``inputs`` module (``inputs.ObsInput``), select groups or keys of it and encode images."""
+    ``inputs`` module (``inputs.ObsInput``), select groups or keys of it and encode images. Its
+    encoders and MLP run under ``self.autocast()`` (``trainer.precision``), its output float32."""
 
     normalizer: nn.Module
     inputs: nn.Module | None
@@ -157,6 +160,19 @@ class ReadsObservation(nn.Module):
         if self._gathers:
             return self.features  # (reads ``feature_cache``: a collection step's shared features)
         return self.normalizer
+
+    def body_function(self, layers: list[Callable]) -> Callable:
+        """``obs -> the MLP's output`` (float32) for a collection sampler: the input function, then
+        ``layers``, under autocast at the network's precision (``trainer.precision``)."""
+        norm = self.input_function()
+
+        def body(obs: torch.Tensor | TensorDictBase) -> torch.Tensor:
+            x = norm(obs)
+            for layer in layers:
+                x = layer(x)
+            return x
+
+        return mixed(body, self.autocast_dtype, self.autocast_device)
 
 
 class GaussianActorNet(ReadsObservation):
@@ -189,23 +205,22 @@ class GaussianActorNet(ReadsObservation):
     def forward(
         self, obs: torch.Tensor | TensorDictBase, cache: dict | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        loc = self.mlp(self.features(obs, cache))
+        with self.autocast():
+            loc = self.mlp(self.features(obs, cache))
+        loc = loc.float()  # (a no-op in float32)
         scale = self.log_scale().exp().expand_as(loc)
         return loc, scale
 
     def sampler(self, deterministic: bool, layers: list[Callable]) -> Sampler:
         """obs -> (loc, scale, action, log-probability of the action) for one rollout: the clamped
         log-std and the density's constant are computed once here."""
-        norm = self.input_function()
+        body = self.body_function(layers)
         log_scale = self.log_scale().detach()
         scale = log_scale.exp()
         log_norm = (log_scale + _LOG_SQRT_2PI).sum()  # -log of the density's normalising constant
 
         def sample(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            x = norm(obs)
-            for layer in layers:
-                x = layer(x)
-            loc = x
+            loc = body(obs)
             scales = scale.expand_as(loc)
             if deterministic:
                 return loc, scales, loc, (-log_norm).expand(loc.shape[:-1])
@@ -243,14 +258,16 @@ class CategoricalActorNet(ReadsObservation):
         self, obs: torch.Tensor | TensorDictBase, cache: dict | None = None
     ) -> torch.Tensor:
         """The logits, invalid actions' at the dtype's minimum where the observation has a mask."""
-        return mask_logits(self.mlp(self.features(obs, cache)), action_mask_of(obs))
+        with self.autocast():
+            logits = self.mlp(self.features(obs, cache))
+        return mask_logits(logits.float(), action_mask_of(obs))
 
     def sampler(self, deterministic: bool, layers: list[Callable]) -> Sampler:
         """obs -> (logits, action, log-probability of the action): the Gumbel-max draw of each
         component (exactly a draw from its softmax), log-probs from ``log_softmax``; the logits
         masked as ``forward`` masks them (an invalid action's logit plus any Gumbel noise stays
         below every valid one's)."""
-        norm = self.input_function()
+        body = self.body_function(layers)
         nvec = self.nvec
         k = len(nvec)
         uniform = len(set(nvec)) == 1
@@ -268,11 +285,8 @@ class CategoricalActorNet(ReadsObservation):
             return action, log_p.gather(-1, action.unsqueeze(-1)).squeeze(-1)
 
         def sample(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            x = norm(obs)
-            for layer in layers:
-                x = layer(x)
             mask = action_mask_of(obs)
-            logits = mask_logits(x, mask)
+            logits = mask_logits(body(obs), mask)
             masked = mask is not None
             if uniform:
                 action, log_p = pick(logits.reshape(*logits.shape[:-1], k, nvec[0]), masked)

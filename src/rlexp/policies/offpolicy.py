@@ -38,11 +38,13 @@ from rlexp.policies.actor_critic import (
 )
 from rlexp.policies.heads import Sampler
 from rlexp.policies.inputs import POLICY_GROUP, ObsInput, plain_layout, select_parts
+from rlexp.runtime.precision import Mixed
 
 
-class _ReadsRaw(nn.Module):
+class _ReadsRaw(Mixed, nn.Module):
     """A network that normalises its observation with a normaliser it does not own (not in its
-    parameters or buffers: functional copies of it keep reading the live statistics)."""
+    parameters or buffers: functional copies of it keep reading the live statistics). Its MLP runs
+    under ``self.autocast()`` (``trainer.precision``), its output float32."""
 
     def _set_normalizer(self, normalizer: ObservationNormalizer, inputs: ObsInput) -> None:
         self.__dict__["_normalizer"] = normalizer
@@ -69,7 +71,9 @@ class TanhGaussianActorNet(_ReadsRaw):
         self.min_log_std, self.max_log_std = float(min_log_std), float(max_log_std)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc, log_std = self.mlp(self.features(obs)).chunk(2, -1)
+        with self.autocast():
+            out = self.mlp(self.features(obs))
+        loc, log_std = out.float().chunk(2, -1)
         return loc, log_std.clamp(self.min_log_std, self.max_log_std).exp()
 
 
@@ -84,7 +88,9 @@ class DeterministicActorNet(_ReadsRaw):
         self.register_buffer("high", high.clone())
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return squash(self.mlp(self.features(obs)), self.low, self.high)
+        with self.autocast():
+            u = self.mlp(self.features(obs))
+        return squash(u.float(), self.low, self.high)
 
 
 class QNet(_ReadsRaw):
@@ -96,7 +102,9 @@ class QNet(_ReadsRaw):
         self.mlp = mlp
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return self.mlp(torch.cat([self.features(obs), action], -1))
+        with self.autocast():
+            q = self.mlp(torch.cat([self.features(obs), action], -1))
+        return q.float()
 
 
 def squash(u: torch.Tensor, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
@@ -244,6 +252,9 @@ class OffPolicyPolicy(nn.Module):
         q_in = ObsInput(self.obs_layout, self._critic_parts, {})
         mlp = make_mlp(q_in.out_dim + self.act_dim, 1, self.cfg.critic, "policy.critic")
         q = QNet(self.normalizer, q_in, mlp).to(self.action_low.device)
+        # the policy's precision (trainer.precision: set_precision ran before the learner made it)
+        q.autocast_dtype = self.actor_net.autocast_dtype
+        q.autocast_device = self.actor_net.autocast_device
         return ValueOperator(q, in_keys=["observation", "action"])
 
     @property

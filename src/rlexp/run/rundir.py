@@ -156,6 +156,7 @@ RESUME_MAY_CHANGE = (
     "trainer.progress",
     "trainer.strict_device",
     "algorithm.compile",  # how the loss runs, not what it computes
+    "trainer.precision",  # the networks' arithmetic (fp32 <-> bf16 resume; older dirs lack it)
     "logger.console",  # the summary lines on the console
     "env.num_eval_envs",  # evaluation copies (the Gymnasium default went from 1 to 10)
     "trainer.eval_async",  # where eval rounds run, not what they compute (and older dirs lack it)

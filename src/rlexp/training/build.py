@@ -84,7 +84,12 @@ class Built:
         if eval_async and self.eval_env is not None:
             device = str(next(self.policy.parameters()).device)
             setup = EvalSetup(
-                c.env, c.policy, c.seed + EVAL_SEED_OFFSET, c.trainer.eval_episodes, device
+                c.env,
+                c.policy,
+                c.seed + EVAL_SEED_OFFSET,
+                c.trainer.eval_episodes,
+                device,
+                c.trainer.precision,
             )
             worker = EvalWorker(setup, timeout_s=c.trainer.stall_timeout_s)  # a stuck one fails
         return Trainer(
@@ -120,6 +125,7 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
     from rlexp.events import EventManager
     from rlexp.policies.actor_critic import policy_for_env
     from rlexp.runtime import distributed
+    from rlexp.runtime.precision import set_precision, warn_if_slow
 
     t, e = config.trainer, config.env
     dist = distributed.info()
@@ -156,6 +162,9 @@ def build(config: RootConfig, run_dir: Path, device: str, total: int) -> Built:
             "algorithm.overlap=false" + ("" if device == "cpu" else " or trainer.device=cpu")
         )
     policy = policy_for_env(config.policy, e, env).to(device)
+    # trainer.precision: before the learner, which makes its Q networks and fused steps from it
+    set_precision(policy, t.precision, device)
+    warn_if_slow(t.precision, device)
     if dist.enabled:  # same initial parameters everywhere
         distributed.broadcast_([*policy.parameters(), *policy.buffers()])
     iterations = -(-total // (t.frames_per_batch * dist.world_size))

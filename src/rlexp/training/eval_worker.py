@@ -54,6 +54,7 @@ class EvalSetup:
     seed: int  # the eval seed (the run's seed + rlexp.training.build.EVAL_SEED_OFFSET)
     episodes: int  # trainer.eval_episodes
     device: str = "cpu"  # the policy's device in the training process
+    precision: str = "fp32"  # trainer.precision: the policy's forward as in the training process
 
     def build(self) -> tuple[Any, Any]:
         """The eval env and a policy of the run's shape (its weights come with each snapshot)."""
@@ -65,8 +66,12 @@ class EvalSetup:
             # This worker is a daemonic process, which may not start processes; the in-process
             # backend gives the same episodes, value for value (docs/envs.md).
             cfg = dataclasses.replace(cfg, backend="gymnasium")
+        from rlexp.runtime.precision import set_precision
+
         env = make_env(cfg, cfg.num_eval_envs, self.seed)
-        return env, policy_for_env(self.policy, cfg, env).to(self.device)
+        policy = policy_for_env(self.policy, cfg, env).to(self.device)
+        set_precision(policy, self.precision, self.device)
+        return env, policy
 
 
 @dataclass
