@@ -55,6 +55,7 @@ from rlexp.algorithms.fused_step import unsupported as fused_unsupported
 from rlexp.config.schema import GRPOConfig
 from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import Policy
+from rlexp.policies.encoders import channels_last_images
 
 log = logging.getLogger(__name__)
 
@@ -214,6 +215,7 @@ class GRPO(MutableHyperparameters):
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         flat, mask = self.prepare(batch)
+        flat = channels_last_images(flat)  # the encoders' layout once, not per minibatch
         n = flat.shape[0]
         mb = min(self.cfg.mini_batch_size, n)
         if not self._step_decided:

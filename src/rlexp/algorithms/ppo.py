@@ -50,6 +50,7 @@ from rlexp.common.observations import in_chunks, next_is_following, structured
 from rlexp.config.schema import AlgorithmConfig
 from rlexp.config.validate import ConfigError
 from rlexp.policies.actor_critic import POLICIES, ActorCritic
+from rlexp.policies.encoders import channels_last_images
 from rlexp.policies.heads import gaussian_kl
 
 # NonFiniteError, make_optimizer, parse_compile, COMPILE_CHOICES, the compile=auto constants
@@ -256,6 +257,7 @@ class PPO(MutableHyperparameters):
             *(dist_keys if adaptive else ()),
             strict=False,
         )
+        flat = channels_last_images(flat)  # the encoders' layout once, not per minibatch
         if adaptive:
             missing = [k for k in dist_keys if k not in flat.keys()]
             if missing:

@@ -57,8 +57,21 @@ def equal_rows(a: Observation, b: Observation, batch_dims: int) -> torch.Tensor:
     """Per sample (the first ``batch_dims`` dims), whether ``a`` and ``b`` are bit-equal in every
     entry: bool ``[*batch]`` (a byte per element compared, never a float copy)."""
     pairs = zip(leaves(a), leaves(b), strict=True)
-    same = [(x == y).flatten(batch_dims).all(-1) for x, y in pairs]
+    same = [(_rows(x, batch_dims) == _rows(y, batch_dims)).all(-1) for x, y in pairs]
     return functools.reduce(torch.logical_and, same)
+
+
+def _rows(x: torch.Tensor, batch_dims: int) -> torch.Tensor:
+    """``x`` as one row per sample; a uint8 row (an image) seen as int64 words where its memory
+    allows (a view: equal bytes are equal words, so the verdict is the same with 8x fewer
+    comparisons; 8 x 128 frames of 84x84x4: ~40 ms -> 4-8 ms of each update's GAE here)."""
+    rows = x.flatten(batch_dims)
+    if rows.dtype == torch.uint8 and rows.shape[-1] % 8 == 0:
+        try:
+            return rows.view(torch.int64)
+        except RuntimeError:  # strides or offset not multiples of 8 bytes: compared byte by byte
+            pass
+    return rows
 
 
 def next_is_following(obs: Observation, next_obs: Observation, batch_dims: int) -> torch.Tensor:

@@ -21,6 +21,7 @@ import math
 from collections.abc import Sequence
 
 import torch
+from tensordict import TensorDictBase
 from torch import nn
 from torch._C._functorch import is_batchedtensor
 from torch.nn import functional as F
@@ -72,15 +73,38 @@ class NatureCNN(nn.Module):
 
 def scaled(image: torch.Tensor) -> torch.Tensor:
     """uint8 images [..., C, H, W] -> float32 [N, C, H, W] / 255, the encoders' input. On the CPU in
-    channels-last memory (the uint8 tensor made so, 4x less to move than the float one): oneDNN's
-    fast layout for these convolutions (one torch thread, 256 frames: a Nature CNN forward and
-    backward on 84x84x4 ~25% faster, IMPALA's on 64x64x3 ~30%, its forward 2.5x). The same values:
-    only the order of the convolutions' sums differs (float rounding). Not under ``vmap`` (TorchRL's
-    GAE with a value network), which has no memory formats."""
+    channels-last memory (the uint8 tensor made so, 4x less to move than the float one; no copy
+    where it already is, ``channels_last_images``): oneDNN's fast layout for these convolutions
+    (one torch thread, 256 frames: a Nature CNN forward and backward on 84x84x4 ~25% faster,
+    IMPALA's on 64x64x3 ~30%, its forward 2.5x). The same values: only the order of the
+    convolutions' sums differs (float rounding). Not under ``vmap`` (TorchRL's GAE with a value
+    network), which has no memory formats. There a uint8 image is cast and divided in one pass
+    (``torch.div`` computes in float32: the same values, bit for bit, as the cast followed by the
+    division, without a float32 intermediate to write and read again), eagerly; traced or compiled
+    (export, ``algorithm.compile``) the graph keeps the cast and the division it had."""
     x = image.reshape(-1, *image.shape[-3:])
     if x.device.type == "cpu" and not is_batchedtensor(x):
         x = x.contiguous(memory_format=torch.channels_last)
+        if x.dtype == torch.uint8 and not (torch.jit.is_tracing() or torch.compiler.is_compiling()):
+            return torch.div(x, 255.0)
     return x.to(torch.float32) / 255.0
+
+
+def channels_last_images(data: TensorDictBase | torch.Tensor) -> TensorDictBase | torch.Tensor:
+    """``data`` (a flattened rollout, or its observation) with every uint8 ``[N, C, H, W]`` entry on
+    the CPU in channels-last memory (``scaled``'s layout), everything else as it is (a tensor is
+    returned unchanged). Made once per update, the minibatches gathered from it keep the layout
+    (indexing preserves it), so ``scaled`` no longer converts every minibatch: one pass over the
+    rollout's images per update instead of one per minibatch and epoch. Values are untouched."""
+    if not isinstance(data, TensorDictBase):
+        return data
+
+    def layout(x: torch.Tensor) -> torch.Tensor:
+        if x.dtype == torch.uint8 and x.dim() == 4 and x.device.type == "cpu":
+            return x.contiguous(memory_format=torch.channels_last)
+        return x
+
+    return data.apply(layout)
 
 
 class ResidualBlock(nn.Module):
