@@ -91,9 +91,11 @@ class TrainerConfig:
     )
     log_every: int = 1  # log training metrics every this many iterations
     progress: bool = True  # live progress bar on the console
-    # torch intra-op threads for the PPO update (collection and evaluation run with one): 1 is
-    # fastest for small networks; large minibatches on a machine of your own: the cores you have
-    torch_threads: int = 1
+    # torch intra-op threads for the update (PPO's epochs, SAC/TD3's gradient steps; collection
+    # and evaluation run with one): 1 is fastest for small networks and on a machine other jobs
+    # share; `auto`: the CPUs this process may use / the sweep's jobs side by side (SLURM: its
+    # cpus_per_task), for a run that has the machine to itself (docs/performance.md)
+    torch_threads: Any = 1
     # a run whose global_step has not moved for this long is `stalled` in `rlexp runs`, and the
     # longest wait for the eval worker's round or for another rank in a collective (then the run
     # fails, saving a checkpoint where one is consistent). Above the longest eval round and the
