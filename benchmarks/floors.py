@@ -59,12 +59,14 @@ def _median_us(fn, calls: int, repeats: int) -> float:
     return statistics.median(times)
 
 
-def measure(env_id: str, hidden: int, repeats: int, steps: int, mb_steps: int) -> dict:
+def measure(
+    env_id: str, hidden: int, repeats: int, steps: int, mb_steps: int, threads: int = 1
+) -> dict:
     import gymnasium as gym
     import mujoco
     import torch
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(threads)  # the networks' steps (the env's physics runs one thread)
     env = gym.make(env_id)
     obs, _ = env.reset(seed=0)
     space = env.action_space
@@ -72,7 +74,7 @@ def measure(env_id: str, hidden: int, repeats: int, steps: int, mb_steps: int) -
     rng = np.random.default_rng(0)
     actions = rng.uniform(space.low, space.high, size=(steps, act_dim))
     sim = env.unwrapped
-    out: dict[str, float] = {"env": env_id, "hidden": hidden}
+    out: dict[str, float] = {"env": env_id, "hidden": hidden, "torch_threads": threads}
 
     i = 0
 
@@ -152,9 +154,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--steps", type=int, default=2000, help="env steps per block")
     parser.add_argument("--mb-steps", type=int, default=300, help="minibatch steps per block")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads of the steps")
     parser.add_argument("--json", type=Path, help="write the figures here")
     args = parser.parse_args()
-    out = measure(args.env, args.hidden, args.repeats, args.steps, args.mb_steps)
+    out = measure(args.env, args.hidden, args.repeats, args.steps, args.mb_steps, args.threads)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     for key, value in out.items():

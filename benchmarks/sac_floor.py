@@ -4,6 +4,7 @@ Adam steps, the soft target update) as one function, ``torch.compile``d or eager
 SB3's / rl-zoo's MuJoCo SAC: 256x256 ReLU networks, batch 256 (HalfCheetah: obs 17, action 6).
 
     python benchmarks/sac_floor.py            # prints compiled and eager microseconds per step
+    python benchmarks/sac_floor.py --eager --threads 1 2   # eager only, at 1 and at 2 torch threads
     python benchmarks/sac_floor.py --precision bf16 --threads 2   # networks under autocast (bf16)
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import time
 
 import torch
@@ -92,24 +94,25 @@ def plain_step_fn(compiled: bool, precision: str = "fp32"):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--threads", type=int, nargs="+", default=[1], help="torch thread counts")
+    parser.add_argument("--eager", action="store_true", help="the eager step only")
     parser.add_argument("--precision", choices=["fp32", "bf16"], default="fp32")
-    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    for compiled in (True, False):
-        call = plain_step_fn(compiled, args.precision)
-        t0 = time.perf_counter()
-        for _ in range(20):
-            call()
-        warm = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        for _ in range(200):
-            call()
-        us = (time.perf_counter() - t0) / 200 * 1e6
-        print(
-            f"{'compiled' if compiled else 'eager'}: {us:.0f} us per SAC step (warm-up {warm:.1f} s)"
-        )
+    for threads in args.threads:
+        torch.set_num_threads(threads)
+        for compiled in (False,) if args.eager else (True, False):
+            call = plain_step_fn(compiled, args.precision)
+            t0 = time.perf_counter()
+            for _ in range(20):
+                call()
+            warm = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            for _ in range(200):
+                call()
+            us = (time.perf_counter() - t0) / 200 * 1e6
+            print(f"{threads} thread(s), {args.precision}, {'compiled' if compiled else 'eager'}: {us:.0f} us per SAC "
+                  f"step (warm-up {warm:.1f} s; load {os.getloadavg()[0]:.1f})", flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -2,9 +2,10 @@
 256x256, batch 256, buffer 1e6, one gradient step per env step, one env), timed after
 ``learning_starts``, where both run at a flat rate (docs/performance.md, "SAC"). Each side runs in
 its own process, alternating ``--rounds`` times; the machine's load (``os.getloadavg``) is printed
-with each figure.
+with each figure. ``--threads N``: both sides run N torch threads (SB3's ``torch.set_num_threads``,
+rlexp's ``trainer.torch_threads``; rlexp steps its env with one either way).
 
-    python benchmarks/sb3_sac_compare.py --learning-starts 1000 --steps 2000 --rounds 2 \\
+    python benchmarks/sb3_sac_compare.py --learning-starts 500 --steps 1500 --rounds 2 --threads 1 \\
         --sb3-python /work/sb3venv/bin/python
 
 The figure is env steps (= gradient steps) per second between ``learning_starts`` and the end; a
@@ -29,8 +30,8 @@ SB3 = textwrap.dedent(
     import sys, time, torch, gymnasium as gym
     from stable_baselines3 import SAC
     from stable_baselines3.common.callbacks import BaseCallback
-    torch.set_num_threads(1)
     starts, steps = int(sys.argv[1]), int(sys.argv[2])
+    torch.set_num_threads(int(sys.argv[3]))
     class Clock(BaseCallback):
         t0 = None
         def _on_step(self):
@@ -59,20 +60,21 @@ def mujoco_shim() -> str:
     return str(shim)
 
 
-def sb3_rate(python: str, starts: int, steps: int) -> float:
+def sb3_rate(python: str, starts: int, steps: int, threads: int) -> float:
     env = {**os.environ, "PYTHONPATH": mujoco_shim()}
-    out = subprocess.run([python, "-c", SB3, str(starts), str(steps)], capture_output=True,
+    out = subprocess.run([python, "-c", SB3, str(starts), str(steps), str(threads)], capture_output=True,
                          text=True, check=True, timeout=3600, env=env)  # fmt: skip
     return float(out.stdout.strip().splitlines()[-1])
 
 
-def rlexp_rate(starts: int, steps: int, extra: list[str]) -> float:
+def rlexp_rate(starts: int, steps: int, threads: int, extra: list[str]) -> float:
     with tempfile.TemporaryDirectory() as tmp:
         run = Path(tmp) / "run"
         args = ["env=half_cheetah", "+experiment=sac", f"algorithm.learning_starts={starts}",
                 f"trainer.total_frames={starts + steps}", "trainer.eval_every=0",
                 "trainer.save_every=0", "trainer.log_every=100", "trainer.progress=false",
-                "logger=none", f"hydra.run.dir={run}", *extra]  # fmt: skip
+                "logger=none", f"trainer.torch_threads={threads}", f"hydra.run.dir={run}",
+                *extra]  # fmt: skip
         env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
         subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=tmp, env=env,
                        check=True, capture_output=True, timeout=3600)  # fmt: skip
@@ -88,14 +90,19 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=2000, help="env steps timed after it")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--sb3-python", default="/work/sb3venv/bin/python")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads, both sides")
     parser.add_argument("--rlexp-arg", action="append", default=[], help="an extra override")
     args = parser.parse_args()
+    print(f"torch threads: {args.threads} (SB3 and rlexp); learning_starts {args.learning_starts}, "
+          f"{args.steps} timed steps", flush=True)  # fmt: skip
     for r in range(args.rounds):
         load = os.getloadavg()[0]
-        sb3 = sb3_rate(args.sb3_python, args.learning_starts, args.steps)
-        mine = rlexp_rate(args.learning_starts, args.steps, args.rlexp_arg)
-        print(f"round {r}: SB3 {sb3:.1f} steps/s, rlexp {mine:.1f} steps/s, ratio "
-              f"{mine / sb3:.2f}x (load {load:.1f} -> {os.getloadavg()[0]:.1f})", flush=True)  # fmt: skip
+        sb3 = sb3_rate(args.sb3_python, args.learning_starts, args.steps, args.threads)
+        mid = os.getloadavg()[0]
+        mine = rlexp_rate(args.learning_starts, args.steps, args.threads, args.rlexp_arg)
+        print(f"round {r}, {args.threads} thread(s): SB3 {sb3:.1f} steps/s ({1e3 / sb3:.2f} ms), "
+              f"rlexp {mine:.1f} steps/s ({1e3 / mine:.2f} ms), ratio {mine / sb3:.2f}x "
+              f"(load {load:.1f} -> {mid:.1f} -> {os.getloadavg()[0]:.1f})", flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":

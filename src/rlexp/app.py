@@ -63,7 +63,7 @@ def train(
     distributed.set_timeout(config.trainer.stall_timeout_s)  # the longest wait for another rank
     _speedups.apply()
     _speedups.release_frozen()  # an earlier run in this process (a sweep's jobs, tests)
-    torch.set_num_threads(config.trainer.torch_threads)
+    torch.set_num_threads(_torch_threads(config, jobs))
     run = RunLifecycle(run_dir, preempted=stop_requested_by_signal)
     with _speedups.startup_gc(), run.claim():  # stop signals, the lock, the ranks agree
         device, total, done = _prepare(config, run_dir)
@@ -176,6 +176,20 @@ def _build(
     run.stops.attach(trainer)  # SIGINT / SIGTERM / SIGHUP: checkpoint at the end of the iteration
     install_preemption_handler(trainer)  # under SLURM: the preemption signal checkpoints, requeues
     return trainer, ckpt
+
+
+def _torch_threads(config: RootConfig, jobs: int) -> int:
+    """``trainer.torch_threads`` as a count (``auto``: this process's CPUs over the sweep's jobs
+    side by side and the ranks on this node), logged when ``auto`` chose it."""
+    from rlexp.config.rules import available_cpus, torch_threads_for
+
+    value = config.trainer.torch_threads
+    ranks = int(os.environ.get("LOCAL_WORLD_SIZE", "1") or 1)  # torchrun's ranks on this node
+    threads = torch_threads_for(value, available_cpus(), jobs * max(1, ranks))
+    if value == "auto":
+        log.info("[threads] trainer.torch_threads=auto -> %d (%d CPUs, %d job(s) x %d rank(s))",
+                 threads, available_cpus(), jobs, max(1, ranks))  # fmt: skip
+    return threads
 
 
 def _eval_async(config: RootConfig, total: int, jobs: int) -> bool:

@@ -85,6 +85,7 @@ class OffPolicy(MutableHyperparameters):
         self.loss = self._make_loss(qnets)
         self.loss.make_value_estimator(ValueEstimators.TD0, gamma=cfg.gamma)
         self.target_update = SoftUpdate(self.loss, tau=cfg.tau)
+        self._soft_pairs = _soft_update_pairs(self.target_update)
         self.actor_params = [p for p in policy.actor_net.parameters() if p.requires_grad]
         self.q_params = list(self.loss.qvalue_network_params.values(True, True))
         self.actor_optimizer = self._adam(self.actor_params, cfg.lr)
@@ -118,7 +119,7 @@ class OffPolicy(MutableHyperparameters):
             out = self._gradient_step(self.replay.sample(self.cfg.batch_size))
             self.gradient_steps += 1
             for k, v in out.items():
-                sums[k] = sums[k] + v if k in sums else v.clone()
+                sums[k] = sums[k] + v if k in sums else v  # (never changed in place)
                 counts[k] = counts.get(k, 0) + 1
         metrics.update({k: float(v) / counts[k] for k, v in sums.items()})
         metrics["loss/gradient_steps"] = float(self.gradient_steps)
@@ -156,6 +157,14 @@ class OffPolicy(MutableHyperparameters):
         if self.cfg.max_grad_norm > 0:
             torch.nn.utils.clip_grad_norm_(params, self.cfg.max_grad_norm)
         optimizer.step()
+
+    def _soft_update(self) -> None:
+        """``target_update.step()`` (``Q' <- Q' + (1 - eps) * (Q - Q')``, TorchRL's ``SoftUpdate``
+        with ``eps = 1 - tau``: the same ``lerp_`` on the same tensors) as one foreach call, without
+        its per-step TensorDict traversal (~0.1 ms of a ~9 ms step at HalfCheetah's sizes)."""
+        targets, sources = self._soft_pairs
+        with torch.no_grad():
+            torch._foreach_lerp_(targets, sources, 1 - self.target_update.eps)
 
     # -- hooks --------------------------------------------------------------------------------------
     def _applied(self, name: str) -> None:
@@ -225,3 +234,14 @@ class OffPolicy(MutableHyperparameters):
         named = self._keeper.named(ckpt_dir)
         if named is not None:
             self.replay.commit(None, named=named)
+
+
+def _soft_update_pairs(update: SoftUpdate) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """The (target, source) tensors ``update.step()`` lerps, as two aligned lists (the loss's
+    parameters are loaded in place on resume and by PBT: these stay its tensors)."""
+    targets, sources = [], []
+    for key, source in update._sources.items(True, True):
+        key = key if isinstance(key, tuple) else (key,)
+        targets.append(update._targets.get(("target_" + key[0], *key[1:])).data)
+        sources.append(source.data)
+    return targets, sources

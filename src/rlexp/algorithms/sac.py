@@ -109,7 +109,7 @@ class SAC(OffPolicy):
         self.actor_optimizer.step()
         if self.alpha_optimizer is not None:
             self.alpha_optimizer.step()
-        self.target_update.step()
+        self._soft_update()
         return {
             "loss/qvalue": q_loss.detach(),
             "loss/actor": actor_loss.detach(),

@@ -65,6 +65,6 @@ class TD3(OffPolicy):
         if (self.gradient_steps + 1) % self.cfg.policy_delay == 0:
             actor_loss, _ = self.loss.actor_loss(batch)
             self._step(self.actor_optimizer, self.actor_params, actor_loss, "actor")
-            self.target_update.step()
+            self._soft_update()
             out["loss/actor"] = actor_loss.detach()
         return out

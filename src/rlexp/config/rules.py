@@ -81,6 +81,14 @@ def available_cpus() -> int:
         return os.cpu_count() or 1
 
 
+def torch_threads_for(value: Any, cpus: int, jobs: int = 1) -> int:
+    """``trainer.torch_threads`` as a count: an int as it is; ``auto``, this process's ``cpus``
+    shared among the ``jobs`` a sweep runs side by side on the machine (at least 1)."""
+    if value == "auto":
+        return max(1, cpus // max(1, jobs))
+    return int(value)
+
+
 def async_worker_cap() -> int:
     """The most worker processes ``env.backend=gymnasium_async`` may start for one env (one per
     copy, ~50 MB each): 4 per CPU this process may use, at least 64. Beyond, copies wait for CPUs
@@ -190,8 +198,11 @@ FIELD_RULES: dict[str, Rule] = {
     "trainer.log_every": at_least(1, " (iterations)"),
     "trainer.progress": FLAG,
     "trainer.torch_threads": Rule(
-        lambda v: isinstance(v, int) and 1 <= v <= available_cpus(),
-        "in [1, the CPUs this process may use] (more threads than CPUs only slow it down)",
+        lambda v: (
+            v == "auto"
+            or (isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= available_cpus())
+        ),
+        "auto or in [1, the CPUs this process may use] (more threads than CPUs only slow it down)",
     ),
     "trainer.precision": Rule(
         lambda v: v in PRECISIONS,

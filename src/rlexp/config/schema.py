@@ -91,9 +91,11 @@ class TrainerConfig:
     )
     log_every: int = 1  # log training metrics every this many iterations
     progress: bool = True  # live progress bar on the console
-    # torch intra-op threads for the PPO update (collection and evaluation run with one): 1 is
-    # fastest for small networks; large minibatches on a machine of your own: the cores you have
-    torch_threads: int = 1
+    # torch intra-op threads for the update (PPO's epochs, SAC/TD3's gradient steps; collection
+    # and evaluation run with one): 1 is fastest for small networks and on a machine other jobs
+    # share; `auto`: the CPUs this process may use / the sweep's jobs side by side (SLURM: its
+    # cpus_per_task), for a run that has the machine to itself (docs/performance.md)
+    torch_threads: Any = 1
     # the policy's arithmetic: fp32 | bf16. bf16 is mixed precision (Lightning's "bf16-mixed"): the
     # networks' matmuls and convolutions under torch.autocast(bfloat16), weights, optimiser state,
     # losses and checkpoints float32 (docs/performance.md "Mixed precision (bf16)")

@@ -201,8 +201,8 @@ def validate(config: RootConfig) -> None:
         if not rule.check(value):
             if key == "trainer.torch_threads":
                 raise ConfigError(
-                    f"trainer.torch_threads={value} must be in [1, {available_cpus()}]: this "
-                    "process may use that many CPUs (more threads only slow it down, and very "
+                    f"trainer.torch_threads={value} must be auto or in [1, {available_cpus()}]: "
+                    "this process may use that many CPUs (more threads only slow it down, and very "
                     "many crash torch)"
                 )
             raise ConfigError(f"{key}={value!r} must be {rule.text}")

@@ -38,6 +38,7 @@ from rlexp.policies.actor_critic import (
 )
 from rlexp.policies.heads import Sampler
 from rlexp.policies.inputs import POLICY_GROUP, ObsInput, plain_layout, select_parts
+from rlexp.policies.sampling import _as_function
 from rlexp.runtime.precision import Mixed
 
 
@@ -141,19 +142,31 @@ class OffPolicySampler(SamplingPolicy):
                 return action, action.new_zeros(shape[:-1])
 
             return uniform
+        # the actor's MLP as plain functions (no nn.Module dispatch: SAC acts on one observation
+        # per env step), the same kernels as ``actor_net``'s forward
+        net, layers = p.actor_net, [_as_function(m) for m in p.actor_net.mlp]
+
+        def mlp(obs: torch.Tensor) -> torch.Tensor:
+            with net.autocast():  # trainer.precision, as the network's forward
+                x = net.features(obs)
+                for layer in layers:
+                    x = layer(x)
+            return x.float()
+
         if p.kind == "sac":
-            net = p.actor_net
+            min_log_std, max_log_std = net.min_log_std, net.max_log_std
 
             def sac(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-                loc, scale = net(obs)
+                loc, log_std = mlp(obs).chunk(2, -1)  # TanhGaussianActorNet.forward
+                scale = log_std.clamp(min_log_std, max_log_std).exp()
                 u = loc if self.deterministic else loc + scale * torch.randn_like(loc)
                 return squash(u, low, high), loc.new_zeros(loc.shape[:-1])
 
             return sac
-        net, noise = p.actor_net, p.exploration_noise * (high - low) * 0.5
+        noise = p.exploration_noise * (high - low) * 0.5
 
         def td3(obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            action = net(obs)
+            action = squash(mlp(obs), net.low, net.high)  # DeterministicActorNet.forward
             if not self.deterministic:
                 action = action + noise * torch.randn_like(action)
                 action = torch.maximum(torch.minimum(action, high), low)

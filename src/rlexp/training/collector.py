@@ -22,6 +22,7 @@ device, where GAE and the update run.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -66,6 +67,7 @@ class RolloutCollector(Collector):
         if isinstance(policy, SamplingPolicy):  # the numpy sampler's noise, a rollout at a time
             policy.set_noise_block(self.frames_per_batch)
         self._fast = supports_fast_rollout(env, policy)
+        self._devices = (policy_device, env_device)  # (fixed for the collector's life)
         # the observation to act on next (fast path): a tensor, or (images) a TensorDict of the
         # vector and uint8 images, stacked per key into the rollout as they are (no float copy)
         self._obs: torch.Tensor | TensorDictBase | None = None
@@ -94,6 +96,22 @@ class RolloutCollector(Collector):
         self._obs = None  # the fast path reads the reset observation from the carrier
         self._carry = None  # every env starts an episode
 
+    def iterator(self) -> Iterator[TensorDictBase]:
+        """TorchRL's iterator without what the fast path's rollouts do not need: its clone (each
+        rollout is new tensors, never a buffer the next one writes into) and its private-key
+        filter (none here). SAC's one-step rollouts: ~0.1 ms less per env step."""
+        plain = self.split_trajs or self.postproc is not None or self.replay_buffer is not None
+        if not self._fast or plain:
+            yield from super().iterator()
+            return
+        while self._frames < self.total_frames:
+            self._iter += 1
+            out = self.rollout()
+            self._increment_frames(out.numel())
+            if self.post_collect_hook is not None:
+                self.post_collect_hook(out)
+            yield out
+
     @torch.no_grad()
     def rollout(self) -> TensorDictBase:
         if isinstance(self._sampler, SamplingPolicy) and self._sampler.noise is not None:
@@ -103,7 +121,7 @@ class RolloutCollector(Collector):
         if not self._fast:
             return super().rollout()
         env, sample = self.env, self._sampler.sampler()  # constants of this rollout computed once
-        to_policy, to_env = devices(env, self._sampler)
+        to_policy, to_env = self._devices
         # A flat dict of tensors per step where the env offers one (the Gymnasium adapter), else
         # its TensorDict (native tasks: nested per-term entries).
         step = getattr(env, "step_tensors", None) or env.step_action
@@ -128,11 +146,14 @@ class RolloutCollector(Collector):
             nexts.append(nxt)
             obs = env.autoreset_observation(nxt)
         self._obs = obs
-        size = [*env.batch_size, steps]
+        size = torch.Size([*env.batch_size, steps])  # (a Size: _new_unsafe keeps what it is given)
         batch = {k: torch.stack(v, dim=1) for k, v in root.items()}  # [num_envs, T, ...]
         if isinstance(nexts[0], dict):
             nxt = {k: torch.stack([n[k] for n in nexts], dim=1) for k in nexts[0]}
-            batch["next"] = TensorDict._new_unsafe(nxt, batch_size=size, device=env.device)
+            where = env.device if to_env is not None else to_policy  # (the same device then)
+            batch["next"] = TensorDict._new_unsafe(nxt, batch_size=size, device=where)
+            if to_env is None:  # plain tensors, all on the policy's device: nothing to check
+                return TensorDict._new_unsafe(batch, batch_size=size, device=to_policy)
         else:
             batch["next"] = torch.stack(nexts, dim=1)
         if to_env is not None:  # the env's side of the rollout, once, to where the update runs
@@ -170,7 +191,7 @@ class RolloutCollector(Collector):
                 "a recurrent policy (policy.memory.type) collects through rlexp's own env loop; "
                 "this env (a TorchRL env, or one wrapped in transforms by events.train) has none"
             )
-        to_policy, to_env = devices(self.env, self._sampler)
+        to_policy, to_env = self._devices
         obs = self._obs if self._obs is not None else self._carrier.get("observation")
         batch, self._obs, self._carry = recurrent_rollout(
             self.env, self._sampler, self.frames_per_batch, obs, self._carry, to_policy, to_env

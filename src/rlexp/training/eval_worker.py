@@ -30,6 +30,7 @@ from typing import Any
 
 import torch
 
+from rlexp.config.rules import torch_threads_for
 from rlexp.config.schema import BasePolicyConfig, EnvConfig, RootConfig
 from rlexp.runtime.signals import blocked, die_with_parent
 
@@ -312,7 +313,7 @@ def decide_eval_async(
             False,
             f"{rounds} eval rounds in the budget (< {AUTO_MIN_ROUNDS}: the worker's start-up would not pay off)",
         )
-    threads = t.torch_threads
+    threads = torch_threads_for(t.torch_threads, cpus, jobs * ranks)
     if e.backend == "native":  # the physics thread pool steps the training envs
         from rlexp.envs.native.env import default_num_threads
 
