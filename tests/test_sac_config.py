@@ -153,19 +153,22 @@ def test_distributed_off_policy_is_refused_in_one_line_on_every_rank_before_a_ru
     import subprocess
     import sys
 
-    from conftest import REPO
+    from conftest import REPO, Children
 
     env = {**os.environ, "PYTHONPATH": str(REPO / "src"), "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
            str(REPO / "train.py"), "--distributed", "env=pendulum", f"algorithm={algorithm}",
            "trainer.total_frames=64"]  # fmt: skip
-    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
-    out = proc.stdout + proc.stderr
+    with Children() as children:  # torchrun's group (its ranks too) killed however this ends
+        proc = children.popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)  # fmt: skip
+        stdout, stderr = proc.communicate(timeout=300)
+    out = stdout + stderr
     line = f"config error: --distributed: algorithm={algorithm} learns from one process's replay"
     # the first rank to refuse ends the job: torchrun may stop the other before it prints
     lines = [x for x in out.splitlines() if "--distributed: algorithm=" in x]
     assert proc.returncode != 0 and 1 <= len(lines) <= 2, out[-3000:]
     assert all(x.startswith(line) for x in lines)
     assert "src/rlexp/" not in out and "[rlexp." not in out  # no rlexp traceback, no run's log
-    assert "exitcode  : 2" in proc.stderr  # torchrun's summary of the rank that refused
+    assert "exitcode  : 2" in stderr  # torchrun's summary of the rank that refused
     assert not (tmp_path / "outputs").exists() and not list(tmp_path.glob("MUJOCO_LOG.TXT"))
