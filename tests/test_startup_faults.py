@@ -563,3 +563,69 @@ def test_a_ctrl_c_that_surfaces_as_a_librarys_error_still_ends_as_a_ctrl_c():
         raise ConfigError("trainer.total_frames=-1: must be >= 1")
     except ConfigError as exc:
         reraise_if_interrupted(exc)  # nothing raised
+
+
+# A C extension's module init that a Ctrl-C interrupts: pybind11 (MuJoCo's bindings) raises
+# ``ImportError("initialization failed")`` from the KeyboardInterrupt (seen once at 2.0 s).
+_EXTENSION_INIT = """
+import sys
+import rlexp.app
+import rlexp.launch.precheck
+from rlexp.runtime.entry import SignalInterrupt
+
+def interrupted_import(*args, **kwargs):
+    try:
+        raise SignalInterrupt
+    except KeyboardInterrupt as exc:
+        raise ImportError("initialization failed") from exc
+
+setattr({module}, {name!r}, interrupted_import)
+from rlexp.cli import train
+train(sys.argv[1:], prog="train.py")
+"""
+
+
+@pytest.mark.parametrize(
+    "module, name", [("rlexp.launch.precheck", "precheck"), ("rlexp.app", "train")]
+)
+def test_a_ctrl_c_inside_a_c_extensions_import_ends_as_a_ctrl_c(tmp_path, children, module, name):
+    """A Ctrl-C that lands inside MuJoCo's C-extension import, before the command-line check ends
+    (``precheck``) or while the run is being built (``train``), reaches rlexp as an ``ImportError``
+    chained to the interrupt: it ends as a Ctrl-C (one line, exit 130), no traceback, no status.
+
+    Catches: 'ImportError: initialization failed' with a traceback and exit 1 (seen at 2.0 s)."""
+    script = tmp_path / "interrupted_import.py"
+    script.write_text(_EXTENSION_INIT.format(module=module, name=name))
+    run_dir = tmp_path / "run"
+    args = [*SHORT, "logger=none", f"hydra.run.dir={run_dir}"]
+    proc = _launch(children, [sys.executable, str(script), *args], tmp_path)
+    assert proc.returncode == 130, proc.stdout[-3000:] + proc.stderr[-3000:]
+    both = proc.stdout + proc.stderr
+    assert "Traceback" not in both and "initialization failed" not in both, both[-3000:]
+    assert len([ln for ln in both.splitlines() if "interrupted" in ln]) == 1, both[-3000:]
+    assert not (run_dir / "status.json").exists()
+
+
+def test_the_entry_guard_ends_a_chained_ctrl_c_as_one_and_lets_other_errors_through(capsys):
+    """``entry_guard``: an error chained (cause or context) to a KeyboardInterrupt is the Ctrl-C
+    (one line, exit 130); the same error without one is a bug and keeps its traceback."""
+    from rlexp.runtime.entry import SignalInterrupt, entry_guard
+
+    def chained(by_cause: bool) -> None:
+        try:
+            raise SignalInterrupt
+        except KeyboardInterrupt as exc:
+            if by_cause:
+                raise ImportError("initialization failed") from exc
+            raise ImportError("initialization failed")  # noqa: B904 (the implicit context)
+
+    for by_cause in (True, False):
+        with pytest.raises(SystemExit) as ended, entry_guard("rlexp eval"):
+            chained(by_cause)
+        assert ended.value.code == 130
+        err = capsys.readouterr().err
+        assert err.strip().splitlines() == [
+            "rlexp eval: interrupted (Ctrl-C) while no run was training: nothing to save"
+        ], err
+    with pytest.raises(ImportError, match="initialization failed"), entry_guard("rlexp eval"):
+        raise ImportError("initialization failed")

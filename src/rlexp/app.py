@@ -259,13 +259,12 @@ def _task(cfg: DictConfig) -> float | None:
             _exit(exc.exit_code)
         return _failed(run_dir, str(exc), exc.exit_code, multirun, exc)
     except KeyboardInterrupt:  # Ctrl-C twice while the run was being built: nothing to save
-        log.error("interrupted before training started")
-        if worker is not None:
-            return None
-        sys.exit(EXIT_SIGNAL_BASE + 2)
-    except OSError as exc:  # the run dir before training (training's own end: RunEnded, exit 1)
-        return _failed(run_dir, entry.run_dir_error(run_dir, exc), EXIT_CONFIG, multirun, exc)
+        return _interrupted_before_training(worker)
     except Exception as exc:
+        if entry.interrupted(exc):  # a Ctrl-C inside MuJoCo's C-extension import (ImportError)
+            return _interrupted_before_training(worker)
+        if isinstance(exc, OSError):  # the run dir before training (its own end: RunEnded, exit 1)
+            return _failed(run_dir, entry.run_dir_error(run_dir, exc), EXIT_CONFIG, multirun, exc)
         from rlexp.training.trainer import StopRequested
 
         if not multirun or isinstance(exc, StopRequested):
@@ -273,6 +272,13 @@ def _task(cfg: DictConfig) -> float | None:
         log.exception("job failed")  # the traceback goes to the job's log; the sweep goes on
         return _failed(run_dir, f"{type(exc).__name__}: {first_line(exc)}", EXIT_FAILED, True, exc)
     return metrics.get("eval/episode_return")
+
+
+def _interrupted_before_training(worker: Any) -> None:
+    log.error("interrupted before training started")
+    if worker is not None:
+        return None
+    sys.exit(EXIT_SIGNAL_BASE + 2)
 
 
 def _join_distributed() -> None:

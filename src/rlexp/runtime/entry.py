@@ -31,6 +31,21 @@ class SignalInterrupt(KeyboardInterrupt):
     a real Ctrl-C, told apart from one that user code raises (``rlexp.runtime.user_code``)."""
 
 
+def interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` came out of a ``KeyboardInterrupt`` (its cause/context chain holds one): a
+    Ctrl-C at start-up that landed inside a library surfaces as that library's error. A C
+    extension's module init (pybind11's, MuJoCo's) turns it into ``ImportError: initialization
+    failed`` chained to the interrupt; a library's failing ``finally`` into its own error."""
+    seen: set[int] = set()
+    link: BaseException | None = exc
+    while link is not None and id(link) not in seen:
+        if isinstance(link, KeyboardInterrupt):
+            return True
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
+    return False
+
+
 class EntryError(Exception):
     """A fault of the environment a check found; its message is the whole line."""
 
@@ -66,6 +81,9 @@ def run_dir_error(run_dir: object, exc: OSError) -> str:
     return f"run dir {run_dir} cannot be used: {os_error_line(exc)}; use another hydra.run.dir"
 
 
+_INTERRUPTED = "interrupted (Ctrl-C) while no run was training: nothing to save"
+
+
 @contextmanager
 def entry_guard(prog: str) -> Iterator[None]:
     """Run the body of an entry point under the rules above."""
@@ -73,10 +91,12 @@ def entry_guard(prog: str) -> Iterator[None]:
         check_cwd()
         yield
     except KeyboardInterrupt:
-        _say(prog, "interrupted (Ctrl-C) while no run was training: nothing to save", EXIT_SIGINT)
+        _say(prog, _INTERRUPTED, EXIT_SIGINT)
     except EntryError as exc:
         _say(prog, str(exc), EXIT_BAD_INPUT)
     except Exception as exc:
+        if interrupted(exc):  # a Ctrl-C that a library turned into its own error
+            _say(prog, _INTERRUPTED, EXIT_SIGINT)
         if _hydra_compact(exc):  # Hydra's own one-liners (rlexp.app lets them through: see there)
             sys.stderr.write("\n".join(_hydra_lines(exc)) + "\n")
             sys.exit(1)

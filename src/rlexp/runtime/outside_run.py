@@ -24,7 +24,7 @@ import sys
 import threading
 from typing import Any
 
-from rlexp.runtime.entry import SignalInterrupt
+from rlexp.runtime.entry import SignalInterrupt, interrupted
 
 log = logging.getLogger(__name__)
 
@@ -131,14 +131,11 @@ def job_started(label: str) -> None:
 
 
 def reraise_if_interrupted(exc: BaseException) -> None:
-    """Raise ``KeyboardInterrupt`` if ``exc`` came out of one: a Ctrl-C at start-up that landed
-    inside a library's ``finally`` (OmegaConf's, seen at 0.5 s) surfaces as that library's error,
-    e.g. an ``AttributeError`` of a half-built object wrapped in a config error; it must still end
-    as a Ctrl-C does (one line, exit 130), not as a config error."""
-    seen: set[int] = set()
-    link: BaseException | None = exc
-    while link is not None and id(link) not in seen:
-        if isinstance(link, KeyboardInterrupt):
-            raise KeyboardInterrupt from None
-        seen.add(id(link))
-        link = link.__cause__ or link.__context__
+    """Raise ``KeyboardInterrupt`` if ``exc`` came out of one (``entry.interrupted``): a Ctrl-C at
+    start-up that landed inside a library's ``finally`` (OmegaConf's, seen at 0.5 s) surfaces as
+    that library's error, e.g. an ``AttributeError`` of a half-built object wrapped in a config
+    error, and one inside MuJoCo's C-extension import as ``ImportError: initialization failed``
+    (seen at 2.0 s); it must still end as a Ctrl-C does (one line, exit 130), not as a config error
+    or a traceback."""
+    if interrupted(exc):
+        raise KeyboardInterrupt from None
