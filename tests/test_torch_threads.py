@@ -180,3 +180,69 @@ def test_the_collectors_rollouts_are_new_tensors_each_time():
         assert first.batch_size == (2, 2) and collector._frames == 8
     finally:
         collector.shutdown()
+
+
+def test_an_image_policys_rollout_steps_use_the_update_threads_and_eval_one(tmp_path, monkeypatch):
+    """A CNN policy's collection step is a convolution over every env's frames: it runs with
+    ``trainer.torch_threads`` (3 here, mocked 4 CPUs), as the update does; evaluation keeps one
+    thread (the same kernels as ``rlexp eval`` and the eval worker). A vector policy's steps keep
+    one thread (``test_train.py``, ``test_sac_gradient_steps_use_the_resolved_threads...``)."""
+    import rlexp.policies.encoders as encoders
+    import rlexp.training.trainer as trainer_module
+    from conftest import compose
+    from rlexp.app import train
+
+    monkeypatch.setenv("RLEXP_ENV_MODULES", "image_envs")
+    _mock_cpus(monkeypatch, 4)
+    seen: dict[str, set[int]] = {"collect": set(), "eval": set(), "update": set()}
+    phase = ["collect"]
+    scaled, run_round = encoders.scaled, trainer_module.run_round
+
+    def spy_scaled(image):
+        where = "update" if torch.is_grad_enabled() else phase[0]
+        seen[where].add(torch.get_num_threads())
+        return scaled(image)
+
+    def spy_round(*args, **kwargs):
+        phase[0] = "eval"
+        try:
+            return run_round(*args, **kwargs)
+        finally:
+            phase[0] = "collect"
+
+    monkeypatch.setattr(encoders, "scaled", spy_scaled)
+    monkeypatch.setattr(trainer_module, "run_round", spy_round)
+    before = torch.get_num_threads()
+    config = to_root_config(
+        compose(
+            [
+                "env=hopper",
+                "env.backend=torchrl",
+                "env.name=image_envs:make_image_env",
+                "env.num_envs=3",
+                "env.num_eval_envs=2",
+                "policy=cnn",
+                "policy.encoder.channels=[4]",
+                "policy.encoder.kernel_sizes=[3]",
+                "policy.encoder.strides=[2]",
+                "policy.encoder.features_dim=8",
+                "trainer.frames_per_batch=24",
+                "trainer.total_frames=48",
+                "trainer.eval_every=24",
+                "trainer.eval_episodes=2",
+                "trainer.eval_async=false",
+                "trainer.save_every=0",
+                "trainer.torch_threads=3",
+                "algorithm.mini_batch_size=12",
+                "algorithm.num_epochs=1",
+                "algorithm.compile=false",
+                "trainer.progress=false",
+                "logger=none",
+            ]  # fmt: skip
+        )
+    )
+    try:
+        train(config, tmp_path / "run")
+    finally:
+        torch.set_num_threads(before)
+    assert seen == {"collect": {3}, "eval": {1}, "update": {3}}

@@ -274,6 +274,12 @@ class Policy(nn.Module):
         return SamplingPolicy(self.actor_net, deterministic, critic)
 
     @property
+    def acts_on_images(self) -> bool:
+        """Whether the actor reads an image through a CNN encoder: its collection step is a
+        convolution over the envs' frames, not a few small matmuls (``loop.collection_threads``)."""
+        return bool(self.actor_net.inputs.encoders)
+
+    @property
     def values_in_collection(self) -> bool:
         """Whether collection computing the critic's values pays: an image policy whose critic
         reads no image through an encoder the actor does not share (``policy.share_encoder``), so

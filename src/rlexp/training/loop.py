@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from typing import Any
 
 import torch
@@ -63,6 +63,19 @@ def one_torch_thread() -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(threads)
+
+
+def collection_threads(policy: torch.nn.Module) -> AbstractContextManager[None]:
+    """The torch threads a rollout's policy steps run with: one (``one_torch_thread``), except for
+    a policy whose actor reads images (``Policy.acts_on_images``): its step is a CNN forward over
+    every env's frames, compute-bound work that ``trainer.torch_threads`` speeds up as it does the
+    update (Pong, a Nature CNN's forward on 8 frames: 1.8 ms at one thread, 1.2 ms at two;
+    docs/performance.md "CNN PPO"). Evaluation keeps one thread
+    everywhere (in-process rounds, the eval worker, ``rlexp eval``: the same kernels, the same
+    numbers)."""
+    if getattr(policy, "acts_on_images", False):
+        return nullcontext()
+    return one_torch_thread()
 
 
 def crossed(before: int, after: int, every: int) -> bool:

@@ -38,7 +38,7 @@ from rlexp.training.collector import RolloutCollector
 from rlexp.training.episodes import EpisodeStats
 from rlexp.training.eval_worker import EvalRound, EvalWorker, record
 from rlexp.training.evaluation import eval_line, run_round
-from rlexp.training.loop import check_rollout_finite, crossed, one_torch_thread
+from rlexp.training.loop import check_rollout_finite, collection_threads, crossed, one_torch_thread
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +183,7 @@ class Trainer:
     def collect_rollout(self) -> TensorDictBase:
         """One batch of ``frames_per_batch`` env steps through the TorchRL collector."""
         t0 = time.perf_counter()
-        with one_torch_thread():
+        with collection_threads(self.policy):  # one, but trainer.torch_threads for a CNN's step
             if self.algorithm.reset_each_rollout:  # GRPO: every env starts a new episode
                 self.collector.reset()
                 self.episodes.drop_running()
