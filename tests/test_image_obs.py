@@ -528,3 +528,95 @@ def test_frame_stack_and_image_keys_rules_are_one_line_config_errors(overrides, 
     assert "\n" not in msg
     for word in words:
         assert word in msg, msg
+
+
+def test_envpool_dict_observations_encode_each_copy_as_one_env_would():
+    """EnvPool tasks whose observation is a Dict of batched leaves (MiniGrid: a 7x7x3 image, a
+    Discrete direction, a 96-byte mission; DMC: named float64 vectors) used to be refused. Each
+    copy is now encoded as one env's observation is: the vector in the Dict's key order (the
+    direction one-hot, then the mission's bytes as floats), the image HWC -> CHW uint8; values
+    against the raw pool's by hand, at reset and after steps with different actions per copy."""
+    pytest.importorskip("envpool")
+    import envpool
+
+    from rlexp.envs.envpool_env import EnvPoolEnv
+
+    env = EnvPoolEnv("MiniGrid-Empty-5x5-v0", 3, seed=5, num_threads=1)
+    raw = envpool.make_gymnasium("MiniGrid-Empty-5x5-v0", num_envs=3, seed=5, num_threads=1)
+    try:
+        got = [(p.key, p.kind, p.offset, p.size) for p in env.obs_layout.parts]
+        assert got == [("direction", "discrete", 0, 4), ("image", "image", -1, 0),
+                       ("mission", "box", 4, 96)]  # fmt: skip
+        assert env.obs_layout.images[0].shape == (3, 7, 7)
+
+        def by_hand(o):
+            vector = np.concatenate(
+                [np.eye(4, dtype=np.float32)[o["direction"]], o["mission"].astype(np.float32)], 1
+            )
+            return vector, o["image"].transpose(0, 3, 1, 2)
+
+        def check(obs, o):
+            vector, image = by_hand(o)
+            assert obs["vector"].dtype == torch.float32 and obs["image"].dtype == torch.uint8
+            np.testing.assert_array_equal(obs["vector"].numpy(), vector)
+            np.testing.assert_array_equal(obs["image"].numpy(), image)
+
+        check(env.reset()["observation"], raw.reset()[0])
+        for actions in ([2, 1, 0], [1, 1, 2], [0, 2, 2]):
+            nxt = env.step_tensors(torch.tensor(actions).unsqueeze(-1))
+            o, _, term, trunc, _ = raw.step(np.array(actions))
+            assert not (term | trunc).any()  # (no copy finished: the raw pool needs no reset)
+            check(nxt["observation"], o)
+    finally:
+        env.close()
+        raw.close()
+    dmc = EnvPoolEnv("CheetahRun-v1", 2, seed=3, num_threads=1)
+    raw = envpool.make_gymnasium("CheetahRun-v1", num_envs=2, seed=3, num_threads=1)
+    try:  # a Dict of named vectors: one float32 vector, position (8) then velocity (9)
+        assert [(p.key, p.offset, p.size) for p in dmc.obs_layout.parts] == [
+            ("position", 0, 8), ("velocity", 8, 9)
+        ]  # fmt: skip
+        o = raw.reset()[0]
+        want = np.concatenate([o["position"], o["velocity"]], 1).astype(np.float32)
+        np.testing.assert_array_equal(dmc.reset()["observation"].numpy(), want)
+    finally:
+        dmc.close()
+        raw.close()
+
+
+def test_an_envpool_dict_task_trains_with_an_actor_group_of_its_keys(tmp_path):
+    """End to end on EnvPool's MiniGrid: the actor reads the image and the direction only, the
+    critic everything; a small CNN on the 7x7 image; the checkpoint records the Dict's layout."""
+    pytest.importorskip("envpool")
+    from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
+
+    run_dir = tmp_path / "r"
+    args = [
+        "env=pong",
+        "env.name=MiniGrid-Empty-5x5-v0",
+        "~env.kwargs.episodic_life",
+        "~env.kwargs.reward_clip",
+        "env.num_envs=3",
+        "env.num_eval_envs=1",
+        "policy=cnn",
+        "policy.encoder.channels=[4,8]",
+        "policy.encoder.kernel_sizes=[3,2]",
+        "policy.encoder.strides=[1,1]",
+        "policy.actor.observations=[image,direction]",
+        "trainer.total_frames=96",
+        "trainer.frames_per_batch=48",
+        "trainer.eval_every=96",
+        "trainer.eval_episodes=1",
+        "trainer.save_every=48",
+        "algorithm.mini_batch_size=24",
+        "algorithm.num_epochs=1",
+        f"hydra.run.dir={run_dir}",
+    ]
+    run_train(args, cwd=tmp_path)
+    ckpt = load_checkpoint(latest_checkpoint(run_dir / "checkpoints"))
+    parts = {p["key"]: p for p in ckpt["observation_layout"]["parts"]}
+    assert parts["image"]["shape"] == [3, 7, 7] and parts["image"]["source_layout"] == "hwc"
+    assert (parts["direction"]["size"], parts["mission"]["size"]) == (4, 96)
+    weights = ckpt["policy"]  # linear heads on [512 image features, the selected vector]
+    assert weights["actor_net.mlp.0.weight"].shape == (7, 512 + 4)  # image, direction: no mission
+    assert weights["critic_net.mlp.0.weight"].shape == (1, 512 + 4 + 96)  # everything

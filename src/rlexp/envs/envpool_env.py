@@ -107,12 +107,6 @@ class EnvPoolEnv(GymShapedEnv):
                 frame_stack,
                 indices=tuple(observation_indices),
             )
-            if not layout.batchable:
-                raise UnsupportedSpace(
-                    f"{where}: env.backend=envpool takes tasks with a flat Box or one image "
-                    f"observation (this one is {pool.observation_space}); use "
-                    "env.backend=gymnasium_async"
-                )
         except UnsupportedSpace:
             pool.close()
             raise

@@ -144,6 +144,29 @@ def stack_obs(layout: Any, rows: Sequence[Any]) -> np.ndarray | ObsBatch:
     return ObsBatch({k: np.stack([row[k] for row in rows]) for k in rows[0]})
 
 
+def encode_rows(layout: Any, obs: Any) -> np.ndarray | ObsBatch:
+    """A vector env's raw batch whose leaves are batched arrays [n, ...] in a Dict or Tuple
+    (EnvPool's MiniGrid: an image, a direction and a mission; DMC: named vectors), which
+    ``ObsLayout.encode_batch`` cannot take in one piece: each copy's observation encoded as a
+    single env's is (``ObsLayout.encode``), stacked."""
+    n = len(_first_leaf(obs))
+    return stack_obs(layout, [layout.encode(_row(obs, i)) for i in range(n)])
+
+
+def _row(obs: Any, i: int) -> Any:
+    if isinstance(obs, Mapping):
+        return {k: _row(v, i) for k, v in obs.items()}
+    if isinstance(obs, tuple | list):
+        return tuple(_row(v, i) for v in obs)
+    return obs[i]
+
+
+def _first_leaf(obs: Any) -> Any:
+    while isinstance(obs, Mapping | tuple | list):
+        obs = next(iter(obs.values())) if isinstance(obs, Mapping) else obs[0]
+    return obs
+
+
 def as_obs(layout: Any, batch: Any) -> np.ndarray | ObsBatch:
     """A vector env's batched observations (already encoded per copy, e.g. shared memory of the
     workers) as an owned batch: float32 [n, dim], or an ``ObsBatch`` copied out of ``batch``."""

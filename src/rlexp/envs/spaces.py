@@ -33,6 +33,7 @@ from rlexp.envs.images import (
     VECTOR_KEY,
     FrameStack,
     ObsBatch,
+    encode_rows,
     image_encoder,
     image_key_of,
     image_layout,
@@ -179,17 +180,20 @@ class ObsLayout:
 
     @property
     def batchable(self) -> bool:
-        """Whether ``encode_batch`` takes this layout: a plain Box (entries kept or not), or one
-        image at the root."""
+        """Whether ``encode_batch`` takes this layout in one piece: a plain Box (entries kept or
+        not), or one image at the root (else it encodes copy by copy)."""
         return (
             self.plain
             or bool(self.indices)
             or (len(self.parts) == 1 and self.parts[0].kind == "image")
         )
 
-    def encode_batch(self, obs: np.ndarray) -> np.ndarray | ObsBatch:
-        """A vector env's raw batch [n, ...] as the env emits it (``batchable`` layouts): float32
-        [n, dim], or an ``ObsBatch`` of the uint8 [n, C, H, W] image (a new array either way)."""
+    def encode_batch(self, obs: Any) -> np.ndarray | ObsBatch:
+        """A vector env's raw batch [n, ...] as the env emits it: float32 [n, dim], or an
+        ``ObsBatch`` of the uint8 [n, C, H, W] image (a new array either way); other layouts (a
+        Dict or Tuple of batched leaves) copy by copy (``images.encode_rows``)."""
+        if not self.batchable:
+            return encode_rows(self, obs)
         if self.plain:
             return np.asarray(obs).astype(np.float32)
         part = self.parts[0]
