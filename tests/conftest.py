@@ -37,6 +37,23 @@ def compose(overrides: list[str] | None = None):
         return hydra_compose(config_name="config", overrides=list(overrides or []))
 
 
+def train_here(overrides: list[str], run_dir: Path) -> dict:
+    """Compose ``overrides`` and train in this process (``rlexp.app.train``: no Hydra run, no
+    subprocess); torch's thread count, which a run sets from ``trainer.torch_threads``, is put
+    back however the run ends. Returns the run's final metrics."""
+    import torch
+
+    from rlexp.app import train
+    from rlexp.config.validate import to_root_config
+
+    config = to_root_config(compose(overrides))
+    before = torch.get_num_threads()
+    try:
+        return train(config, run_dir)
+    finally:
+        torch.set_num_threads(before)
+
+
 def run_train(
     args: list[str],
     cwd: Path,

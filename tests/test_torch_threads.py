@@ -13,6 +13,7 @@ from torchrl.data import Bounded
 
 import rlexp.config.rules as rules
 import rlexp.config.validate as validate
+from conftest import train_here
 from rlexp.algorithms.sac import SAC
 from rlexp.algorithms.td3 import TD3
 from rlexp.config.rules import torch_threads_for
@@ -78,8 +79,6 @@ def test_auto_is_accepted_and_resolved_from_the_cpu_count_and_the_jobs(monkeypat
 
 def test_sac_gradient_steps_use_the_resolved_threads_and_collection_one(tmp_path, monkeypatch):
     """``auto`` on a (mocked) 2-CPU machine: the update runs 2 torch threads, env steps 1."""
-    from conftest import compose
-    from rlexp.app import train
     from rlexp.envs.gym import GymnasiumEnv
 
     _mock_cpus(monkeypatch, 2)
@@ -96,28 +95,22 @@ def test_sac_gradient_steps_use_the_resolved_threads_and_collection_one(tmp_path
 
     monkeypatch.setattr(GymnasiumEnv, "step_tensors", spy_step)
     monkeypatch.setattr(SAC, "_gradient_step", spy_grad)
-    before = torch.get_num_threads()
-    config = to_root_config(
-        compose(
-            [
-                "env=pendulum",
-                "algorithm=sac",
-                "algorithm.learning_starts=20",
-                "algorithm.batch_size=8",
-                "algorithm.buffer_size=200",
-                "trainer.total_frames=40",
-                "trainer.eval_every=0",
-                "trainer.save_every=0",
-                "trainer.torch_threads=auto",
-                "trainer.progress=false",
-                "logger=none",
-            ]  # fmt: skip
-        )
+    train_here(
+        [
+            "env=pendulum",
+            "algorithm=sac",
+            "algorithm.learning_starts=20",
+            "algorithm.batch_size=8",
+            "algorithm.buffer_size=200",
+            "trainer.total_frames=40",
+            "trainer.eval_every=0",
+            "trainer.save_every=0",
+            "trainer.torch_threads=auto",
+            "trainer.progress=false",
+            "logger=none",
+        ],  # fmt: skip
+        tmp_path / "run",
     )
-    try:
-        train(config, tmp_path / "run")
-    finally:
-        torch.set_num_threads(before)
     assert seen == {"step": {1}, "update": {2}}
 
 
@@ -189,8 +182,6 @@ def test_an_image_policys_rollout_steps_use_the_update_threads_and_eval_one(tmp_
     one thread (``test_train.py``, ``test_sac_gradient_steps_use_the_resolved_threads...``)."""
     import rlexp.policies.encoders as encoders
     import rlexp.training.trainer as trainer_module
-    from conftest import compose
-    from rlexp.app import train
 
     monkeypatch.setenv("RLEXP_ENV_MODULES", "image_envs")
     _mock_cpus(monkeypatch, 4)
@@ -212,37 +203,31 @@ def test_an_image_policys_rollout_steps_use_the_update_threads_and_eval_one(tmp_
 
     monkeypatch.setattr(encoders, "scaled", spy_scaled)
     monkeypatch.setattr(trainer_module, "run_round", spy_round)
-    before = torch.get_num_threads()
-    config = to_root_config(
-        compose(
-            [
-                "env=hopper",
-                "env.backend=torchrl",
-                "env.name=image_envs:make_image_env",
-                "env.num_envs=3",
-                "env.num_eval_envs=2",
-                "policy=cnn",
-                "policy.encoder.channels=[4]",
-                "policy.encoder.kernel_sizes=[3]",
-                "policy.encoder.strides=[2]",
-                "policy.encoder.features_dim=8",
-                "trainer.frames_per_batch=24",
-                "trainer.total_frames=48",
-                "trainer.eval_every=24",
-                "trainer.eval_episodes=2",
-                "trainer.eval_async=false",
-                "trainer.save_every=0",
-                "trainer.torch_threads=3",
-                "algorithm.mini_batch_size=12",
-                "algorithm.num_epochs=1",
-                "algorithm.compile=false",
-                "trainer.progress=false",
-                "logger=none",
-            ]  # fmt: skip
-        )
+    train_here(
+        [
+            "env=hopper",
+            "env.backend=torchrl",
+            "env.name=image_envs:make_image_env",
+            "env.num_envs=3",
+            "env.num_eval_envs=2",
+            "policy=cnn",
+            "policy.encoder.channels=[4]",
+            "policy.encoder.kernel_sizes=[3]",
+            "policy.encoder.strides=[2]",
+            "policy.encoder.features_dim=8",
+            "trainer.frames_per_batch=24",
+            "trainer.total_frames=48",
+            "trainer.eval_every=24",
+            "trainer.eval_episodes=2",
+            "trainer.eval_async=false",
+            "trainer.save_every=0",
+            "trainer.torch_threads=3",
+            "algorithm.mini_batch_size=12",
+            "algorithm.num_epochs=1",
+            "algorithm.compile=false",
+            "trainer.progress=false",
+            "logger=none",
+        ],  # fmt: skip
+        tmp_path / "run",
     )
-    try:
-        train(config, tmp_path / "run")
-    finally:
-        torch.set_num_threads(before)
     assert seen == {"collect": {3}, "eval": {1}, "update": {3}}

@@ -11,7 +11,7 @@ import time
 
 import torch
 
-from conftest import REPO, TINY, only_run_dir, run_train
+from conftest import REPO, TINY, only_run_dir, run_train, train_here
 from rlexp.checkpoints.files import latest_checkpoint, load_checkpoint
 
 
@@ -120,10 +120,7 @@ def test_collection_and_eval_run_one_torch_thread_and_the_update_torch_threads(
     tmp_path, monkeypatch
 ):
     """trainer.torch_threads is for the update; stepping envs with more threads only slows it."""
-    from conftest import compose
     from rlexp.algorithms.ppo import PPO
-    from rlexp.app import train
-    from rlexp.config.validate import to_root_config
     from rlexp.envs.gym import GymnasiumEnv
 
     seen: dict[str, set[int]] = {"step": set(), "update": set()}
@@ -139,34 +136,25 @@ def test_collection_and_eval_run_one_torch_thread_and_the_update_torch_threads(
 
     monkeypatch.setattr(GymnasiumEnv, "step_tensors", spy_step)
     monkeypatch.setattr(PPO, "update", spy_update)
-    before = torch.get_num_threads()
-    config = to_root_config(
-        compose(
-            [
-                "env=inverted_pendulum",
-                "trainer.total_frames=512",
-                "trainer.frames_per_batch=256",
-                "trainer.eval_every=256",
-                "trainer.eval_episodes=1",
-                "algorithm.num_epochs=1",
-                "trainer.torch_threads=2",
-                "logger=none",
-            ]  # fmt: skip
-        )
+    train_here(
+        [
+            "env=inverted_pendulum",
+            "trainer.total_frames=512",
+            "trainer.frames_per_batch=256",
+            "trainer.eval_every=256",
+            "trainer.eval_episodes=1",
+            "algorithm.num_epochs=1",
+            "trainer.torch_threads=2",
+            "logger=none",
+        ],  # fmt: skip
+        tmp_path / "run",
     )
-    try:
-        train(config, tmp_path / "run")
-    finally:
-        torch.set_num_threads(before)
     assert seen == {"step": {1}, "update": {2}}
 
 
 def test_best_pt_keeps_the_better_eval_when_a_later_one_is_worse(tmp_path, monkeypatch):
     """Three eval rounds scoring 1, 5, 2: best.pt is the step-512 state, not the last one."""
     import rlexp.training.evaluation as evaluation_mod  # the Trainer's in-process rounds run_episodes
-    from conftest import compose
-    from rlexp.app import train
-    from rlexp.config.validate import to_root_config
 
     scores = iter([1.0, 5.0, 2.0])
     real_run_episodes = evaluation_mod.run_episodes
@@ -177,22 +165,11 @@ def test_best_pt_keeps_the_better_eval_when_a_later_one_is_worse(tmp_path, monke
         return metrics
 
     monkeypatch.setattr(evaluation_mod, "run_episodes", scripted)
-    config = to_root_config(
-        compose(
-            [
-                *TINY,
-                "trainer.total_frames=768",
-                "trainer.keep_last=0",
-                "algorithm.num_epochs=1",
-                "logger=none",
-            ]
-        )
-    )
-    before = torch.get_num_threads()
-    try:
-        train(config, tmp_path / "run")
-    finally:
-        torch.set_num_threads(before)
+    train_here(
+        [*TINY, "trainer.total_frames=768", "trainer.keep_last=0", "algorithm.num_epochs=1",
+         "logger=none"],
+        tmp_path / "run",
+    )  # fmt: skip
     ckpts = tmp_path / "run" / "checkpoints"
     best = load_checkpoint(ckpts / "best.pt")
     assert best["global_step"] == 512
