@@ -9,6 +9,7 @@ critic every group); one-line refusals.
 
 from __future__ import annotations
 
+import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
@@ -262,6 +263,65 @@ def test_torchrl_env_with_a_policy_entry_makes_every_top_level_entry_a_group():
     torch.testing.assert_close(env.reset()["observation"], want, rtol=0, atol=0)
     actor, critic = _default_reads(env)
     assert actor == ["policy"] and critic == ["policy", "critic/contact", "critic/vel", "height"]
+
+
+# --------------------------------------------------------------------------- Gymnasium Dicts
+
+
+class GroupedDict(gym.Env):
+    """A Gymnasium env whose Dict names its groups by top-level key, as Isaac Lab's ``policy`` /
+    ``critic`` dicts do (``declared``), or with a ``critic`` key beside plain keys."""
+
+    def __init__(self, declared: bool = True) -> None:
+        box = lambda n: gym.spaces.Box(-np.inf, np.inf, (n,), np.float32)  # noqa: E731
+        top = {"policy": gym.spaces.Dict({"q": box(3), "cam": gym.spaces.Box(0, 255, (36, 36, 3),
+               np.uint8)}), "critic": box(2), "teacher": box(1)}  # fmt: skip
+        if not declared:
+            top = {"joints": box(3), "critic": box(2), "goal": box(1)}
+        self.observation_space = gym.spaces.Dict(top)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action):
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+@pytest.mark.parametrize("declared", [True, False])
+def test_a_gymnasium_dict_s_top_level_keys_are_groups_as_isaac_lab_names_them(declared):
+    """With a top-level ``policy`` key every top-level key is a group (``teacher`` too); without
+    one a ``critic`` key is still its own group and the rest is the policy's. The default actor
+    then reads the policy group only, the critic everything; the vector keeps the Dict's sorted
+    key order. Catches: the privileged ``critic`` entries read by the deployed actor."""
+    from rlexp.envs.gym import GymnasiumEnv
+
+    name = f"GroupedDict{int(declared)}-v0"
+    gym.register(name, entry_point=GroupedDict, kwargs={"declared": declared})
+    env = GymnasiumEnv(name, num_envs=2)
+    try:
+        if declared:
+            assert _parts(env) == [
+                ("critic", "critic", 0, 2),
+                ("policy/cam", "policy", -1, 0),
+                ("policy/q", "policy", 2, 3),
+                ("teacher", "teacher", 5, 1),
+            ]
+            assert _default_reads(env) == (
+                ["policy/cam", "policy/q"],
+                ["critic", "policy/cam", "policy/q", "teacher"],
+            )
+        else:
+            assert _parts(env) == [
+                ("critic", "critic", 0, 2),
+                ("goal", "policy", 2, 1),
+                ("joints", "policy", 3, 3),
+            ]
+            assert _default_reads(env) == (["goal", "joints"], ["critic", "goal", "joints"])
+    finally:
+        env.close()
+        gym.registry.pop(name, None)
 
 
 # --------------------------------------------------------------------------- native tasks

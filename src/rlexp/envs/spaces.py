@@ -23,12 +23,13 @@ adds each component's ``start`` and gives the env the shape and dtype its space 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
 
+from rlexp.envs.groups import group_rule
 from rlexp.envs.images import (
     VECTOR_KEY,
     FrameStack,
@@ -336,6 +337,9 @@ def obs_layout(
             )
 
     visit(space, "")
+    if isinstance(space, spaces.Dict):  # top-level keys as groups (groups.py: Isaac Lab's Dicts)
+        group = group_rule(str(k) for k in space.spaces)
+        parts = [replace(p, group=group(p.key.split("/")[0])) for p in parts]
     unknown = sorted(named - seen)
     if unknown:
         raise UnsupportedSpace(

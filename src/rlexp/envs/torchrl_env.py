@@ -46,12 +46,10 @@ from torchrl.envs import EnvBase
 
 from rlexp.envs.batched_base import FLOATS, BatchedAdapter, check_tensor
 from rlexp.envs.env_state import plain_state
+from rlexp.envs.groups import group_rule
 from rlexp.envs.images import VECTOR_KEY, image_key_of, image_layout
 from rlexp.envs.spaces import ActionCoding, ObsLayout, ObsPart, UnsupportedSpace
 
-#: Top-level entries that are observation groups of their own (the rest are the policy's), unless
-#: the env has a ``policy`` entry: then every top-level entry is a group (Isaac Lab's wrappers).
-GROUP_NAMES = ("policy", "critic")
 #: Observation dtypes rlexp reads (cast to float32): floats, integers, booleans.
 OBS_DTYPES = (*FLOATS, torch.bool, torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)
 
@@ -196,12 +194,10 @@ def _observations(raw: EnvBase, dims: int, where: str) -> tuple[list[Any], ObsLa
     )
     if not keys:
         raise ValueError(f"{where}: the env's observation spec has no tensor entries")
-    groups = {_path(k)[0] for k in keys}
-    declared = "policy" in groups  # Isaac Lab's / rsl_rl's groups: every top-level entry is one
+    top_group = group_rule(_path(k)[0] for k in keys)  # Isaac Lab's / rsl_rl's groups (groups.py)
 
     def group(key: Any) -> str:
-        top = _path(key)[0]
-        return top if declared or top in GROUP_NAMES else "policy"
+        return top_group(_path(key)[0])
 
     keys.sort(key=lambda k: group(k) != "policy")  # stable: the policy group first, sorted within
     parts, offset = [], 0
