@@ -629,3 +629,37 @@ def test_the_entry_guard_ends_a_chained_ctrl_c_as_one_and_lets_other_errors_thro
         ], err
     with pytest.raises(ImportError, match="initialization failed"), entry_guard("rlexp eval"):
         raise ImportError("initialization failed")
+
+
+def test_a_ctrl_c_that_a_library_replaces_with_an_unchained_error_still_ends_as_a_ctrl_c(capsys):
+    """C code that clears the interrupt and raises its own error (``from None``: no chain to
+    follow) after rlexp's start-up handler raised: the handler's record makes it the Ctrl-C it
+    was (one line, exit 130). Without a Ctrl-C the same error keeps its traceback, and a new
+    ``install`` (a new process state) forgets the record."""
+    from rlexp.runtime import outside_run
+    from rlexp.runtime.entry import entry_guard, note_sigint
+
+    def library() -> None:
+        try:
+            signal.raise_signal(signal.SIGINT)  # rlexp's handler raises SignalInterrupt here
+        except KeyboardInterrupt:
+            raise RuntimeError("module init failed") from None
+
+    saved = {s: signal.getsignal(s) for s in outside_run.STOP_SIGNALS}
+    try:
+        outside_run.install()
+        with pytest.raises(RuntimeError), entry_guard("train.py"):
+            raise RuntimeError("module init failed")  # no Ctrl-C yet: a bug, traceback kept
+        with pytest.raises(SystemExit) as ended, entry_guard("train.py"):
+            library()
+        assert ended.value.code == 130
+        assert capsys.readouterr().err.strip() == (
+            "train.py: interrupted (Ctrl-C) while no run was training: nothing to save"
+        )
+        outside_run.install()
+        with pytest.raises(RuntimeError), entry_guard("train.py"):
+            raise RuntimeError("module init failed")
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+        note_sigint(False)

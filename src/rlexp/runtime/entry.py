@@ -31,11 +31,25 @@ class SignalInterrupt(KeyboardInterrupt):
     a real Ctrl-C, told apart from one that user code raises (``rlexp.runtime.user_code``)."""
 
 
+#: Set when rlexp's start-up SIGINT handler (``outside_run``) raised its ``SignalInterrupt``: the
+#: user pressed Ctrl-C, whatever error the code it landed in turned that into.
+_SIGINT_RAISED = [False]
+
+
+def note_sigint(raised: bool = True) -> None:
+    """Record that the start-up Ctrl-C handler raised (False: a new process state, ``install``)."""
+    _SIGINT_RAISED[0] = raised
+
+
 def interrupted(exc: BaseException) -> bool:
-    """Whether ``exc`` came out of a ``KeyboardInterrupt`` (its cause/context chain holds one): a
-    Ctrl-C at start-up that landed inside a library surfaces as that library's error. A C
-    extension's module init (pybind11's, MuJoCo's) turns it into ``ImportError: initialization
-    failed`` chained to the interrupt; a library's failing ``finally`` into its own error."""
+    """Whether ``exc`` came out of a Ctrl-C: its cause/context chain holds a ``KeyboardInterrupt``,
+    or rlexp's start-up handler raised one in this process (``note_sigint``). A Ctrl-C at start-up
+    that landed inside a library surfaces as that library's error: a C extension's module init
+    (pybind11's, MuJoCo's) turns it into ``ImportError: initialization failed`` chained to the
+    interrupt, a library's failing ``finally`` into its own error, and C code that clears the
+    error and raises its own into one with no chain at all."""
+    if _SIGINT_RAISED[0]:
+        return True
     seen: set[int] = set()
     link: BaseException | None = exc
     while link is not None and id(link) not in seen:

@@ -24,7 +24,7 @@ import sys
 import threading
 from typing import Any
 
-from rlexp.runtime.entry import SignalInterrupt, interrupted
+from rlexp.runtime.entry import SignalInterrupt, interrupted, note_sigint
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +47,7 @@ def install(sweep: bool = False) -> None:
     """The entry point's stop-signal handlers (a signal the parent ignores stays ignored). The run's
     own handlers (``stop_on_signals``) go on top of these and put them back when the run ends."""
     _STATE.update(final=False, pending=None, code=0, sweep=sweep)
+    note_sigint(False)
     _set_handlers()
 
 
@@ -61,6 +62,7 @@ def _set_handlers() -> None:
 def _handle(signum: int, frame: Any) -> None:
     if not _STATE["final"]:  # start-up: nothing to save yet
         if signum == signal.SIGINT:
+            note_sigint()  # whatever the code it lands in makes of it (entry.interrupted)
             raise SignalInterrupt
         signal.signal(signum, signal.SIG_DFL)  # SIGTERM / SIGHUP: their default action, as before
         os.kill(os.getpid(), signum)
